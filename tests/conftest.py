@@ -1,0 +1,26 @@
+"""Shared fixtures. Real-data tests read ../shared/data (or $KPD_DATA); they skip when it is absent, except under CI."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _data_root() -> Path:
+    return Path(os.environ.get("KPD_DATA", REPO.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    """The real data folder; absence skips the test locally and fails it under CI=true."""
+    root = _data_root()
+    if not (root / "modelnet10").is_dir():
+        message = f"real data not found at {root} (set KPD_DATA)"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(message)
+        pytest.skip(message)
+    return root
