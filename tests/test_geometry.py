@@ -1,0 +1,168 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from kpd.errors import InputError, NotFittedError
+from kpd.geometry import (
+    Normalizer,
+    as_points,
+    chamfer,
+    chamfer_naive,
+    farthest_point_sampling,
+    farthest_point_sampling_naive,
+    sample_surface,
+)
+
+finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
+
+
+def clouds(min_size=1, max_size=40):
+    return st.integers(min_size, max_size).flatmap(lambda n: arrays(np.float64, (n, 3), elements=finite))
+
+
+def unit_cube():
+    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
+    t = np.array(
+        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+    )
+    return v, t
+
+
+# --- as_points -------------------------------------------------------------------------------------------------
+
+def test_as_points_converts_lists_to_float64():
+    p = as_points([[1, 2, 3]])
+    assert p.dtype == np.float64 and p.shape == (1, 3) and p.flags.c_contiguous
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (np.zeros((128, 4)), r"shape \(N, 3\); got \(128, 4\)"),
+        (np.zeros(3), r"shape \(N, 3\); got \(3,\)"),
+        (np.array([[0.0, np.nan, 0.0], [1, 1, 1]]), "1 point\\(s\\) with NaN or inf"),
+        (np.zeros((0, 3)), "at least 1 point"),
+        ("abc", "numeric"),
+    ],
+)
+def test_as_points_rejects_bad_input(bad, match):
+    with pytest.raises(InputError, match=match):
+        as_points(bad)
+
+
+# --- Normalizer ------------------------------------------------------------------------------------------------
+
+@given(clouds(min_size=2), st.floats(0.1, 100), arrays(np.float64, 3, elements=st.floats(-50, 50)))
+def test_normalizer_round_trip_and_box(points, s, t):
+    points = points * s + t
+    if np.ptp(points, axis=0).max() < 1e-6:
+        return
+    norm = Normalizer().fit(points)
+    y = norm.apply(points)
+    assert np.abs(y).max() == pytest.approx(1.0)
+    np.testing.assert_allclose((y.max(0) + y.min(0)) / 2, 0, atol=1e-9)
+    np.testing.assert_allclose(norm.invert(y), points, rtol=1e-12, atol=1e-9 * np.abs(points).max())
+
+
+def test_normalizer_keeps_aspect_ratio_and_vectors():
+    pts = np.array([[0, 0, 0], [4, 2, 1.0]])
+    norm = Normalizer().fit(pts)
+    np.testing.assert_allclose(norm.apply(pts), [[-1, -0.5, -0.25], [1, 0.5, 0.25]])
+    np.testing.assert_allclose(norm.apply_vectors([[2, 0, 0]]), [[1, 0, 0]])
+    np.testing.assert_allclose(norm.invert_vectors(norm.apply_vectors([[1, 2, 3]])), [[1, 2, 3]])
+
+
+def test_normalizer_dict_round_trip():
+    norm = Normalizer().fit(np.random.default_rng(0).normal(size=(50, 3)))
+    back = Normalizer.from_dict(norm.to_dict())
+    np.testing.assert_array_equal(back.center_, norm.center_)
+    assert back.scale_ == norm.scale_
+
+
+def test_normalizer_errors():
+    with pytest.raises(NotFittedError, match="not fitted"):
+        Normalizer().apply(np.zeros((1, 3)))
+    with pytest.raises(InputError, match="zero extent"):
+        Normalizer().fit(np.ones((5, 3)))
+    with pytest.raises(InputError, match="center"):
+        Normalizer.from_dict({"scale": 1.0})
+
+
+# --- surface sampling ------------------------------------------------------------------------------------------
+
+def test_sample_surface_on_cube_is_on_the_surface_and_uniform():
+    v, t = unit_cube()
+    s = sample_surface(v, t, 6000, seed=1)
+    assert s.points.shape == (6000, 3) and s.normals.shape == (6000, 3) and s.faces.shape == (6000,)
+    on_face = np.isclose(s.points, 0) | np.isclose(s.points, 1)
+    assert on_face.any(axis=1).all()
+    np.testing.assert_allclose(np.linalg.norm(s.normals, axis=1), 1)
+    # each of the 6 unit faces gets about a sixth of the points
+    side = np.argmax(np.abs(s.normals), axis=1) * 2 + (s.normals.max(axis=1) > 0.5)
+    counts = np.bincount(side, minlength=6)
+    assert counts.min() > 850 and counts.max() < 1150
+
+
+def test_sample_surface_is_seeded():
+    v, t = unit_cube()
+    a, b = sample_surface(v, t, 100, seed=3), sample_surface(v, t, 100, seed=3)
+    np.testing.assert_array_equal(a.points, b.points)
+    assert not np.array_equal(a.points, sample_surface(v, t, 100, seed=4).points)
+
+
+def test_sample_surface_errors():
+    v, t = unit_cube()
+    with pytest.raises(InputError, match="indices"):
+        sample_surface(v, t + 10, 10)
+    with pytest.raises(InputError, match="zero area"):
+        sample_surface(np.zeros((3, 3)), [[0, 1, 2]], 10)
+    with pytest.raises(InputError, match="shape \\(T, 3\\)"):
+        sample_surface(v, np.zeros((0, 3), int), 10)
+
+
+# --- farthest point sampling -----------------------------------------------------------------------------------
+
+@settings(max_examples=40, deadline=None)
+@given(clouds(min_size=2, max_size=30), st.integers(0, 2**31), st.data())
+def test_fps_matches_naive_unique_and_seed_stable(points, seed, data):
+    points = np.unique(points, axis=0)
+    k = data.draw(st.integers(1, len(points)))
+    idx = farthest_point_sampling(points, k, seed=seed)
+    assert len(np.unique(idx)) == k
+    np.testing.assert_array_equal(idx, farthest_point_sampling(points, k, seed=seed))
+    np.testing.assert_array_equal(idx, farthest_point_sampling_naive(points, k, seed=seed))
+
+
+def test_fps_picks_extremes():
+    pts = np.array([[0, 0, 0], [0.1, 0, 0], [10, 0, 0], [5, 0, 0]], dtype=float)
+    assert farthest_point_sampling(pts, 2, start=0).tolist() == [0, 2]
+    with pytest.raises(InputError, match="k must lie in"):
+        farthest_point_sampling(pts, 5)
+
+
+# --- chamfer ---------------------------------------------------------------------------------------------------
+
+@given(clouds(), clouds())
+def test_chamfer_symmetric_nonnegative_and_matches_naive(a, b):
+    c = chamfer(a, b)
+    assert c >= 0
+    assert c == pytest.approx(chamfer(b, a), rel=1e-9, abs=1e-9)
+    assert c == pytest.approx(chamfer_naive(a, b), rel=1e-6, abs=1e-6)
+
+
+@given(clouds())
+def test_chamfer_zero_on_itself(a):
+    assert chamfer(a, a) == pytest.approx(0, abs=1e-6)
+
+
+def test_chamfer_known_value_and_kdtree_path():
+    a = np.zeros((1, 3))
+    b = np.array([[1.0, 0, 0], [0, 2, 0]])
+    # a->b: min 1; b->a: (1 + 4)/2
+    assert chamfer(a, b) == pytest.approx(1 + 2.5)
+    rng = np.random.default_rng(0)
+    big_a, big_b = rng.normal(size=(3000, 3)), rng.normal(size=(2500, 3))
+    assert chamfer(big_a, big_b) == pytest.approx(chamfer_naive(big_a, big_b), rel=1e-9)
