@@ -1,0 +1,434 @@
+"""Model bundles: write, read and validate (format in :mod:`kpd.onnx_contract`).
+
+A bundle is a directory ``name.kpd/`` or a ``.zip`` of the same files. Reading checks everything before anything is
+used -- format name and version, the manifest's own checksum, the sha256 of every file, and the shapes of every array
+-- and a :class:`~kpd.errors.BundleError` names what is wrong. Nothing is unpickled: the manifest is JSON and the
+template cloud is read with ``np.load(allow_pickle=False)``.
+
+Bundles trained by the project ship inside the package (``kpd/models/<name>.kpd``) and are found by name.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import logging
+import os
+import shutil
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from kpd import onnx_contract as contract
+from kpd.cage import Cage
+from kpd.errors import BundleError, InputError
+from kpd.prior import KeypointPrior
+
+__all__ = ["Bundle", "read_bundle", "write_bundle", "resolve_bundle", "shipped_bundles", "manifest_checksum",
+           "MODELS_DIR"]
+
+log = logging.getLogger(__name__)
+
+MODELS_DIR = Path(__file__).resolve().parent / "models"
+_CHECKSUM_KEY = "manifest_sha256"
+
+
+@dataclass(frozen=True)
+class Bundle:
+    """A validated bundle held in memory.
+
+    Attributes
+    ----------
+    path : where it was read from.
+    manifest : the parsed manifest.json.
+    files : {file name: bytes} of every file the manifest lists (the ONNX graphs, the template cloud).
+    """
+
+    path: Path
+    manifest: dict
+    files: dict
+
+    @property
+    def name(self) -> str:
+        return self.path.name
+
+    @property
+    def category(self) -> str:
+        return self.manifest["category"]
+
+    @property
+    def num_keypoints(self) -> int:
+        """K."""
+        return self.manifest["model"]["keypoints"]
+
+    @property
+    def num_cage_vertices(self) -> int:
+        """C."""
+        return self.manifest["model"]["cage_vertices"]
+
+    @property
+    def m(self) -> int:
+        """M: cage vertices each keypoint moves (the locality mask)."""
+        return self.manifest["model"]["m"]
+
+    @property
+    def point_count(self) -> int:
+        """N the model was trained with; the runtime samples this many points per shape."""
+        return self.manifest["input"]["points"]
+
+    @property
+    def cage(self) -> Cage:
+        """The cage template in the model frame: vertices (C, 3) float64, faces (F, 3) int64."""
+        cage = self.manifest["cage"]
+        return Cage(np.asarray(cage["vertices"], dtype=np.float64), np.asarray(cage["faces"], dtype=np.int64))
+
+    @property
+    def shared_influence(self) -> np.ndarray:
+        """(K, C) float64: W_C, the category-shared influence matrix (unmasked)."""
+        return np.asarray(self.manifest["shared_influence"], dtype=np.float64)
+
+    @property
+    def prior(self) -> KeypointPrior | None:
+        """The category's keypoint prior, or None when the bundle has none (e.g. imported without data)."""
+        data = self.manifest.get("prior")
+        return None if data is None else KeypointPrior.from_dict(data)
+
+    @property
+    def template_points(self) -> np.ndarray | None:
+        """(P, 3) float64 surface points of a representative training shape in the model frame, or None."""
+        entry = self.manifest.get("template")
+        if entry is None:
+            return None
+        return _load_npy(self.files[entry["file"]], entry["file"]).astype(np.float64)
+
+    @property
+    def training(self) -> dict:
+        """The training record (data, command, seed, iterations, metrics) as exported."""
+        return self.manifest.get("training") or {}
+
+    def graph(self, spec: contract.GraphSpec) -> bytes:
+        """The serialised ONNX model of one graph (``contract.KEYPOINTS_GRAPH`` or ``contract.INFLUENCE_GRAPH``)."""
+        return self.files[self.manifest["graphs"][spec.key]["file"]]
+
+    def __repr__(self) -> str:
+        prior = "prior" if self.manifest.get("prior") is not None else "no prior"
+        return (f"Bundle({str(self.path)!r}, category={self.category!r}, K={self.num_keypoints}, "
+                f"C={self.num_cage_vertices}, {prior})")
+
+
+# --- reading ------------------------------------------------------------------------------------------------------
+
+def shipped_bundles() -> list[str]:
+    """Names of the bundles shipped inside the package (``kpd/models/<name>.kpd``)."""
+    if not MODELS_DIR.is_dir():
+        return []
+    return sorted(p.name[: -len(".kpd")] for p in MODELS_DIR.glob("*.kpd") if (p / contract.MANIFEST_FILE).is_file())
+
+
+def resolve_bundle(name_or_path: str | os.PathLike) -> Path:
+    """A bundle path from a path or the name of a shipped bundle (``"chair"``, ``"table"``)."""
+    path = Path(name_or_path)
+    if path.exists():
+        return path
+    text = str(name_or_path)
+    if os.sep not in text and "/" not in text:
+        shipped = MODELS_DIR / (text if text.endswith(".kpd") else text + ".kpd")
+        if shipped.is_dir():
+            return shipped
+    names = ", ".join(shipped_bundles()) or "none"
+    raise BundleError(f"{text}: no such bundle (a .kpd folder, a .zip, or a shipped name: {names})")
+
+
+def read_bundle(name_or_path: str | os.PathLike) -> Bundle:
+    """Read and validate a bundle (folder, zip, or shipped name).
+
+    Raises
+    ------
+    BundleError naming the problem: missing file, changed bytes, other format version, a mis-shaped array.
+    """
+    path = resolve_bundle(name_or_path)
+    raw = _read_files(path)
+    where = str(path)
+    if contract.MANIFEST_FILE not in raw:
+        raise BundleError(f"{where}: not a kpd bundle: {contract.MANIFEST_FILE} is missing")
+    try:
+        manifest = json.loads(raw[contract.MANIFEST_FILE].decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise BundleError(f"{where}: {contract.MANIFEST_FILE} is not valid JSON ({exc})") from exc
+    if not isinstance(manifest, dict):
+        raise BundleError(f"{where}: {contract.MANIFEST_FILE} must hold a JSON object")
+    _check_format(manifest, where)
+    recorded = manifest.get(_CHECKSUM_KEY)
+    actual = manifest_checksum(manifest)
+    if recorded != actual:
+        raise BundleError(f"{where}: {contract.MANIFEST_FILE} was modified: checksum {recorded} recorded, "
+                          f"{actual} computed")
+    files = _check_files(manifest, raw, where)
+    try:
+        _check_manifest(manifest, files)
+    except (KeyError, TypeError, ValueError, InputError) as exc:
+        detail = f"lacks {exc.args[0]!r}" if isinstance(exc, KeyError) else str(exc)
+        raise BundleError(f"{where}: invalid manifest: {detail}") from exc
+    return Bundle(path=path, manifest=manifest, files=files)
+
+
+def _read_files(path: Path) -> dict[str, bytes]:
+    if path.is_dir():
+        return {p.name: p.read_bytes() for p in path.iterdir() if p.is_file()}
+    if not path.is_file():
+        raise BundleError(f"{path}: no such bundle")
+    if not zipfile.is_zipfile(path):
+        raise BundleError(f"{path}: a bundle must be a .kpd folder or a .zip of one")
+    try:
+        with zipfile.ZipFile(path) as archive:
+            names = [n for n in archive.namelist() if not n.endswith("/")]
+            roots = {n.split("/")[0] for n in names if "/" in n}
+            # files at the archive's root, or inside one top-level folder
+            prefix = roots.pop() + "/" if len(roots) == 1 and all("/" in n for n in names) else ""
+            return {n[len(prefix):]: archive.read(n) for n in names if "/" not in n[len(prefix):]}
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise BundleError(f"{path}: unreadable zip ({exc})") from exc
+
+
+def _check_format(manifest: dict, where: str) -> None:
+    name = manifest.get("format")
+    if name != contract.FORMAT_NAME:
+        raise BundleError(f"{where}: format must be {contract.FORMAT_NAME!r}; got {name!r}")
+    version = manifest.get("format_version")
+    if version != contract.FORMAT_VERSION:
+        raise BundleError(f"{where}: bundle format version {version!r}; this kpd reads version "
+                          f"{contract.FORMAT_VERSION} (re-export the model with this kpd)")
+
+
+def _check_files(manifest: dict, raw: dict[str, bytes], where: str) -> dict[str, bytes]:
+    listed = manifest.get("files")
+    if not isinstance(listed, dict) or not listed:
+        raise BundleError(f"{where}: manifest lists no files")
+    needed = {manifest.get("graphs", {}).get(g.key, {}).get("file", g.file) for g in contract.GRAPHS}
+    if manifest.get("template"):
+        needed.add(manifest["template"].get("file", contract.TEMPLATE_FILE))
+    for name in sorted(needed - set(listed)):
+        raise BundleError(f"{where}: manifest has no sha256 for {name}")
+    files = {}
+    for name, digest in sorted(listed.items()):
+        if name not in raw:
+            raise BundleError(f"{where}: {name} is missing")
+        actual = hashlib.sha256(raw[name]).hexdigest()
+        if actual != digest:
+            raise BundleError(f"{where}: {name} was modified: sha256 {digest} expected, {actual} found")
+        files[name] = raw[name]
+    return files
+
+
+def _check_manifest(manifest: dict, files: dict[str, bytes]) -> None:
+    model = manifest["model"]
+    k, c, f, m = (_positive_int(model, key) for key in ("keypoints", "cage_vertices", "cage_faces", "m"))
+    if m > c:
+        raise ValueError(f"m must be at most C = {c}; got {m}")
+    inputs = manifest["input"]
+    _positive_int(inputs, "points")
+    if inputs["normalization"] != contract.NORMALIZATION:
+        raise ValueError(f"normalization must be {contract.NORMALIZATION!r}; got {inputs['normalization']!r}")
+    for spec in contract.GRAPHS:
+        graph = manifest["graphs"][spec.key]
+        if graph["input"] != contract.INPUT_NAME or graph["output"] != spec.output:
+            raise ValueError(f"graph {spec.key} must map {contract.INPUT_NAME!r} -> {spec.output!r}; "
+                             f"got {graph['input']!r} -> {graph['output']!r}")
+    vertices = np.asarray(manifest["cage"]["vertices"], dtype=np.float64)
+    faces = np.asarray(manifest["cage"]["faces"])
+    if vertices.shape != (c, 3) or not np.isfinite(vertices).all():
+        raise ValueError(f"cage vertices must be finite with shape (C, 3) = ({c}, 3); got {vertices.shape}")
+    if faces.shape != (f, 3) or faces.dtype.kind not in "iu" or faces.min() < 0 or faces.max() >= c:
+        raise ValueError(f"cage faces must be integers in [0, {c}) with shape (F, 3) = ({f}, 3); got {faces.shape}")
+    fit = manifest["cage"].get("fit") or {}
+    for key, value in fit.items():
+        if key not in ("distance", "iterations", "step") or isinstance(value, bool) or \
+                not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
+            raise ValueError(f"cage fit setting {key}={value!r} is not one of distance/iterations/step >= 0")
+    shared = np.asarray(manifest["shared_influence"], dtype=np.float64)
+    if shared.shape != (k, c) or not np.isfinite(shared).all():
+        raise ValueError(f"shared_influence (W_C) must be finite with shape (K, C) = ({k}, {c}); got {shared.shape}")
+    if manifest.get("prior") is not None:
+        prior = KeypointPrior.from_dict(manifest["prior"])
+        if prior.num_keypoints != k:
+            raise ValueError(f"prior is for K = {prior.num_keypoints} keypoints; the model has K = {k}")
+    if manifest.get("template") is not None:
+        name = manifest["template"]["file"]
+        points = _load_npy(files[name], name)
+        if points.ndim != 2 or points.shape[1] != 3 or len(points) < 1 or not np.isfinite(points).all():
+            raise ValueError(f"{name} must hold finite (P, 3) points; got shape {points.shape}")
+
+
+def _positive_int(mapping: Mapping, key: str) -> int:
+    value = mapping[key]
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{key} must be a positive integer; got {value!r}")
+    return value
+
+
+def _load_npy(data: bytes, name: str) -> np.ndarray:
+    try:
+        return np.load(io.BytesIO(data), allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        raise BundleError(f"{name}: not a plain .npy array ({exc})") from exc
+
+
+# --- writing ------------------------------------------------------------------------------------------------------
+
+def manifest_checksum(manifest: Mapping) -> str:
+    """sha256 of the manifest's canonical JSON without its own checksum entry."""
+    body = {key: value for key, value in manifest.items() if key != _CHECKSUM_KEY}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False)
+    return hashlib.sha256(text.encode("ascii")).hexdigest()
+
+
+def build_manifest(
+    *,
+    category: str,
+    keypoints_onnx: bytes,
+    influence_onnx: bytes,
+    cage: Cage,
+    shared_influence: Any,
+    m: int,
+    point_count: int,
+    cage_fit: Mapping | None = None,
+    prior: KeypointPrior | None = None,
+    template_points: Any = None,
+    template_source: str | None = None,
+    up: str | None = None,
+    training: Mapping | None = None,
+    clamp: bool = True,
+) -> tuple[dict, dict[str, bytes]]:
+    """The manifest and the files of a bundle (not yet written).
+
+    Parameters
+    ----------
+    category : the shape category ("chair").
+    keypoints_onnx, influence_onnx : serialised ONNX graphs following :mod:`kpd.onnx_contract`.
+    cage : the cage template, vertices (C, 3), faces (F, 3), model frame.
+    shared_influence : (K, C) W_C.
+    m : locality (cage vertices per keypoint).
+    point_count : N the model was trained with.
+    cage_fit : the :func:`kpd.cage.fit_cage` settings of training (``distance``, ``iterations``, ``step``).
+    prior : the fitted keypoint prior, or None.
+    template_points : (P, 3) model-frame points of a representative training shape, or None.
+    template_source : name of that shape.
+    up : the up axis of the training data's frame ("+z" for ModelNet), if known.
+    training : the training record (data, command, seed, iterations, metrics), JSON-safe.
+
+    Returns
+    -------
+    manifest : dict (with its checksum), files : {name: bytes} including manifest.json.
+    """
+    shared = np.asarray(shared_influence, dtype=np.float64)
+    vertices = np.asarray(cage.vertices, dtype=np.float64)
+    faces = np.asarray(cage.faces, dtype=np.int64)
+    k, c = shared.shape
+    files: dict[str, bytes] = {
+        contract.KEYPOINTS_GRAPH.file: bytes(keypoints_onnx),
+        contract.INFLUENCE_GRAPH.file: bytes(influence_onnx),
+    }
+    template = None
+    if template_points is not None:
+        points = np.ascontiguousarray(template_points, dtype=np.float32)
+        buffer = io.BytesIO()
+        np.save(buffer, points, allow_pickle=False)
+        files[contract.TEMPLATE_FILE] = buffer.getvalue()
+        template = {"file": contract.TEMPLATE_FILE, "points": int(len(points)), "source": template_source}
+    manifest = {
+        "format": contract.FORMAT_NAME,
+        "format_version": contract.FORMAT_VERSION,
+        "category": str(category),
+        "model": {"keypoints": int(k), "cage_vertices": int(c), "cage_faces": int(len(faces)), "m": int(m),
+                  "clamp": bool(clamp)},
+        "input": {"points": int(point_count), "normalization": contract.NORMALIZATION,
+                  "normalization_note": "per shape: bounding-box centre to the origin, largest absolute coordinate "
+                                        "to 1 (REFERENCE §7); mesh vertices and points share one normaliser",
+                  "up": up},
+        "graphs": {
+            spec.key: {"file": spec.file, "input": contract.INPUT_NAME, "output": spec.output,
+                       "dynamic_axes": [contract.BATCH_AXIS, contract.POINTS_AXIS], "opset": contract.OPSET}
+            for spec in contract.GRAPHS
+        },
+        "cage": {"vertices": vertices.tolist(), "faces": faces.tolist(), "fit": dict(cage_fit or {})},
+        "shared_influence": shared.tolist(),
+        "prior": None if prior is None else prior.to_dict(),
+        "template": template,
+        "training": dict(training or {}),
+        "files": {name: hashlib.sha256(data).hexdigest() for name, data in sorted(files.items())},
+        "created_by": f"kpd {_version()}",
+    }
+    manifest[_CHECKSUM_KEY] = manifest_checksum(manifest)
+    files[contract.MANIFEST_FILE] = (json.dumps(manifest, indent=1, allow_nan=False) + "\n").encode("utf-8")
+    return manifest, files
+
+
+def write_bundle(path: str | os.PathLike, files: Mapping[str, bytes], *, force: bool = False) -> Path:
+    """Write bundle files to a folder, or to a zip when ``path`` ends in ``.zip``, atomically.
+
+    The files go to a temporary sibling first, which is renamed onto ``path`` only when complete; an existing
+    ``path`` is replaced only with ``force``.
+    """
+    path = Path(path)
+    if path.exists() and not force:
+        raise InputError(f"{path} exists; pass force=True (--force) to replace it")
+    if not path.parent.is_dir():
+        raise InputError(f"output folder {path.parent} does not exist")
+    if path.suffix == ".zip":
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.close(fd)
+        try:
+            with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+                for name, data in sorted(files.items()):
+                    info = zipfile.ZipInfo(name, date_time=(2021, 6, 1, 0, 0, 0))
+                    info.compress_type = zipfile.ZIP_DEFLATED
+                    info.external_attr = 0o644 << 16
+                    archive.writestr(info, data)
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        return path
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    try:
+        for name, data in files.items():
+            (tmp / name).write_bytes(data)
+            os.chmod(tmp / name, 0o644)
+        os.chmod(tmp, 0o755)
+        replace_path(tmp, path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    return path
+
+
+def replace_path(source: Path, target: Path) -> None:
+    """Move ``source`` (a file or folder) onto ``target``, replacing a folder there as late as possible."""
+    if target.is_dir() and not target.is_symlink():
+        old = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".old", dir=target.parent))
+        old.rmdir()
+        os.replace(target, old)
+        try:
+            os.replace(source, target)
+        except OSError:
+            os.replace(old, target)
+            raise
+        shutil.rmtree(old)
+    else:
+        if target.exists():
+            target.unlink()
+        os.replace(source, target)
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import PackageNotFoundError, version
+
+        return version("kpd")
+    except PackageNotFoundError:
+        return "unknown"

@@ -1,0 +1,54 @@
+"""kpd align: deform a source mesh so that its keypoints move to a target's."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "deform a source mesh to a target shape through their keypoints (source topology, UVs and colours kept)"
+EXAMPLE = "kpd align chair source_chair.obj target_chair.ply --out source_like_target.obj"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from kpd.commands.keypoints import add_model_arguments
+
+    add_model_arguments(parser)
+    parser.add_argument("source", metavar="SOURCE", help="the mesh to deform")
+    parser.add_argument("target", metavar="TARGET", help="the shape to align to (mesh or point cloud)")
+    parser.add_argument("--out", required=True, help="deformed source mesh (.obj .ply .off .stl .gltf .glb)")
+    parser.add_argument("--keypoints", default=None, metavar="JSON",
+                        help="also write the source's and the target's keypoints (in the source's frame) here")
+    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    from kpd.commands import check_output
+    from kpd.commands.keypoints import check_suffix, load_model
+    from kpd.io import MESH_FORMATS, atomic_output, read_mesh, read_shape, write_mesh
+
+    check_suffix(args.out, MESH_FORMATS, "mesh")
+    out = check_output(args.out, force=args.force, inputs=(args.source, args.target))
+    extra = None
+    if args.keypoints is not None:
+        check_suffix(args.keypoints, (".json",), "keypoint")
+        extra = check_output(args.keypoints, force=args.force, inputs=(args.source, args.target))
+        if extra.resolve() == out.resolve():
+            from kpd.errors import InputError
+
+            raise InputError("--keypoints and --out must be different files")
+    model = load_model(args)
+    source = read_mesh(args.source)
+    target = read_shape(args.target)
+    rig = model.rig(source, seed=args.seed)
+    prediction = model.predict(target, seed=args.seed)
+    target_keypoints = rig.normalizer.invert(prediction.keypoints)  # target's shape, source's frame
+    write_mesh(out, rig.deformed_mesh(target_keypoints))
+    if extra is not None:
+        text = json.dumps({"source_keypoints": rig.keypoints.tolist(), "target_keypoints": target_keypoints.tolist(),
+                           "frame": "source", "model": str(args.model)}, indent=2)
+        with atomic_output(extra) as tmp:
+            tmp.write_text(text + "\n")
+    print(f"wrote {out} ({len(source.vertices)} vertices, source deformed to the target's {model.num_keypoints} "
+          "keypoints)")
+    return 0

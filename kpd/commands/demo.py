@@ -1,0 +1,141 @@
+"""kpd demo: deform a chair with the shipped chair model, offline, and write the result and a picture."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+HELP = "deform a chair with the shipped chair model (offline) and write the meshes, keypoints and a picture"
+EXAMPLE = "kpd demo --out demo-output    (or: kpd demo --mesh my_chair.obj --out demo-output)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", default="kpd-demo", metavar="DIR", help="folder to create (default kpd-demo)")
+    parser.add_argument("--mesh", default=None, help="your own chair mesh instead of the built-in procedural chair "
+                                                     "(z up, back toward +y, like ModelNet)")
+    parser.add_argument("--model", default="chair", help="bundle to use (default: the shipped chair model)")
+    parser.add_argument("--raise", dest="amount", type=float, default=0.3, metavar="FRACTION",
+                        help="raise the highest keypoint by this fraction of the shape's height (default 0.3)")
+    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    import shutil
+    import tempfile
+
+    from kpd.bundle import replace_path
+    from kpd.commands import check_output
+    from kpd.commands.sample import render_sheet
+    from kpd.errors import InputError
+    from kpd.io import read_mesh, write_mesh
+    from kpd.runtime import Model
+
+    if not (np.isfinite(args.amount) and -1 < args.amount < 5):
+        raise InputError(f"--raise must lie in (-1, 5); got {args.amount}")
+    out = check_output(args.out, force=args.force, inputs=(args.mesh,))
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file; demo writes a folder")
+    model = Model.load(args.model)
+    mesh = read_mesh(args.mesh) if args.mesh is not None else procedural_chair()
+    rig = model.rig(mesh)
+    up = _axis(model.up)
+    rest = rig.keypoints  # (K, 3) in the mesh's units
+    top = int(np.argmax(rest @ up))
+    height = float(np.ptp(mesh.vertices @ up))
+    edits = {top: rest[top] + args.amount * height * up}
+    synced = model.prior is not None
+    targets = model.sync(rig, edits) if synced else rig.moved({top: edits[top] - rest[top]})
+    deformed = rig.deformed_mesh(targets)
+
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    try:
+        write_mesh(staging / "input.ply", mesh)
+        write_mesh(staging / "deformed.ply", deformed)
+        rig.save(staging / "rig.npz")
+        record = {
+            "model": str(args.model), "category": model.category, "input": args.mesh or "procedural chair",
+            "frame": "input", "moved": top, "prior": synced, "rest_keypoints": rest.tolist(),
+            "deformed_keypoints": targets.tolist(),
+        }
+        (staging / "keypoints.json").write_text(json.dumps(record, indent=1) + "\n")
+        moved = np.flatnonzero(np.linalg.norm(targets - rest, axis=1) > 1e-9 * max(height, 1e-12))
+        render_sheet([mesh, deformed], staging / "demo.png", titles=["input", f"keypoint {top} raised"
+                     + (" (prior: the others follow)" if synced else "")], keypoints=[rest, targets], columns=2,
+                     up=_up_letter(model.up), cell=4.0,
+                     arrows=[(rest[moved], targets[moved]), None])
+        replace_path(staging, out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    print(f"wrote {out}/: input.ply, deformed.ply (keypoint {top} raised by {args.amount:g} of the height"
+          f"{', the others moved by the category prior' if synced else ''}), rig.npz, keypoints.json, demo.png")
+    print(f"next: kpd deform --rig {out}/rig.npz --move {top}:0,0,1 --out taller.ply")
+    return 0
+
+
+def _axis(up: str | None) -> np.ndarray:
+    letter = _up_letter(up)
+    axis = np.zeros(3)
+    axis["xyz".index(letter)] = -1.0 if (up or "").startswith("-") else 1.0
+    return axis
+
+
+def _up_letter(up: str | None) -> str:
+    return (up or "+z").lstrip("+-")[:1] or "z"
+
+
+def procedural_chair():
+    """A four-legged chair with a backrest, built from finely subdivided boxes, in ModelNet's frame and units.
+
+    z is up, the back is toward +y, the bounding box is x, y in [-10, 10] and z in [-18, 18] (like ModelNet10 chairs);
+    vertex colours: wooden legs and back, a red seat.
+
+    Returns
+    -------
+    kpd.io.Mesh
+    """
+    from kpd.io import Mesh
+
+    wood, cushion = (0.55, 0.36, 0.20), (0.72, 0.14, 0.12)
+    boxes = [((-10, -10, -2), (10, 10, 0), cushion)]  # seat
+    for x in (-10, 8):
+        for y in (-10, 8):
+            boxes.append(((x, y, -18), (x + 2, y + 2, -2), wood))  # legs
+    boxes.append(((-10, 8, 0), (10, 10, 18), wood))  # back
+    vertices, triangles, colours = [], [], []
+    for lo, hi, colour in boxes:
+        v, t = _box(np.asarray(lo, float), np.asarray(hi, float), edge=1.0)
+        triangles.append(t + sum(len(a) for a in vertices))
+        vertices.append(v)
+        colours.append(np.tile(colour, (len(v), 1)))
+    return Mesh(vertices=np.concatenate(vertices), triangles=np.concatenate(triangles),
+                vertex_colors=np.concatenate(colours))
+
+
+def _box(lo: np.ndarray, hi: np.ndarray, edge: float) -> tuple[np.ndarray, np.ndarray]:
+    """An axis-aligned box whose six faces are grids of about ``edge``-sized squares, outward triangles."""
+    vertices, triangles = [], []
+    offset = 0
+    for axis in range(3):
+        u, w = [(a) for a in range(3) if a != axis]
+        nu = max(1, int(np.ceil((hi[u] - lo[u]) / edge)))
+        nw = max(1, int(np.ceil((hi[w] - lo[w]) / edge)))
+        gu, gw = np.meshgrid(np.linspace(lo[u], hi[u], nu + 1), np.linspace(lo[w], hi[w], nw + 1), indexing="ij")
+        for side, value in ((-1, lo[axis]), (1, hi[axis])):
+            grid = np.empty((nu + 1, nw + 1, 3))
+            grid[..., axis], grid[..., u], grid[..., w] = value, gu, gw
+            index = np.arange((nu + 1) * (nw + 1)).reshape(nu + 1, nw + 1) + offset
+            a, b, c, d = index[:-1, :-1], index[1:, :-1], index[1:, 1:], index[:-1, 1:]
+            quads = np.stack([a, b, c, d], axis=-1).reshape(-1, 4)
+            # (u, w, axis) is right-handed for axis 0 and 2 with u < w, and for axis 1 reversed
+            outward = side * (1 if axis != 1 else -1) > 0
+            if outward:
+                tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+            else:
+                tris = np.concatenate([quads[:, [0, 2, 1]], quads[:, [0, 3, 2]]])
+            vertices.append(grid.reshape(-1, 3))
+            triangles.append(tris)
+            offset += (nu + 1) * (nw + 1)
+    return np.concatenate(vertices), np.concatenate(triangles)
