@@ -1,0 +1,327 @@
+"""Rig: one shape bound to its keypoints and cage, ready to edit.
+
+Moving keypoints by ``Δp`` moves the cage by ``Wᵀ Δp`` and every mesh vertex by its mean value coordinates times the
+cage offset, so the whole edit is linear:
+
+    vertices' = V₀ + B · Δp,    B = MVC · Wᵀ    # (V, 3) = (V, 3) + (V, K) · (K, 3)
+
+``B`` is computed once at bind time, so an edit costs one (V × K) by (K × 3) product. The map is scale-free: ``B``
+applies to offsets in the mesh's own units, so keypoints go in and vertices come out in the user's frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kpd.cage import Cage, cage_faces_from_vertices, default_m, fit_cage, influence_mask
+from kpd.errors import InputError
+from kpd.geometry import Normalizer, as_points, sample_surface
+from kpd.io import Mesh, atomic_output
+from kpd.mvc import mvc_weights
+
+__all__ = ["Rig", "RIG_FORMAT"]
+
+log = logging.getLogger(__name__)
+
+RIG_FORMAT = "kpd-rig/1"
+_CAGE_SAMPLE_POINTS = 2048
+
+
+class Rig:
+    """A mesh with keypoints, a cage, a masked influence matrix and the MVC weights of its vertices.
+
+    Parameters
+    ----------
+    mesh : Mesh, in the user's own units.
+    normalizer : Normalizer from the user's frame to the model's [-1, 1] frame.
+    keypoints : (K, 3) float64, rest keypoints in the model frame.
+    cage : Cage, vertices (C, 3) in the model frame.
+    influence : (K, C) float64, masked influence W (row k: how much each cage vertex follows keypoint k).
+    weights : (V, C) float64, MVC weights of the mesh vertices w.r.t. the cage.
+    """
+
+    def __init__(
+        self,
+        mesh: Mesh,
+        normalizer: Normalizer,
+        keypoints: Any,
+        cage: Cage,
+        influence: Any,
+        weights: Any,
+    ) -> None:
+        keypoints = as_points(keypoints, "keypoints")
+        cage = Cage(as_points(cage.vertices, "cage vertices", min_count=4), np.asarray(cage.faces, dtype=np.int64))
+        influence = np.asarray(influence, dtype=np.float64)
+        weights = np.asarray(weights, dtype=np.float64)
+        k, c, v = len(keypoints), len(cage.vertices), len(mesh.vertices)
+        if influence.shape != (k, c):
+            raise InputError(f"influence must have shape (K, C) = ({k}, {c}); got {influence.shape}")
+        if weights.shape != (v, c):
+            raise InputError(f"MVC weights must have shape (V, C) = ({v}, {c}); got {weights.shape}")
+        if cage.faces.ndim != 2 or cage.faces.shape[1] != 3 or cage.faces.min() < 0 or cage.faces.max() >= c:
+            raise InputError(f"cage faces must be (F, 3) indices into {c} cage vertices")
+        if not (np.isfinite(influence).all() and np.isfinite(weights).all()):
+            raise InputError("influence and MVC weights must be finite")
+        self.mesh = mesh
+        self.normalizer = normalizer
+        self.cage = cage
+        self.influence = influence
+        self.weights = weights
+        self._keypoints_model = keypoints
+        self._rest_keypoints = normalizer.invert(keypoints)  # (K, 3) user units
+        self._rest_vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)  # (V, 3)
+        self._basis = np.ascontiguousarray(weights @ influence.T)  # (V, K)
+
+    # --- construction -----------------------------------------------------------------------------------------
+
+    @classmethod
+    def bind(
+        cls,
+        mesh: Mesh,
+        keypoints: Any,
+        influence: Any = None,
+        *,
+        normalizer: Normalizer | None = None,
+        cage: Cage | None = None,
+        points: Any = None,
+        m: int | None = None,
+        enclose: bool = True,
+        seed: int = 0,
+    ) -> "Rig":
+        """Bind a mesh to keypoints predicted (or picked) in the model's [-1, 1] frame.
+
+        Parameters
+        ----------
+        mesh : Mesh in the user's units.
+        keypoints : (K, 3) float64, in the model frame of ``normalizer``.
+        influence : (K, C) float64, the unmasked influence W = W_C + W_I; ``None`` gives ones, so each keypoint
+            drags its ``m`` nearest cage vertices rigidly (a rig from hand-picked keypoints).
+        normalizer : user frame -> model frame; fitted on the mesh vertices when ``None``.
+        cage : cage in the model frame; fitted when ``None`` (REFERENCE §4 on ``points``).
+        points : (N, 3) float64, model-frame surface points to fit the cage on; a seeded sample when ``None``.
+        m : cage vertices per keypoint in the locality mask; ``default_m(C, K)`` when ``None``.
+        enclose : grow the fitted cage until every mesh vertex is inside it (beyond the authors' rule, which leaves
+            some points outside, where MVC misplaces them).
+        seed : seed of the surface sample.
+        """
+        if not isinstance(mesh, Mesh):
+            raise InputError(f"mesh must be a kpd.io.Mesh; got {type(mesh).__name__}")
+        normalizer = normalizer if normalizer is not None else Normalizer().fit(mesh.vertices)
+        keypoints = as_points(keypoints, "keypoints")
+        vertices = normalizer.apply(mesh.vertices)  # (V, 3)
+        if cage is None:
+            if points is None:
+                points = sample_surface(vertices, mesh.triangles, _CAGE_SAMPLE_POINTS, seed=seed).points
+            fit_points = as_points(points, "points")
+            if enclose:
+                fit_points = np.concatenate([fit_points, vertices])
+            cage = fit_cage(fit_points, enclose=enclose)
+        k, c = len(keypoints), len(cage.vertices)
+        influence = np.ones((k, c)) if influence is None else np.asarray(influence, dtype=np.float64)
+        if influence.shape != (k, c):
+            raise InputError(f"influence must have shape (K, C) = ({k}, {c}); got {influence.shape}")
+        m = default_m(c, k) if m is None else int(m)
+        masked = influence * influence_mask(keypoints, cage.vertices, m)
+        weights = mvc_weights(vertices, cage.vertices, cage.faces)
+        return cls(mesh, normalizer, keypoints, cage, masked, weights)
+
+    # --- editing ----------------------------------------------------------------------------------------------
+
+    @property
+    def num_keypoints(self) -> int:
+        return len(self._rest_keypoints)
+
+    @property
+    def keypoints(self) -> np.ndarray:
+        """(K, 3) float64: the rest keypoints in the user's units."""
+        return self._rest_keypoints.copy()
+
+    @property
+    def basis(self) -> np.ndarray:
+        """(V, K) float64: vertex offset per unit keypoint offset (read-only view)."""
+        view = self._basis.view()
+        view.flags.writeable = False
+        return view
+
+    def _offsets(self, keypoints: Any) -> np.ndarray:
+        keypoints = np.asarray(keypoints, dtype=np.float64)
+        if keypoints.shape != self._rest_keypoints.shape:
+            raise InputError(f"keypoints must have shape ({self.num_keypoints}, 3); got {keypoints.shape}")
+        if not np.isfinite(keypoints).all():
+            raise InputError("keypoints must be finite")
+        return keypoints - self._rest_keypoints  # (K, 3)
+
+    def deform(self, keypoints: Any, *, out: np.ndarray | None = None) -> np.ndarray:
+        """Mesh vertices for moved keypoints.
+
+        Parameters
+        ----------
+        keypoints : (K, 3) float64, in the user's units.
+        out : optional (V, 3) float64 buffer to write into (avoids an allocation per edit).
+
+        Returns
+        -------
+        vertices : (V, 3) float64, in the user's units; the rest vertices exactly when no keypoint moved.
+        """
+        offsets = self._offsets(keypoints)
+        out = np.empty_like(self._rest_vertices) if out is None else out
+        np.matmul(self._basis, offsets, out=out)
+        np.add(out, self._rest_vertices, out=out)
+        return out
+
+    def deform_cage(self, keypoints: Any) -> np.ndarray:
+        """(C, 3) float64: the moved cage in the user's units."""
+        offsets = self.normalizer.apply_vectors(self._offsets(keypoints))
+        return self.normalizer.invert(self.cage.vertices + self.influence.T @ offsets)
+
+    def deformed_mesh(self, keypoints: Any) -> Mesh:
+        """A copy of the mesh (topology, UVs, colours, textures kept) with the deformed vertices."""
+        return self.mesh.with_vertices(self.deform(keypoints))
+
+    def moved(self, moves: dict[int, Any]) -> np.ndarray:
+        """(K, 3) keypoints with ``{index: (dx, dy, dz)}`` offsets (user units) added to the rest keypoints."""
+        keypoints = self.keypoints
+        for index, delta in moves.items():
+            if not 0 <= index < self.num_keypoints:
+                raise InputError(f"keypoint index must lie in [0, {self.num_keypoints}); got {index}")
+            delta = np.asarray(delta, dtype=np.float64)
+            if delta.shape != (3,) or not np.isfinite(delta).all():
+                raise InputError(f"a keypoint move needs 3 finite numbers; got {delta.tolist()}")
+            keypoints[index] += delta
+        return keypoints
+
+    # --- files ------------------------------------------------------------------------------------------------
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the rig to a ``.npz`` file (no pickle), atomically."""
+        arrays = {
+            "format": np.array(RIG_FORMAT),
+            "keypoints": self._keypoints_model,
+            "cage_vertices": self.cage.vertices,
+            "cage_faces": self.cage.faces,
+            "influence": self.influence,
+            "weights": self.weights,
+            "normalizer_center": self.normalizer.center_,
+            "normalizer_scale": np.array(self.normalizer.scale_),
+        }
+        for name, value in _mesh_arrays(self.mesh).items():
+            arrays["mesh_" + name] = value
+        with atomic_output(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **arrays)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Rig":
+        """Read a rig written by :meth:`save`."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"{path}: no such rig file")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {name: data[name] for name in data.files}
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{path}: not a kpd rig (.npz): {exc}") from exc
+        fmt = str(arrays.get("format", ""))
+        if fmt != RIG_FORMAT:
+            raise InputError(f"{path}: rig format must be {RIG_FORMAT!r}; got {fmt or 'none'!r}")
+        try:
+            mesh = _mesh_from_arrays({k[5:]: v for k, v in arrays.items() if k.startswith("mesh_")})
+            normalizer = Normalizer.from_dict(
+                {"center": arrays["normalizer_center"].tolist(), "scale": float(arrays["normalizer_scale"])}
+            )
+            cage = Cage(arrays["cage_vertices"], arrays["cage_faces"])
+            return cls(mesh, normalizer, arrays["keypoints"], cage, arrays["influence"], arrays["weights"])
+        except KeyError as exc:
+            raise InputError(f"{path}: rig file lacks {exc.args[0]!r}") from exc
+
+    @classmethod
+    def from_demo(cls, directory: str | os.PathLike) -> "Rig":
+        """Import a rig in the authors' project-page demo format (REFERENCE §17).
+
+        Reads ``source_vertices.txt`` (V × 3), ``source_faces.txt`` (T × 3), ``source_keypoints.txt`` (K lines
+        ``%03d x y z``), ``cage.txt`` (C × 3), ``influence.txt`` (K × C, masked) and, when present, ``weights.txt``
+        (V × C); missing weights are computed. The cage's triangles are recovered from its vertex directions.
+        Everything is already in the model frame, so the normaliser is the identity.
+        """
+        directory = Path(directory)
+        if not directory.is_dir():
+            raise InputError(f"{directory}: not a folder of demo files")
+        vertices = _read_table(directory / "source_vertices.txt", 3)
+        faces = _read_table(directory / "source_faces.txt", 3)
+        if not np.allclose(faces, np.round(faces)):
+            raise InputError(f"{directory / 'source_faces.txt'}: face indices must be integers")
+        triangles = np.round(faces).astype(np.int64)
+        keypoints = _read_table(directory / "source_keypoints.txt", None)
+        if keypoints.shape[1] == 4:
+            keypoints = keypoints[:, 1:]
+        if keypoints.shape[1] != 3:
+            raise InputError(f"{directory / 'source_keypoints.txt'}: rows must be 'x y z' or 'index x y z'")
+        cage_vertices = _read_table(directory / "cage.txt", 3)
+        influence = _read_table(directory / "influence.txt", len(cage_vertices))
+        mesh = Mesh(vertices=vertices, triangles=triangles)
+        _check_faces(triangles, len(vertices), directory / "source_faces.txt")
+        cage = Cage(cage_vertices, cage_faces_from_vertices(cage_vertices))
+        weights_file = directory / "weights.txt"
+        if weights_file.exists():
+            weights = _read_table(weights_file, len(cage_vertices))
+        else:
+            weights = mvc_weights(vertices, cage.vertices, cage.faces)
+        identity = Normalizer.from_dict({"center": [0.0, 0.0, 0.0], "scale": 1.0})
+        return cls(mesh, identity, keypoints, cage, influence, weights)
+
+    def __repr__(self) -> str:
+        return (
+            f"Rig(V={len(self._rest_vertices)}, K={self.num_keypoints}, C={len(self.cage.vertices)}, "
+            f"F={len(self.cage.faces)})"
+        )
+
+
+def _read_table(path: Path, columns: int | None) -> np.ndarray:
+    if not path.is_file():
+        raise InputError(f"{path}: missing demo file")
+    try:
+        table = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as exc:
+        raise InputError(f"{path}: not a table of numbers: {exc}") from exc
+    if table.size == 0:
+        raise InputError(f"{path}: empty")
+    if columns is not None and table.shape[1] != columns:
+        raise InputError(f"{path}: rows must have {columns} numbers; got {table.shape[1]}")
+    if not np.isfinite(table).all():
+        raise InputError(f"{path}: contains NaN or inf")
+    return table
+
+
+def _check_faces(triangles: np.ndarray, count: int, where: Path) -> None:
+    if triangles.min() < 0 or triangles.max() >= count:
+        raise InputError(f"{where}: face indices must lie in [0, {count}); got [{triangles.min()}, {triangles.max()}]")
+
+
+def _mesh_arrays(mesh: Mesh) -> dict[str, np.ndarray]:
+    """The mesh's array fields (None fields left out; textures as texture_0, texture_1, ...)."""
+    arrays = {}
+    for field in dataclasses.fields(mesh):
+        value = getattr(mesh, field.name)
+        if value is None or field.name == "path":
+            continue
+        if field.name == "textures":
+            for i, image in enumerate(value):
+                arrays[f"texture_{i}"] = np.asarray(image)
+            continue
+        arrays[field.name] = np.asarray(value)
+    return arrays
+
+
+def _mesh_from_arrays(arrays: dict[str, np.ndarray]) -> Mesh:
+    names = {f.name for f in dataclasses.fields(Mesh)}
+    textures = [arrays[k] for k in sorted((k for k in arrays if k.startswith("texture_")), key=lambda s: int(s[8:]))]
+    kwargs = {k: v for k, v in arrays.items() if k in names}
+    if "textures" in names:
+        kwargs["textures"] = textures
+    return Mesh(**kwargs)

@@ -1,0 +1,185 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from kpd.cage import Cage
+from kpd.errors import InputError
+from kpd.geometry import Normalizer, farthest_point_sampling, sample_surface
+from kpd.io import Mesh, read_mesh
+from kpd.rig import Rig
+
+
+def box_mesh(size=(2.0, 1.0, 0.5), offset=(10.0, -3.0, 5.0)):
+    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
+    t = np.array(
+        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+    )
+    return Mesh(vertices=v * size + offset, triangles=t)
+
+
+def corner_rig(mesh=None):
+    mesh = mesh or box_mesh()
+    norm = Normalizer().fit(mesh.vertices)
+    keypoints = norm.apply(mesh.vertices)  # one keypoint per box corner
+    return Rig.bind(mesh, keypoints, normalizer=norm)
+
+
+def test_zero_edit_is_identity_and_keypoints_in_user_units():
+    rig = corner_rig()
+    np.testing.assert_allclose(rig.keypoints, rig.mesh.vertices, atol=1e-12)
+    np.testing.assert_array_equal(rig.deform(rig.keypoints), rig.mesh.vertices)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 7), st.lists(st.floats(-0.5, 0.5), min_size=3, max_size=3), st.floats(-3, 3))
+def test_deform_is_linear_in_the_offsets(index, delta, a):
+    rig = corner_rig()
+    one = rig.deform(rig.moved({index: delta})) - rig.mesh.vertices
+    scaled = rig.deform(rig.moved({index: a * np.asarray(delta)})) - rig.mesh.vertices
+    np.testing.assert_allclose(scaled, a * one, atol=1e-9)
+
+
+def test_moving_a_corner_moves_the_box_towards_it():
+    rig = corner_rig()
+    moved = rig.deform(rig.moved({7: [0.3, 0.3, 0.3]}))
+    shift = np.linalg.norm(moved - rig.mesh.vertices, axis=1)
+    assert shift[7] > 0.1
+    assert shift[7] == shift.max()
+    assert shift[0] < shift[7]  # the opposite corner moves least
+
+
+def test_deform_cage_and_deformed_mesh():
+    rig = corner_rig()
+    np.testing.assert_allclose(rig.deform_cage(rig.keypoints), rig.normalizer.invert(rig.cage.vertices), atol=1e-12)
+    kp = rig.moved({0: [0, 0, 1.0]})
+    mesh = rig.deformed_mesh(kp)
+    np.testing.assert_array_equal(mesh.triangles, rig.mesh.triangles)
+    np.testing.assert_allclose(mesh.vertices, rig.deform(kp))
+
+
+def test_save_load_round_trip(tmp_path):
+    rig = corner_rig()
+    rig.save(tmp_path / "rig.npz")
+    back = Rig.load(tmp_path / "rig.npz")
+    kp = rig.moved({3: [0.1, -0.2, 0.3]})
+    np.testing.assert_array_equal(back.deform(kp), rig.deform(kp))
+    np.testing.assert_array_equal(back.mesh.triangles, rig.mesh.triangles)
+    assert repr(back) == repr(rig)
+
+
+def test_errors(tmp_path):
+    rig = corner_rig()
+    with pytest.raises(InputError, match=r"shape \(8, 3\); got \(7, 3\)"):
+        rig.deform(np.zeros((7, 3)))
+    with pytest.raises(InputError, match=r"index must lie in \[0, 8\); got 9"):
+        rig.moved({9: [0, 0, 0]})
+    with pytest.raises(InputError, match="finite"):
+        rig.deform(np.full((8, 3), np.nan))
+    with pytest.raises(InputError, match="no such rig"):
+        Rig.load(tmp_path / "absent.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="not a kpd rig"):
+        Rig.load(tmp_path / "junk.npz")
+    np.savez(tmp_path / "other.npz", a=np.zeros(3))
+    with pytest.raises(InputError, match="rig format"):
+        Rig.load(tmp_path / "other.npz")
+    with pytest.raises(InputError, match=r"influence must have shape \(K, C\) = \(8, 42\)"):
+        Rig.bind(rig.mesh, rig.normalizer.apply(rig.keypoints), np.ones((8, 5)))
+
+
+def write_demo(rig: Rig, folder, *, shuffle_seed=0, with_weights=True):
+    """Write a rig in the authors' project-page format, with the cage vertices in another order."""
+    folder.mkdir()
+    order = np.random.default_rng(shuffle_seed).permutation(len(rig.cage.vertices))
+    vertices = rig.normalizer.apply(rig.mesh.vertices)
+    np.savetxt(folder / "source_vertices.txt", vertices)
+    np.savetxt(folder / "source_faces.txt", rig.mesh.triangles.astype(float))
+    kp = rig.normalizer.apply(rig.keypoints)
+    with open(folder / "source_keypoints.txt", "w") as fh:
+        for i, p in enumerate(kp):
+            fh.write("%03d %f %f %f\n" % (i, *p))
+    np.savetxt(folder / "cage.txt", rig.cage.vertices[order])
+    np.savetxt(folder / "influence.txt", rig.influence[:, order])
+    if with_weights:
+        np.savetxt(folder / "weights.txt", rig.weights[:, order])
+    return vertices
+
+
+@pytest.mark.parametrize("with_weights", [True, False])
+def test_from_demo_recovers_the_rig(tmp_path, with_weights):
+    rig = corner_rig()
+    vertices = write_demo(rig, tmp_path / "demo", with_weights=with_weights)
+    demo = Rig.from_demo(tmp_path / "demo")
+    assert len(demo.cage.faces) == 80
+    scale = rig.normalizer.scale_
+    kp = demo.keypoints + np.array([[0.0, 0.05, 0.0]] * 8) * (np.arange(8) == 2)[:, None]
+    expected = rig.normalizer.apply(rig.deform(rig.normalizer.invert(kp)))
+    np.testing.assert_allclose(demo.deform(kp), expected, atol=1e-5 if with_weights else 1e-6 * scale)
+    np.testing.assert_allclose(demo.deform(demo.keypoints), vertices, atol=1e-12)
+
+
+def test_from_demo_errors(tmp_path):
+    with pytest.raises(InputError, match="not a folder"):
+        Rig.from_demo(tmp_path / "none")
+    rig = corner_rig()
+    write_demo(rig, tmp_path / "demo")
+    (tmp_path / "demo" / "cage.txt").unlink()
+    with pytest.raises(InputError, match="cage.txt: missing demo file"):
+        Rig.from_demo(tmp_path / "demo")
+
+
+# --- real data -------------------------------------------------------------------------------------------------
+
+def modelnet_test_meshes(data_dir):
+    return sorted((data_dir / "modelnet10").glob("*/test/*.ply"))
+
+
+def fps_keypoints(mesh, norm, k=12, seed=0):
+    points = sample_surface(norm.apply(mesh.vertices), mesh.triangles, 2048, seed=seed).points
+    return points[farthest_point_sampling(points, k, seed=seed)]
+
+
+@pytest.mark.slow
+def test_every_modelnet_test_mesh_binds_and_zero_edit_returns_it(data_dir):
+    paths = modelnet_test_meshes(data_dir)
+    assert len(paths) >= 190
+    for path in paths:
+        mesh = read_mesh(path)
+        norm = Normalizer().fit(mesh.vertices)
+        rig = Rig.bind(mesh, fps_keypoints(mesh, norm), normalizer=norm)
+        np.testing.assert_array_equal(rig.deform(rig.keypoints), mesh.vertices, err_msg=str(path))
+        # the enclosing cage reproduces every vertex through its MVC weights
+        reproduced = norm.invert(rig.weights @ rig.cage.vertices)
+        assert np.abs(reproduced - mesh.vertices).max() <= 1e-9 * norm.scale_, path
+        assert np.allclose(rig.weights.sum(axis=1), 1.0)
+
+
+def test_real_chair_moving_a_keypoint_moves_the_near_part_only(data_dir):
+    mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply")
+    norm = Normalizer().fit(mesh.vertices)
+    rig = Rig.bind(mesh, fps_keypoints(mesh, norm), normalizer=norm)
+    kp = norm.apply(rig.keypoints)
+    top = int(np.argmax(kp[:, 2]))  # the keypoint highest on the back (ModelNet: z up)
+    lift = 0.2 * norm.scale_
+    moved = rig.deform(rig.moved({top: [0.0, 0.0, lift]}))
+    shift = np.linalg.norm(moved - mesh.vertices, axis=1) / lift  # (V,), in units of the move
+    dist = np.linalg.norm(norm.apply(mesh.vertices) - kp[top], axis=1)
+    near, far = shift[dist < 0.25], shift[dist > 1.4]  # the box spans 2 units
+    assert near.size and far.size
+    assert near.mean() > 0.5
+    assert far.max() < 0.1
+    # and the edit keeps the mesh's own units: a chair leg at the floor stays on the floor
+    floor = mesh.vertices[:, 2] < mesh.vertices[:, 2].min() + 0.02 * norm.scale_
+    assert np.abs(moved[floor] - mesh.vertices[floor]).max() < 0.01 * lift
+
+
+def test_real_sneaker_scan_binds(data_dir):
+    mesh = read_mesh(data_dir / "scans" / "sneaker.ply")
+    assert len(mesh.vertices) == 22043
+    norm = Normalizer().fit(mesh.vertices)
+    rig = Rig.bind(mesh, fps_keypoints(mesh, norm, k=8), normalizer=norm)
+    np.testing.assert_array_equal(rig.deform(rig.keypoints), mesh.vertices)
+    moved = rig.deform(rig.moved({0: [0.0, 0.1 * norm.scale_, 0.0]}))
+    assert np.isfinite(moved).all() and np.abs(moved - mesh.vertices).max() > 0.01 * norm.scale_
