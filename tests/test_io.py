@@ -1,0 +1,776 @@
+"""kpd.io: real files, round trips through every format, clear errors, atomic writes, keypoint files."""
+
+import dataclasses
+import json
+import logging
+import os
+import re
+
+import numpy as np
+import open3d as o3d
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from kpd.errors import InputError, KpdError
+from kpd.io import (
+    Mesh,
+    PointSet,
+    atomic_output,
+    read_keypoints,
+    read_mesh,
+    read_points,
+    read_shape,
+    write_keypoints,
+    write_mesh,
+    write_points,
+)
+
+BANANA = "scans/ycb/banana/textured_simple_reoriented.obj"
+DRILL = "scans/ycb/power_drill/textured_simple_reoriented.obj"
+KEYPOINTNET_PCD = "keypointnet/pcds/03001627/88382b877be91b2a572f8e1c1caad99e.pcd"
+
+finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False, width=64)
+
+
+# --- helpers ---------------------------------------------------------------------------------------------------------
+
+
+def sphere_mesh(seed=0, *, normals=True, colors=True, uvs=False, textures=0, resolution=4):
+    """A closed mesh with irregular coordinates; UVs sit on texel centres so lookups survive float32 rounding."""
+    rng = np.random.default_rng(seed)
+    base = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=resolution)
+    v = np.asarray(base.vertices) * [1.7, 0.9, 1.3] + rng.normal(scale=0.01, size=(len(base.vertices), 3)) + 3.21
+    t = np.asarray(base.triangles).astype(np.int64)
+    mesh_textures, ids, tri_uvs = [], None, None
+    if uvs or textures:
+        h, w = 8, 16
+        texel = rng.integers(0, [w, h], size=(3 * len(t), 2))
+        tri_uvs = (texel + 0.5) / [w, h]
+    if textures:
+        mesh_textures = [rng.integers(0, 256, size=(8, 16, 3), dtype=np.uint8) for _ in range(textures)]
+        ids = np.sort(rng.integers(0, textures, size=len(t)))  # sorted: every writer keeps this triangle order
+        ids[:textures] = np.arange(textures)
+        ids = np.sort(ids)
+    return Mesh(
+        vertices=v,
+        triangles=t,
+        vertex_normals=v / np.linalg.norm(v, axis=1, keepdims=True) if normals else None,
+        vertex_colors=rng.random((len(v), 3)) if colors else None,
+        triangle_uvs=tri_uvs,
+        textures=mesh_textures,
+        triangle_material_ids=ids,
+    )
+
+
+def corners(mesh, name):
+    """Per-triangle-corner values (T, 3, d): independent of vertex order and of vertices split at UV seams."""
+    if name == "uvs":
+        return None if mesh.triangle_uvs is None else mesh.triangle_uvs.reshape(-1, 3, 2)
+    values = {"xyz": mesh.vertices, "normals": mesh.vertex_normals, "colors": mesh.vertex_colors}[name]
+    return None if values is None else values[mesh.triangles]
+
+
+def texels(mesh):
+    """The texel colour at every triangle corner: (3T, C) uint8."""
+    ids = np.zeros(len(mesh.triangles), int) if mesh.triangle_material_ids is None else mesh.triangle_material_ids
+    out = []
+    for corner, (u, v) in enumerate(mesh.triangle_uvs):
+        tex = mesh.textures[ids[corner // 3]]
+        h, w = tex.shape[:2]
+        out.append(tex[int((1 - v) * h), int(u * w)])
+    return np.array(out)
+
+
+def write_text(path, text):
+    path.write_text(text)
+    return path
+
+
+def ply_binary(vertices, faces):
+    head = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\nproperty float x\nproperty float y\n"
+        f"property float z\nelement face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    face_bytes = b"".join(np.uint8(3).tobytes() + np.asarray(f, "<i4").tobytes() for f in faces)
+    return head.encode() + np.asarray(vertices, "<f4").tobytes() + face_bytes
+
+
+def ply_ascii(vertices, faces):
+    head = (
+        f"ply\nformat ascii 1.0\nelement vertex {len(vertices)}\nproperty float x\nproperty float y\nproperty float z\n"
+        f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    return head + "".join(" ".join(map(str, v)) + "\n" for v in vertices) + "".join(
+        f"3 {a} {b} {c}\n" for a, b, c in faces
+    )
+
+
+TRIANGLE = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
+
+
+@pytest.fixture(scope="module")
+def banana(data_dir):
+    return read_mesh(data_dir / BANANA)
+
+
+# --- real data -------------------------------------------------------------------------------------------------------
+
+
+def test_every_modelnet10_test_mesh_reads(data_dir):
+    files = sorted(data_dir.glob("modelnet10/*/test/*.ply"))
+    assert len(files) >= 190
+    for f in files:
+        m = read_mesh(f)
+        assert m.vertices.dtype == np.float64 and m.triangles.dtype == np.int64, f
+        assert len(m.vertices) > 0 and len(m.triangles) > 0, f
+        assert np.isfinite(m.vertices).all(), f
+        assert m.triangles.min() >= 0 and m.triangles.max() < len(m.vertices), f
+        assert m.path == str(f)
+
+
+def test_sneaker_scan_counts(data_dir):
+    m = read_mesh(data_dir / "scans/sneaker.ply")
+    assert m.vertices.shape == (22043, 3) and m.triangles.shape == (39326, 3)
+    assert isinstance(read_shape(data_dir / "scans/sneaker.ply"), Mesh)
+
+
+def test_banana_has_uvs_and_the_texture_as_in_the_file(banana, data_dir):
+    assert banana.triangle_uvs.shape == (3 * len(banana.triangles), 2)
+    assert len(banana.textures) == 1
+    on_disk = np.asarray(o3d.io.read_image(str(data_dir / "scans/ycb/banana/texture_map.png")))
+    np.testing.assert_array_equal(banana.textures[0], on_disk)
+    np.testing.assert_array_equal(banana.triangle_material_ids, 0)
+    # Assimp splits the 7,866 OBJ vertices where UVs differ: one vertex per distinct (v, vt) pair.
+    assert len(banana.vertices) == 10710
+
+
+def test_banana_obj_round_trip_keeps_uvs_and_texture(banana, tmp_path):
+    write_mesh(tmp_path / "banana.obj", banana)
+    assert sorted(os.listdir(tmp_path)) == ["banana.mtl", "banana.obj", "banana_0.png"]
+    back = read_mesh(tmp_path / "banana.obj")
+    np.testing.assert_allclose(back.triangle_uvs, banana.triangle_uvs, atol=1e-6)
+    assert len(back.textures) == 1
+    np.testing.assert_array_equal(back.textures[0], banana.textures[0])
+    np.testing.assert_allclose(back.vertices, banana.vertices, rtol=1e-5, atol=1e-9)
+    np.testing.assert_array_equal(back.triangles, banana.triangles)
+    np.testing.assert_allclose(back.vertex_normals, banana.vertex_normals, atol=1e-5)
+
+
+def test_missing_texture_is_a_warning_not_an_error(data_dir, caplog, capfd):
+    with caplog.at_level(logging.WARNING, logger="kpd.io"):
+        m = read_mesh(data_dir / DRILL)
+    assert len(m.triangles) == 15728 and m.triangle_uvs is not None
+    assert m.textures == [] and m.triangle_material_ids is None
+    assert any("texture_map.png" in r.getMessage() and "missing" in r.getMessage() for r in caplog.records)
+    out, err = capfd.readouterr()
+    assert "Open3D WARNING" not in out + err  # Open3D's own chatter is silenced
+
+
+def test_keypointnet_pcd_has_2048_points_with_packed_rgb(data_dir):
+    path = data_dir / KEYPOINTNET_PCD
+    ps = read_points(path)
+    assert ps.points.shape == (2048, 3) and ps.colors.shape == (2048, 3)
+    first = path.read_text().split("DATA ascii")[1].split()[:4]
+    np.testing.assert_allclose(ps.points[0], [float(x) for x in first[:3]], rtol=1e-6)
+    assert isinstance(read_shape(path), PointSet)
+    rows = [line.split() for line in path.read_text().split("DATA ascii")[1].splitlines() if line.strip()]
+    rgb = np.array([int(r[3]) for r in rows])
+    expected = np.stack([(rgb >> 16) & 255, (rgb >> 8) & 255, rgb & 255], axis=1) / 255.0
+    np.testing.assert_allclose(ps.colors, expected, atol=1e-9)
+
+
+def test_shapenetpart_pts_point_counts_match_the_labels(data_dir):
+    files = sorted(data_dir.glob("shapenetpart_sample/*/points/*.pts"))
+    assert len(files) == 16
+    for f in files:
+        labels = (f.parent.parent / "points_label" / f.with_suffix(".seg").name).read_text().split()
+        ps = read_points(f)
+        assert len(ps) == len(labels) > 2000, f
+        assert ps.normals is None
+
+
+def test_mesh_file_read_as_points_gives_its_vertices(data_dir):
+    mesh = read_mesh(data_dir / "scans/sneaker.ply")
+    ps = read_points(data_dir / "scans/sneaker.ply")
+    np.testing.assert_array_equal(ps.points, mesh.vertices)
+
+
+# --- mesh round trips ------------------------------------------------------------------------------------------------
+
+# format: (vertex tolerance kind, keeps normals, keeps colors, keeps uvs+textures, colour atol)
+MESH_FORMATS = {
+    "obj": ("text6", True, True, True, 1e-5),
+    "ply": ("float64", True, True, False, 0.5 / 255 + 1e-9),
+    "off": ("text6", True, True, False, 0.5 / 255 + 1e-9),
+    "stl": ("float32", False, False, False, None),
+    "gltf": ("float32", True, True, True, 1e-7),
+    "glb": ("float32", True, True, True, 1e-7),
+}
+
+
+def assert_close_as_stored(got, want, kind):
+    if kind == "float64":
+        np.testing.assert_array_equal(got, want)
+    elif kind == "float32":
+        np.testing.assert_array_equal(got, want.astype(np.float32))
+    else:  # six significant digits
+        np.testing.assert_allclose(got, want, rtol=5e-6, atol=1e-12)
+
+
+@pytest.mark.parametrize("ext", sorted(MESH_FORMATS))
+def test_mesh_round_trip(ext, tmp_path, caplog):
+    kind, has_normals, has_colors, has_uvs, color_atol = MESH_FORMATS[ext]
+    mesh = sphere_mesh(textures=2 if has_uvs else 0)
+    path = tmp_path / f"shape.{ext}"
+    with caplog.at_level(logging.WARNING, logger="kpd.io"):
+        write_mesh(path, mesh)
+    assert (len(caplog.records) > 0) == (ext == "stl")  # STL drops normals and colours: said so
+    back = read_mesh(path)
+    assert len(back.triangles) == len(mesh.triangles)
+    assert_close_as_stored(corners(back, "xyz"), corners(mesh, "xyz"), kind)
+    if has_normals:
+        np.testing.assert_allclose(corners(back, "normals"), corners(mesh, "normals"), atol=1e-5)
+    else:
+        assert back.vertex_normals is None
+    if has_colors:
+        np.testing.assert_allclose(corners(back, "colors"), corners(mesh, "colors"), atol=color_atol)
+    else:
+        assert back.vertex_colors is None
+    if has_uvs:
+        np.testing.assert_allclose(corners(back, "uvs"), corners(mesh, "uvs"), atol=1e-6)
+        assert len(back.textures) == 2
+        for a, b in zip(back.textures, mesh.textures):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(back.triangle_material_ids, mesh.triangle_material_ids)
+        np.testing.assert_array_equal(texels(back), texels(mesh))
+    else:
+        assert back.triangle_uvs is None and back.textures == []
+    leftovers = [f for f in os.listdir(tmp_path) if f.startswith(".")]
+    assert leftovers == []
+
+
+def test_stl_vertices_are_welded(tmp_path):
+    mesh = sphere_mesh(normals=False, colors=False)
+    write_mesh(tmp_path / "s.stl", mesh)
+    back = read_mesh(tmp_path / "s.stl")
+    assert len(back.vertices) == len(mesh.vertices)  # not 3 per triangle
+    np.testing.assert_array_equal(corners(back, "xyz"), corners(mesh, "xyz").astype(np.float32))
+
+
+def test_gltf_and_obj_keep_vertex_order_of_a_mesh_read_by_assimp(tmp_path):
+    mesh = sphere_mesh(textures=1)
+    write_mesh(tmp_path / "a.glb", mesh)
+    first = read_mesh(tmp_path / "a.glb")  # vertices now in first-use order, split at UV seams
+    for ext in ("obj", "gltf", "glb"):
+        write_mesh(tmp_path / f"b.{ext}", first)
+        again = read_mesh(tmp_path / f"b.{ext}")
+        assert len(again.vertices) == len(first.vertices), ext
+        np.testing.assert_array_equal(again.triangles, first.triangles)
+
+
+def test_uv_only_and_plain_meshes_round_trip_through_obj(tmp_path):
+    plain = sphere_mesh(normals=False, colors=False)
+    write_mesh(tmp_path / "plain.obj", plain)
+    assert sorted(os.listdir(tmp_path)) == ["plain.obj"]
+    back = read_mesh(tmp_path / "plain.obj")
+    assert back.vertex_normals is None and back.triangle_uvs is None and back.textures == []
+    uv_only = sphere_mesh(uvs=True)
+    write_mesh(tmp_path / "uv.obj", uv_only)
+    back = read_mesh(tmp_path / "uv.obj")
+    np.testing.assert_allclose(corners(back, "uvs"), corners(uv_only, "uvs"), atol=1e-6)
+    assert back.textures == []
+
+
+def test_gltf_with_a_missing_texture_file_reads_with_a_warning(tmp_path, caplog):
+    mesh = sphere_mesh(textures=1)
+    write_mesh(tmp_path / "a.gltf", mesh)
+    assert sorted(os.listdir(tmp_path)) == ["a.gltf", "a_0.png"]
+    (tmp_path / "a_0.png").unlink()
+    with caplog.at_level(logging.WARNING, logger="kpd.io"):
+        back = read_mesh(tmp_path / "a.gltf")
+    assert "'a_0.png' is missing" in caplog.text
+    assert back.textures == [] and back.triangle_uvs is not None
+    np.testing.assert_array_equal(corners(back, "xyz"), corners(mesh, "xyz").astype(np.float32))
+
+
+def test_textures_in_ply_are_dropped_with_a_warning(tmp_path, caplog):
+    with caplog.at_level(logging.WARNING, logger="kpd.io"):
+        write_mesh(tmp_path / "t.ply", sphere_mesh(textures=1))
+    assert any("UVs and textures" in r.getMessage() for r in caplog.records)
+
+
+@st.composite
+def meshes(draw):
+    V = draw(st.integers(3, 30))
+    T = draw(st.integers(1, 40))
+    vertices = draw(arrays(np.float64, (V, 3), elements=finite))
+    triangles = draw(arrays(np.int64, (T, 3), elements=st.integers(0, V - 1)))
+    return Mesh(vertices, triangles)
+
+
+@settings(max_examples=25, deadline=None)
+@given(mesh=meshes())
+def test_any_mesh_round_trips_exactly_through_ply_and_to_float32_through_glb(mesh, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("prop")
+    write_mesh(folder / "m.ply", mesh)
+    back = read_mesh(folder / "m.ply")
+    np.testing.assert_array_equal(back.vertices, mesh.vertices)
+    np.testing.assert_array_equal(back.triangles, mesh.triangles)
+    write_mesh(folder / "m.glb", mesh)
+    back = read_mesh(folder / "m.glb")
+    np.testing.assert_array_equal(corners(back, "xyz"), corners(mesh, "xyz").astype(np.float32))
+
+
+def test_open3d_conversion_round_trip_flips_textures():
+    mesh = sphere_mesh(textures=2)
+    m = mesh.to_open3d()
+    np.testing.assert_array_equal(np.asarray(m.textures[1]), mesh.textures[1][::-1])  # Open3D's convention
+    back = Mesh.from_open3d(m)
+    for name in ("xyz", "normals", "colors", "uvs"):
+        np.testing.assert_array_equal(corners(back, name), corners(mesh, name))
+    for a, b in zip(back.textures, mesh.textures):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(back.triangle_material_ids, mesh.triangle_material_ids)
+
+
+def test_from_open3d_compacts_materials_and_fills_imageless_ones():
+    mesh = sphere_mesh(textures=1).to_open3d()
+    tex = np.asarray(mesh.textures[0])
+    mesh.textures = [o3d.geometry.Image(), o3d.geometry.Image(tex), o3d.geometry.Image(tex)]  # like Assimp's
+    ids = np.ones(len(mesh.triangles), np.int32)
+    ids[:5] = 0
+    mesh.triangle_material_ids = o3d.utility.IntVector(ids)
+    m = Mesh.from_open3d(mesh)
+    assert len(m.textures) == 2  # material 2 is unused
+    np.testing.assert_array_equal(m.textures[0], 255)  # used but image-less: white
+    assert m.textures[0].shape == (1, 1, 3)
+    np.testing.assert_array_equal(m.triangle_material_ids, ids)
+
+
+# --- with_vertices ---------------------------------------------------------------------------------------------------
+
+
+def test_with_vertices_shares_everything_but_vertices_and_normals():
+    mesh = sphere_mesh(textures=1)
+    moved = mesh.with_vertices(mesh.vertices * 2.0)
+    np.testing.assert_array_equal(moved.vertices, mesh.vertices * 2.0)
+    assert moved.triangles is mesh.triangles and moved.vertex_colors is mesh.vertex_colors
+    assert moved.triangle_uvs is mesh.triangle_uvs and moved.textures is mesh.textures
+    assert moved.triangle_material_ids is mesh.triangle_material_ids
+    assert moved.vertex_normals is not mesh.vertex_normals
+    np.testing.assert_array_equal(mesh.vertices, sphere_mesh().vertices)  # the original is untouched
+
+
+def test_mesh_fields_are_the_public_attributes_only():
+    names = [f.name for f in dataclasses.fields(Mesh)]
+    assert names == ["vertices", "triangles", "vertex_normals", "vertex_colors", "triangle_uvs", "textures",
+                     "triangle_material_ids", "path"]
+    moved = sphere_mesh(textures=1).with_vertices(sphere_mesh().vertices + 1)
+    copy = Mesh(**{n: getattr(moved, n) for n in names})  # what a serialiser iterating the fields does
+    np.testing.assert_array_equal(copy.vertex_normals, moved.vertex_normals)
+
+
+def test_with_vertices_recomputes_normals_only_when_present():
+    plain = sphere_mesh(normals=False)
+    assert plain.with_vertices(plain.vertices + 1).vertex_normals is None
+    mesh = sphere_mesh(resolution=12)
+    centre = mesh.vertices.mean(axis=0)
+    moved = mesh.with_vertices(mesh.vertices)
+    radial = mesh.vertices - centre
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+    np.testing.assert_allclose(np.linalg.norm(moved.vertex_normals, axis=1), 1.0)
+    assert (np.einsum("ij,ij->i", moved.vertex_normals, radial) > 0.5).all()  # outward on a closed surface
+
+
+@settings(max_examples=20, deadline=None)
+@given(angles=arrays(np.float64, 3, elements=st.floats(-np.pi, np.pi)), shift=arrays(np.float64, 3, elements=finite))
+def test_with_vertices_normals_follow_a_rigid_motion(angles, shift):
+    mesh = sphere_mesh()
+    a, b, c = angles
+    rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+    rz = np.array([[np.cos(c), -np.sin(c), 0], [np.sin(c), np.cos(c), 0], [0, 0, 1]])
+    r = rz @ ry @ rx
+    before = mesh.with_vertices(mesh.vertices).vertex_normals
+    after = mesh.with_vertices(mesh.vertices @ r.T + shift).vertex_normals
+    np.testing.assert_allclose(after, before @ r.T, atol=1e-6)
+
+
+def test_with_vertices_keeps_uv_seams_smooth(banana):
+    moved = banana.with_vertices(banana.vertices * [1.0, 2.0, 0.5])
+    key = np.hstack([banana.vertices, banana.vertex_normals])
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    assert len(first) < len(banana.vertices)  # the banana has seam copies
+    np.testing.assert_array_equal(moved.vertex_normals, moved.vertex_normals[first][inverse.reshape(-1)])
+
+
+def test_with_vertices_checks_its_input():
+    mesh = sphere_mesh()
+    with pytest.raises(InputError, match=r"shape \(\d+, 3\); got \(3, 3\)"):
+        mesh.with_vertices(np.zeros((3, 3)))
+    bad = mesh.vertices.copy()
+    bad[[1, 4, 7], 2] = np.nan
+    with pytest.raises(InputError, match="3 vertices have NaN or inf coordinates"):
+        mesh.with_vertices(bad)
+
+
+# --- Mesh and PointSet checks ----------------------------------------------------------------------------------------
+
+
+def test_mesh_constructor_checks_fields():
+    v, t = np.array(TRIANGLE, float), np.array([[0, 1, 2]])
+    with pytest.raises(InputError, match=r"vertices must have shape \(N, 3\)"):
+        Mesh(np.zeros((3, 2)), t)
+    with pytest.raises(InputError, match="no triangles"):
+        Mesh(v, np.zeros((0, 3), int))
+    with pytest.raises(InputError, match=r"1 triangle indexes vertices outside \[0, 3\)"):
+        Mesh(v, [[0, 1, 3]])
+    with pytest.raises(InputError, match=r"triangle_uvs must have shape \(3, 2\)"):
+        Mesh(v, t, triangle_uvs=np.zeros((2, 2)))
+    with pytest.raises(InputError, match=r"vertex_colors must lie in \[0, 1\]"):
+        Mesh(v, t, vertex_colors=np.full((3, 3), 2.0))
+    with pytest.raises(InputError, match=r"triangle_material_ids must lie in \[0, 1\)"):
+        Mesh(v, t, textures=[np.zeros((2, 2, 3), np.uint8)], triangle_material_ids=[1])
+    with pytest.raises(InputError, match="texture 0 must have shape"):
+        Mesh(v, t, textures=[np.zeros((2, 2, 2), np.uint8)])
+    m = Mesh(v, np.array([[0.0, 1.0, 2.0]]), vertex_colors=np.full((3, 3), 255, np.uint8))  # demo-file style input
+    assert m.triangles.dtype == np.int64 and (m.vertex_colors == 1.0).all()
+
+
+def test_pointset_checks_fields():
+    with pytest.raises(InputError, match="points: 1 point has NaN or inf coordinates"):
+        PointSet([[0, 0, np.inf]])
+    with pytest.raises(InputError, match=r"normals must have shape \(1, 3\)"):
+        PointSet([[0, 0, 0]], normals=[[0, 0, 1], [0, 1, 0]])
+    with pytest.raises(InputError, match="no points"):
+        PointSet(np.zeros((0, 3)))
+
+
+# --- mesh read errors ------------------------------------------------------------------------------------------------
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(InputError, match=r"chair\.obj: no such file"):
+        read_mesh(tmp_path / "chair.obj")
+    with pytest.raises(InputError, match=r"chair\.pcd: no such file"):
+        read_points(tmp_path / "chair.pcd")
+
+
+def test_unknown_extension(tmp_path):
+    path = write_text(tmp_path / "chair.abc", "v 0 0 0\n")
+    with pytest.raises(InputError, match=r"chair\.abc: unknown mesh format '\.abc'; expected one of \.obj"):
+        read_mesh(path)
+    with pytest.raises(InputError, match="unknown point format"):
+        read_points(path)
+    with pytest.raises(InputError, match="unknown mesh format"):
+        write_mesh(tmp_path / "out.xyz", sphere_mesh())
+    with pytest.raises(InputError, match="unknown point format"):
+        write_points(tmp_path / "out.stl", np.zeros((1, 3)))
+
+
+@pytest.mark.parametrize("ext", ["obj", "ply", "off", "stl", "glb"])
+def test_empty_file(ext, tmp_path):
+    path = write_text(tmp_path / f"chair.{ext}", "")
+    with pytest.raises(InputError, match=rf"chair\.{ext}: the file is empty \(0 bytes\)"):
+        read_mesh(path)
+
+
+def test_empty_geometry(tmp_path):
+    path = write_text(tmp_path / "chair.ply", ply_ascii([], []))
+    with pytest.raises(InputError, match=r"chair\.ply: could not be read as a mesh \(Open3D: .*number of vertex <= 0"):
+        read_mesh(path)
+    path = write_text(tmp_path / "cloud.ply", ply_ascii(TRIANGLE, []))
+    with pytest.raises(InputError, match="has 3 vertices but no triangles"):
+        read_mesh(path)
+    assert isinstance(read_shape(path), PointSet)
+    path = write_text(tmp_path / "only_vertices.obj", "v 0 0 0\nv 1 0 0\n")
+    with pytest.raises(InputError, match=r"only_vertices\.obj: could not be read as a mesh"):
+        read_mesh(path)
+
+
+def stl_binary(vertices, faces):
+    rows = [np.concatenate([[0, 0, 0], np.ravel(np.asarray(vertices, float)[f])]) for f in faces]
+    body = b"".join(np.asarray(r, "<f4").tobytes() + b"\0\0" for r in rows)
+    return b"\0" * 80 + np.uint32(len(faces)).tobytes() + body
+
+
+@pytest.mark.parametrize("ext", ["obj", "ply", "stl"])
+def test_nan_and_inf_coordinates(ext, tmp_path):
+    vertices = [[0, 0, "nan"], [1, "inf", 0], [0, 1, 0], ["nan", 1, 1]]
+    faces = [[0, 1, 2], [1, 2, 3]]
+    path = tmp_path / f"chair.{ext}"
+    if ext == "obj":
+        path.write_text("".join(f"v {a} {b} {c}\n" for a, b, c in vertices) + "f 1 2 3\nf 2 3 4\n")
+    elif ext == "ply":
+        path.write_bytes(ply_binary(np.array(vertices, dtype=float), faces))
+    else:
+        path.write_bytes(stl_binary(np.array(vertices, dtype=float), faces))
+    with pytest.raises(InputError, match=rf"chair\.{ext}: 3 vertices have NaN or inf coordinates"):
+        read_mesh(path)
+
+
+def test_nan_in_text_off_is_an_open3d_read_error(tmp_path):
+    path = write_text(tmp_path / "chair.off", "OFF\n3 1 0\n0 0 nan\n1 0 0\n0 1 0\n3 0 1 2\n")
+    with pytest.raises(InputError, match=r"chair\.off: could not be read as a mesh \(Open3D: Read OFF failed"):
+        read_mesh(path)
+
+
+def test_out_of_range_face_indices(tmp_path):
+    path = write_text(tmp_path / "chair.ply", ply_ascii(TRIANGLE, [[0, 1, 7], [0, 1, 2]]))
+    with pytest.raises(InputError, match=r"chair\.ply: 1 triangle indexes vertices outside \[0, 3\)"):
+        read_mesh(path)
+    path = write_text(tmp_path / "chair.off", "OFF\n3 2 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 5 9\n")
+    message = r"chair\.off: 1 triangle indexes vertices outside \[0, 3\) \(indices from 0 to 9\)"
+    with pytest.raises(InputError, match=message):
+        read_mesh(path)
+    path = write_text(tmp_path / "chair.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n")
+    with pytest.raises(InputError, match=r"chair\.obj: could not be read as a mesh \(Open3D: .*index out of range"):
+        read_mesh(path)
+
+
+def test_polygon_obj_is_refused_not_silently_dropped(tmp_path):
+    text = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nf 1 2 3 4\nf 1 2 5\n"
+    path = write_text(tmp_path / "quad.obj", text)
+    with pytest.raises(InputError, match=r"quad\.obj: 1 face has more than 3 vertices"):
+        read_mesh(path)
+
+
+def test_off_polygons_are_triangulated(tmp_path):
+    path = write_text(tmp_path / "quad.off", "OFF\n4 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n")
+    assert read_mesh(path).triangles.shape == (2, 3)
+
+
+def test_truncated_files(tmp_path, data_dir):
+    sneaker = (data_dir / "scans/sneaker.ply").read_bytes()
+    path = tmp_path / "sneaker.ply"
+    path.write_bytes(sneaker[: len(sneaker) // 2])
+    with pytest.raises(InputError, match=r"sneaker\.ply: the file is truncated: its header declares 22043 'vertex'"):
+        read_mesh(path)
+    with pytest.raises(InputError, match="truncated"):
+        read_points(path)
+    pcd = (data_dir / KEYPOINTNET_PCD).read_bytes()
+    path = tmp_path / "chair.pcd"
+    path.write_bytes(pcd[: len(pcd) // 3])
+    with pytest.raises(InputError, match=r"chair\.pcd: the file is truncated: its header declares 2048 points"):
+        read_points(path)
+    path = write_text(tmp_path / "chair.off", "OFF\n4 2 0\n0 0 0\n1 0 0\n")
+    with pytest.raises(InputError, match=r"chair\.off: the file is truncated"):
+        read_mesh(path)
+
+
+def test_garbage_files(tmp_path):
+    path = write_text(tmp_path / "chair.ply", "this is not a mesh\n")
+    with pytest.raises(InputError, match=r"chair\.ply: not a PLY file"):
+        read_mesh(path)
+    path = tmp_path / "chair.obj"
+    path.write_bytes(b"\x00\x01\x02 garbage")
+    with pytest.raises(InputError, match=r"chair\.obj: could not be read as a mesh \(Open3D: "):
+        read_mesh(path)
+    path = write_text(tmp_path / "chair.glb", "not a glb")
+    with pytest.raises(InputError, match=r"chair\.glb: could not be read as a mesh"):
+        read_mesh(path)
+
+
+# --- points ----------------------------------------------------------------------------------------------------------
+
+# format: (coordinate tolerance kind, keeps normals, keeps colors, colour atol)
+POINT_FORMATS = {
+    "ply": ("float64", True, True, 0.5 / 255 + 1e-9),
+    "pcd": ("float32", True, True, 0.5 / 255 + 1e-9),
+    "xyz": ("text9", False, False, None),
+    "pts": ("text9", True, False, None),
+    "npy": ("float64", True, False, None),
+    "npz": ("float64", True, True, 0.0),
+}
+
+
+def assert_points_close(got, want, kind):
+    if kind == "text9":
+        np.testing.assert_allclose(got, want, rtol=5e-9, atol=0)
+    else:
+        assert_close_as_stored(got, want, kind)
+
+
+@pytest.mark.parametrize("ext", sorted(POINT_FORMATS))
+def test_points_round_trip(ext, tmp_path):
+    kind, has_normals, has_colors, color_atol = POINT_FORMATS[ext]
+    rng = np.random.default_rng(1)
+    points, normals, colors = rng.normal(size=(500, 3)) * 37.1, rng.normal(size=(500, 3)), rng.random((500, 3))
+    write_points(tmp_path / f"cloud.{ext}", points, normals, colors)
+    back = read_points(tmp_path / f"cloud.{ext}")
+    assert_points_close(back.points, points, kind)
+    if has_normals:
+        assert_points_close(back.normals, normals, kind)
+    else:
+        assert back.normals is None
+    if has_colors:
+        np.testing.assert_allclose(back.colors, colors, atol=color_atol)
+    else:
+        assert back.colors is None
+    assert sorted(os.listdir(tmp_path)) == [f"cloud.{ext}"]
+
+
+@settings(max_examples=25, deadline=None)
+@given(points=st.integers(1, 50).flatmap(lambda n: arrays(np.float64, (n, 3), elements=finite)),
+       ext=st.sampled_from(["pts", "npz", "ply"]))
+def test_any_points_round_trip(points, ext, tmp_path_factory):
+    path = tmp_path_factory.mktemp("pts") / f"p.{ext}"
+    write_points(path, PointSet(points, normals=points[::-1]))
+    back = read_points(path)
+    kind = "text9" if ext == "pts" else "float64"
+    assert_points_close(back.points, points, kind)
+    assert_points_close(back.normals, points[::-1], kind)
+
+
+def test_pts_formats(tmp_path):
+    six = write_text(tmp_path / "a.pts", "0 0 0 0 0 1\n1 2 3 0 1 0\n")
+    ps = read_points(six)
+    np.testing.assert_array_equal(ps.normals, [[0, 0, 1], [0, 1, 0]])
+    counted = write_text(tmp_path / "b.pts", "2\n0 0 0\n1 2 3\n")
+    assert len(read_points(counted)) == 2
+    with pytest.raises(InputError, match=r"c\.pts: line 2 has 2 columns; line 1 has 3"):
+        read_points(write_text(tmp_path / "c.pts", "0 0 0\n1 2\n"))
+    with pytest.raises(InputError, match=r"d\.pts: rows must have 3 \(x y z\) or 6"):
+        read_points(write_text(tmp_path / "d.pts", "0 0 0 1\n"))
+    with pytest.raises(InputError, match=r"e\.pts: not a table of numbers"):
+        read_points(write_text(tmp_path / "e.pts", "0 0 zero\n"))
+    with pytest.raises(InputError, match=r"f\.pts: 1 point has NaN or inf coordinates"):
+        read_points(write_text(tmp_path / "f.pts", "0 0 0\n0 nan 0\n"))
+    with pytest.raises(InputError, match=r"g\.xyz: no rows"):
+        read_points(write_text(tmp_path / "g.xyz", "# only a comment\n\n"))
+
+
+def test_numpy_point_files(tmp_path):
+    np.save(tmp_path / "a.npy", np.zeros((4, 2)))
+    message = r"a\.npy: expected a numeric \(N, 3\) or \(N, 6\) array; got float64 array of shape \(4, 2\)"
+    with pytest.raises(InputError, match=message):
+        read_points(tmp_path / "a.npy")
+    np.savez(tmp_path / "b.npz", xyz=np.zeros((4, 3)))
+    with pytest.raises(InputError, match=r"b\.npz: expected the key 'points'; found \['xyz'\]"):
+        read_points(tmp_path / "b.npz")
+    np.savez(tmp_path / "c.npz", points=np.zeros((4, 3)), colors=np.full((4, 3), 255, np.uint8))
+    assert (read_points(tmp_path / "c.npz").colors == 1.0).all()
+    np.save(tmp_path / "d.npy", np.array([{"a": 1}], dtype=object))
+    with pytest.raises(InputError, match=r"d\.npy: not a readable numpy file"):
+        read_points(tmp_path / "d.npy")  # pickles are refused
+
+
+def test_drop_nonfinite_points(tmp_path, caplog):
+    path = write_text(tmp_path / "scan.xyz", "0 0 0\nnan 0 0\n1 1 1\n")
+    with caplog.at_level(logging.WARNING, logger="kpd.io"):
+        ps = read_points(path, drop_nonfinite=True)
+    np.testing.assert_array_equal(ps.points, [[0, 0, 0], [1, 1, 1]])
+    assert "dropped 1 of 3 points" in caplog.text
+
+
+def test_write_points_warns_for_what_the_format_drops(tmp_path, caplog):
+    with caplog.at_level(logging.WARNING, logger="kpd.io"):
+        write_points(tmp_path / "a.xyz", np.zeros((2, 3)), normals=np.ones((2, 3)), colors=np.ones((2, 3)))
+    assert "cannot store normals and colors" in caplog.text
+
+
+# --- atomic writes ---------------------------------------------------------------------------------------------------
+
+
+def test_atomic_output_keeps_the_old_file_when_the_block_raises(tmp_path):
+    path = write_text(tmp_path / "result.json", "old")
+    with pytest.raises(RuntimeError, match="boom"):
+        with atomic_output(path) as tmp:
+            assert tmp.parent == tmp_path and tmp.suffix == ".json" and tmp != path
+            tmp.write_text("half")
+            raise RuntimeError("boom")
+    assert path.read_text() == "old"
+    assert os.listdir(tmp_path) == ["result.json"]
+
+
+def test_atomic_output_replaces_on_success(tmp_path):
+    path = write_text(tmp_path / "result.json", "old")
+    with atomic_output(path) as tmp:
+        tmp.write_text("new")
+        assert path.read_text() == "old"
+    assert path.read_text() == "new" and os.listdir(tmp_path) == ["result.json"]
+
+
+def test_atomic_output_errors(tmp_path):
+    with pytest.raises(KpdError, match="nothing was written"):
+        with atomic_output(tmp_path / "never.json"):
+            pass
+    with pytest.raises(InputError, match="does not exist"):
+        with atomic_output(tmp_path / "missing" / "x.json"):
+            pass
+    with pytest.raises(InputError, match="does not exist"):
+        write_mesh(tmp_path / "missing" / "x.obj", sphere_mesh())
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("ext", ["obj", "ply", "gltf"])
+def test_failed_mesh_write_leaves_existing_files_untouched(ext, tmp_path, monkeypatch):
+    mesh = sphere_mesh(textures=1)
+    write_mesh(tmp_path / f"chair.{ext}", mesh)
+    before = {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path)}
+
+    def fail_write(filename, *args, **kwargs):
+        with open(filename, "w") as fh:
+            fh.write("half")
+        return False
+
+    monkeypatch.setattr(o3d.io, "write_triangle_mesh", fail_write)
+    monkeypatch.setattr(o3d.io, "write_image", fail_write)
+    with pytest.raises(KpdError, match=rf"Open3D could not write"):
+        write_mesh(tmp_path / f"chair.{ext}", mesh.with_vertices(mesh.vertices + 1))
+    assert {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path)} == before
+
+
+# --- keypoints -------------------------------------------------------------------------------------------------------
+
+
+def test_keypoints_json_round_trip_with_metadata(tmp_path):
+    k = np.random.default_rng(2).normal(size=(10, 3))
+    path = tmp_path / "k.json"
+    write_keypoints(path, k, category="chair", k=np.int64(10), scale=np.float32(0.5), frame=np.eye(3))
+    np.testing.assert_array_equal(read_keypoints(path), k)
+    data = json.loads(path.read_text())
+    assert data["category"] == "chair" and data["k"] == 10 and data["frame"][0] == [1, 0, 0]
+
+
+def test_keypoints_txt_in_the_authors_format(tmp_path):
+    k = np.array([[0.125, -1.5, 2.0], [1e-8, 3.0, -0.0]])
+    write_keypoints(tmp_path / "k.txt", k)
+    lines = (tmp_path / "k.txt").read_text().splitlines()
+    assert re.fullmatch(r"000 0\.125 -1\.5 2\.0", lines[0]) and lines[1].startswith("001 ")
+    np.testing.assert_array_equal(read_keypoints(tmp_path / "k.txt"), k)
+    authors = write_text(tmp_path / "source_keypoints.txt", "000 0.100000 0.200000 0.300000\n001 1 2 3\n")
+    np.testing.assert_array_equal(read_keypoints(authors), [[0.1, 0.2, 0.3], [1, 2, 3]])
+    plain = write_text(tmp_path / "plain.txt", "0.1 0.2 0.3\n")
+    np.testing.assert_array_equal(read_keypoints(plain), [[0.1, 0.2, 0.3]])
+
+
+@settings(max_examples=30, deadline=None)
+@given(k=st.integers(1, 20).flatmap(lambda n: arrays(np.float64, (n, 3), elements=finite)),
+       ext=st.sampled_from(["json", "txt"]))
+def test_any_keypoints_round_trip_exactly(k, ext, tmp_path_factory):
+    path = tmp_path_factory.mktemp("kp") / f"k.{ext}"
+    write_keypoints(path, k)
+    np.testing.assert_array_equal(read_keypoints(path), k)
+
+
+def test_keypoint_errors(tmp_path):
+    bare = write_text(tmp_path / "bare.json", "[[1, 2, 3], [4, 5, 6]]")
+    assert read_keypoints(bare).shape == (2, 3)
+    with pytest.raises(InputError, match=r"other\.json: expected the key 'keypoints'; found \['points'\]"):
+        read_keypoints(write_text(tmp_path / "other.json", '{"points": []}'))
+    with pytest.raises(InputError, match=r"flat\.json: keypoints must have shape \(N, 3\); got \(3,\)"):
+        read_keypoints(write_text(tmp_path / "flat.json", '{"keypoints": [1, 2, 3]}'))
+    with pytest.raises(InputError, match=r"broken\.json: not valid JSON"):
+        read_keypoints(write_text(tmp_path / "broken.json", '{"keypoints": ['))
+    with pytest.raises(InputError, match=r"must count 0, 1, 2"):
+        read_keypoints(write_text(tmp_path / "idx.txt", "000 0 0 0\n005 1 1 1\n"))
+    with pytest.raises(InputError, match="cannot hold metadata"):
+        write_keypoints(tmp_path / "m.txt", np.zeros((2, 3)), category="chair")
+    with pytest.raises(InputError, match="not JSON-serialisable"):
+        write_keypoints(tmp_path / "m.json", np.zeros((2, 3)), thing=object())
+    with pytest.raises(InputError, match=r"1 keypoint has NaN"):
+        write_keypoints(tmp_path / "n.json", [[0, 0, np.nan]])
+    assert sorted(os.listdir(tmp_path)) == ["bare.json", "broken.json", "flat.json", "idx.txt", "other.json"]
