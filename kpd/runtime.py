@@ -267,10 +267,11 @@ class Model:
         if not isinstance(mesh, Mesh) or not len(mesh.triangles):
             raise InputError(f"a rig needs a triangle mesh; got {_describe(mesh)}")
         prediction = prediction if prediction is not None else self.predict(mesh, seed=seed)
-        fit_points = prediction.points
+        # the authors' rule on the sampled points, as in training; then, beyond it, push faces out until every mesh
+        # vertex is inside (only the vertices are deformed through MVC)
+        cage = fit_cage(prediction.points, template=self._cage, **self._cage_fit)
         if enclose:
-            fit_points = np.concatenate([fit_points, prediction.normalizer.apply(mesh.vertices)])
-        cage = fit_cage(fit_points, template=self._cage, enclose=enclose, **self._cage_fit)
+            cage = fit_cage(prediction.normalizer.apply(mesh.vertices), template=cage, iterations=0, enclose=True)
         return Rig.bind(mesh, prediction.keypoints, prediction.influence, normalizer=prediction.normalizer,
                         cage=cage, m=self.m)
 

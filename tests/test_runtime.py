@@ -126,6 +126,11 @@ def test_rig_and_zero_edit(model, chair):
     assert isinstance(rig, Rig) and rig.num_keypoints == K and rig.influence.shape == (K, C)
     np.testing.assert_allclose(rig.keypoints, model.keypoints(chair), atol=1e-9)
     np.testing.assert_array_equal(rig.deform(rig.keypoints), chair.vertices)
+    from kpd.cage import points_outside
+
+    assert not points_outside(rig.normalizer.apply(chair.vertices), rig.cage.vertices, rig.cage.faces).any()
+    loose = model.rig(chair, enclose=False)  # the authors' cage alone
+    assert np.linalg.norm(loose.cage.vertices, axis=1).max() <= np.linalg.norm(rig.cage.vertices, axis=1).max()
     with pytest.raises(InputError, match="a rig needs a triangle mesh"):
         model.rig(PointSet(chair.vertices))
 

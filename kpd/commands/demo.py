@@ -86,10 +86,11 @@ def _up_letter(up: str | None) -> str:
     return (up or "+z").lstrip("+-")[:1] or "z"
 
 
-def procedural_chair():
+def procedural_chair(edge: float = 1.0):
     """A four-legged chair with a backrest, built from finely subdivided boxes, in ModelNet's frame and units.
 
     z is up, the back is toward +y, the bounding box is x, y in [-10, 10] and z in [-18, 18] (like ModelNet10 chairs);
+    ``edge`` is the grid spacing of the box faces (1.0: 3,060 vertices; 0.52: 10,400);
     vertex colours: wooden legs and back, a red seat.
 
     Returns
@@ -106,7 +107,7 @@ def procedural_chair():
     boxes.append(((-10, 8, 0), (10, 10, 18), wood))  # back
     vertices, triangles, colours = [], [], []
     for lo, hi, colour in boxes:
-        v, t = _box(np.asarray(lo, float), np.asarray(hi, float), edge=1.0)
+        v, t = _box(np.asarray(lo, float), np.asarray(hi, float), edge=edge)
         triangles.append(t + sum(len(a) for a in vertices))
         vertices.append(v)
         colours.append(np.tile(colour, (len(v), 1)))
