@@ -1,0 +1,10 @@
+"""KeypointDeformer training in PyTorch (the only package besides kpd.export that imports torch).
+
+- ``nets``: Φ (keypoint predictor), Γ (influence predictor), W_C and the cage template in one module
+  (:class:`KeypointDeformer`; state-dict keys as the authors' checkpoints, REFERENCE §16).
+- ``ops``: batched chamfer, farthest point sampling, the M-nearest mask, cage deformation, mean value coordinates.
+- ``losses``: L_sim, L_kpt, L_inf (REFERENCE §6).
+- ``trainer``: :class:`TrainConfig`, :class:`Trainer`, :func:`train` (checkpoints, exact resume, records).
+- ``predictor``: :class:`CheckpointPredictor` (keypoints, influence, alignment from a checkpoint).
+- ``evaluate``: alignment chamfer (paper Fig. 7) and label-free keypoint quality.
+"""

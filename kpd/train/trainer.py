@@ -1,0 +1,508 @@
+"""The training loop (REFERENCE §1, §6, §7) with exact resumption.
+
+Defaults are the authors' code; every paper value of REFERENCE §11 is a :class:`TrainConfig` option. Each iteration's
+randomness (source order, targets, which cached sample, FPS starts) is drawn from ``numpy.random.default_rng`` seeded
+by ``(seed, iteration)``, so a run resumed from a checkpoint continues with exactly the numbers an uninterrupted run
+would have used; the checkpoint holds the weights, both optimisers' states and the loss history.
+
+Output folder::
+
+    checkpoint.pt   the latest checkpoint (atomic; torch.load(..., weights_only=True)):
+                    {"format": "kpd-checkpoint", "version": 1, "iteration": int (iterations done),
+                     "model_config": {...}, "train_config": {...}, "sample_settings": {...},
+                     "states": KeypointDeformer.state_dict() (keys of REFERENCE §16),
+                     "optimizers": {"keypoint": Adam state | None, "deformer": Adam state},
+                     "history": {"train": (T, 5) float64 [iteration, loss, sim, kpt, inf],
+                                 "val": (V, 3) float64 [iteration, val chamfer, val chamfer undeformed]}}
+    model.json      model config, train config, sample settings
+    record.json     data, command, seed, iterations, metrics, skipped files, timings, versions
+    losses.csv      per-iteration losses;  losses.png  the curves
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import platform
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from kpd.data import PreparedData, SampleSettings, ShapeSamples
+from kpd.errors import InputError
+from kpd.train.losses import influence_loss, keypoint_loss, similarity_loss
+from kpd.train.nets import KeypointDeformer, ModelConfig
+from kpd.train.ops import chamfer, farthest_point_sampling, fps_keypoints, gather_points, mvc_weights
+
+__all__ = ["TrainConfig", "Trainer", "train", "resolve_device", "load_checkpoint", "CHECKPOINT_FORMAT",
+           "CHECKPOINT_VERSION"]
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = "kpd-checkpoint"
+CHECKPOINT_VERSION = 1
+CHECKPOINT_NAME = "checkpoint.pt"
+HISTORY_COLUMNS = ("iteration", "loss", "sim", "kpt", "inf")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """The training recipe. Defaults are the authors' code (REFERENCE §11 lists the paper's values).
+
+    keypoints : K.
+    iterations : optimisation steps.
+    batch : source/target pairs per step.
+    seed : everything random (initial weights, pairs, samples, FPS starts) derives from it.
+    lr : Adam learning rate of Φ and of Γ.
+    wc_lr : learning rate of W_C (code 1e-2; paper: same as Γ, 1e-3).
+    alpha_kpt : weight of the FPS keypoint regulariser (code 2.0; paper 1.0).
+    alpha_inf, inf_reg : influence regulariser, ``code`` = alpha_inf * mean(W_I²) with 1e6, ``paper`` =
+        alpha_inf * ‖W_I‖_F with 1e-6.
+    fps_factor : J = fps_factor * K farthest points for the regulariser.
+    warmup : keypoint-only iterations at the start (code 200; paper 0).
+    clamp : clamp keypoints to [-1, 1] (code; the paper has no clamp).
+    paper_m : M = ⌊C/K⌋ (paper) instead of max(5, ⌊C/K⌋) (code); ``m`` overrides both.
+    keypoint_source : ``learned`` (Φ) or ``fps`` (farthest-point keypoints of each shape; only the deformer trains).
+    save_every : checkpoint (and validation) interval in iterations.
+    val_pairs : fixed validation pairs scored at every checkpoint.
+    """
+
+    keypoints: int = 12
+    iterations: int = 2000
+    batch: int = 16
+    seed: int = 0
+    lr: float = 1e-3
+    wc_lr: float = 1e-2
+    alpha_kpt: float = 2.0
+    alpha_inf: float = 1e6
+    inf_reg: str = "code"
+    fps_factor: int = 2
+    warmup: int = 200
+    clamp: bool = True
+    paper_m: bool = False
+    m: int | None = None
+    keypoint_source: str = "learned"
+    save_every: int = 200
+    val_pairs: int = 64
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "TrainConfig":
+        return cls(**{k: data[k] for k in cls.__dataclass_fields__ if k in data})
+
+    def check(self) -> None:
+        for name in ("keypoints", "iterations", "batch", "fps_factor", "save_every"):
+            if getattr(self, name) < 1:
+                raise InputError(f"{name} must be at least 1; got {getattr(self, name)}")
+        if self.warmup < 0 or self.val_pairs < 0:
+            raise InputError(f"warmup and val_pairs must be >= 0; got {self.warmup}, {self.val_pairs}")
+        if self.inf_reg not in ("code", "paper"):
+            raise InputError(f"inf_reg must be 'code' or 'paper'; got {self.inf_reg!r}")
+        if self.keypoint_source not in ("learned", "fps"):
+            raise InputError(f"keypoint_source must be 'learned' or 'fps'; got {self.keypoint_source!r}")
+        for name in ("lr", "wc_lr", "alpha_kpt", "alpha_inf"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InputError(f"{name} must be a finite number >= 0; got {value}")
+
+
+def resolve_device(device: str = "auto") -> torch.device:
+    """``auto`` -> cuda when available, else cpu; otherwise the named device (checked)."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError as exc:
+        raise InputError(f"unknown device {device!r}; expected auto, cpu, cuda or cuda:N") from exc
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise InputError(f"device {device!r} requested but CUDA is not available")
+    return dev
+
+
+def _atomic_write(path: Path, write) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _write_json(path: Path, data: dict) -> None:
+    def write(tmp: str) -> None:
+        with open(tmp, "w") as f:
+            json.dump(data, f, indent=2, sort_keys=False)
+            f.write("\n")
+
+    _atomic_write(path, write)
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    """Load and check a checkpoint file (or a run folder holding ``checkpoint.pt``) with ``weights_only=True``."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / CHECKPOINT_NAME
+    if not path.is_file():
+        raise InputError(f"checkpoint {path} does not exist")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several kinds for damaged or foreign files
+        raise InputError(f"cannot load checkpoint {path}: {exc}") from exc
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise InputError(f"{path} is not a kpd checkpoint (format {CHECKPOINT_FORMAT!r} missing)")
+    if ckpt.get("version") != CHECKPOINT_VERSION:
+        raise InputError(f"{path}: checkpoint version {ckpt.get('version')}; this kpd reads {CHECKPOINT_VERSION}")
+    return ckpt
+
+
+class Trainer:
+    """One training run on prepared data; :meth:`run` trains, checkpoints and writes the record.
+
+    Parameters
+    ----------
+    config : the recipe.
+    data : from :func:`kpd.data.prepare` with the ``train`` (and optionally ``val``) split.
+    out_dir : the run folder (created).
+    device : ``auto``, ``cpu``, ``cuda``...
+    command : recorded in ``record.json``.
+    """
+
+    def __init__(self, config: TrainConfig, data: PreparedData, out_dir: str | os.PathLike, *, device: str = "auto",
+                 command: str | None = None) -> None:
+        from kpd.cage import default_m, icosphere
+
+        config.check()
+        self.config = config
+        self.data = data
+        self.out_dir = Path(out_dir)
+        self.device = resolve_device(device)
+        self.command = command if command is not None else " ".join(sys.argv)
+        train = data.samples["train"]
+        self.settings: SampleSettings = data.settings
+        template = icosphere(self.settings.cage_level, self.settings.cage_radius)
+        c, k = len(template.vertices), config.keypoints
+        m = config.m if config.m is not None else default_m(c, k, paper=config.paper_m)
+        if not 1 <= m <= c:
+            raise InputError(f"m must lie in [1, {c}] for a {c}-vertex cage; got {m}")
+        self.model_config = ModelConfig(keypoints=k, cage_vertices=c, cage_faces=len(template.faces), m=m,
+                                        keypoint_source=config.keypoint_source, clamp=config.clamp)
+        self.model = KeypointDeformer(self.model_config, torch.from_numpy(template.vertices),
+                                      torch.from_numpy(np.asarray(template.faces)), seed=config.seed).to(self.device)
+        self.train_set = self._tensors(train)
+        self.val_set = self._tensors(data.samples["val"]) if "val" in data.samples else None
+        phi = self.model.phi_parameters()
+        # foreach: the multi-tensor Adam, several times faster than the per-tensor loop on a CPU.
+        self.opt_keypoints = torch.optim.Adam(phi, lr=config.lr, foreach=True) if phi else None
+        self.opt_deformer = torch.optim.Adam([
+            {"params": list(self.model.influence_predictor.parameters()), "lr": config.lr},
+            {"params": [self.model.influence_param], "lr": config.wc_lr},
+        ], foreach=True)
+        self.iteration = 0
+        self.history: list[list[float]] = []
+        self.val_history: list[list[float]] = []
+        self.seconds = 0.0
+        self._val_pairs = self._validation_pairs()
+
+    # ----------------------------------------------------------------------------------------------- data
+    def _tensors(self, samples: ShapeSamples) -> dict[str, torch.Tensor]:
+        dev = self.device
+        out = {
+            "points": torch.from_numpy(samples.points).to(dev),
+            "cages": torch.from_numpy(samples.cage_vertices).to(dev),
+        }
+        if samples.weights is not None:
+            out["weights"] = torch.from_numpy(samples.weights).to(dev)
+        else:
+            faces = torch.from_numpy(samples.cage_faces).to(dev)
+            n_shapes, r, n, _ = samples.points.shape
+            flat_p = out["points"].reshape(n_shapes * r, n, 3)
+            flat_c = out["cages"].reshape(n_shapes * r, -1, 3)
+            w = [mvc_weights(flat_p[i:i + 64], flat_c[i:i + 64], faces) for i in range(0, len(flat_p), 64)]
+            out["weights"] = torch.cat(w).reshape(n_shapes, r, n, -1)
+        if self.config.keypoint_source == "fps":
+            n_shapes, r, n, _ = samples.points.shape
+            kp = fps_keypoints(out["points"].reshape(n_shapes * r, n, 3), self.config.keypoints)
+            out["fps_keypoints"] = kp.reshape(n_shapes, r, self.config.keypoints, 3)
+        return out
+
+    def _validation_pairs(self) -> np.ndarray | None:
+        if self.val_set is None or self.config.val_pairs == 0:
+            return None
+        n = self.val_set["points"].shape[0]
+        rng = np.random.default_rng([self.config.seed, 2])
+        return np.stack([rng.integers(n, size=self.config.val_pairs), rng.integers(n, size=self.config.val_pairs)], 1)
+
+    def batch_indices(self, t: int) -> dict[str, np.ndarray]:
+        """Which shapes and samples iteration ``t`` uses, derived from ``(seed, t)`` only.
+
+        Sources run through a fresh permutation of the train split each epoch (``drop_last``, as the authors'
+        loader); targets are uniform over the split; each picks one of its cached samples; FPS starts are uniform.
+        """
+        cfg = self.config
+        n_shapes, r, n, _ = self.train_set["points"].shape
+        b = cfg.batch
+        rng = np.random.default_rng([cfg.seed, 0, t])
+        per_epoch = n_shapes // b
+        if per_epoch >= 1:
+            epoch, slot = divmod(t, per_epoch)
+            order = np.random.default_rng([cfg.seed, 1, epoch]).permutation(n_shapes)
+            source = order[slot * b:(slot + 1) * b]
+        else:
+            source = rng.integers(n_shapes, size=b)
+        return {
+            "source": source,
+            "target": rng.integers(n_shapes, size=b),
+            "source_sample": rng.integers(r, size=b),
+            "target_sample": rng.integers(r, size=b),
+            "fps_start": rng.integers(n, size=2 * b),
+        }
+
+    # ----------------------------------------------------------------------------------------------- step
+    def _keypoints(self, data: dict, shapes: torch.Tensor, samples: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        if self.model_config.keypoint_source == "fps":
+            return data["fps_keypoints"][shapes, samples]
+        return self.model.keypoints(points)
+
+    def losses(self, t: int) -> dict[str, torch.Tensor]:
+        """Forward pass of iteration ``t``; the ``loss`` entry is what :meth:`step` backpropagates."""
+        cfg, data = self.config, self.train_set
+        idx = {k: torch.from_numpy(v).to(self.device) for k, v in self.batch_indices(t).items()}
+        shapes = torch.cat([idx["source"], idx["target"]])
+        samples = torch.cat([idx["source_sample"], idx["target_sample"]])
+        points = data["points"][shapes, samples]  # (2B, N, 3)
+        b = cfg.batch
+        learned = self.model_config.keypoint_source == "learned"
+        out: dict[str, torch.Tensor] = {}
+        keypoints = self._keypoints(data, shapes, samples, points)  # (2B, K, 3)
+        if learned:
+            fps = farthest_point_sampling(points, cfg.fps_factor * cfg.keypoints, idx["fps_start"])
+            out["kpt"] = keypoint_loss(keypoints, gather_points(points, fps))
+        if learned and t < cfg.warmup:
+            out["loss"] = cfg.alpha_kpt * out["kpt"]
+            return out
+        source = points[:b]
+        cage = data["cages"][idx["source"], idx["source_sample"]]  # (B, C, 3)
+        weights = data["weights"][idx["source"], idx["source_sample"]]  # (B, N, C)
+        result = self.model.deform(source, cage, weights, keypoints[:b], keypoints[b:])
+        out["sim"] = similarity_loss(result.deformed, points[b:])
+        out["inf"] = influence_loss(result.offset, cfg.inf_reg)
+        loss = out["sim"] + cfg.alpha_inf * out["inf"]
+        if learned:
+            loss = loss + cfg.alpha_kpt * out["kpt"]
+        out["loss"] = loss
+        out["deformed"], out["new_cage"], out["cage"], out["weights"] = result.deformed, result.new_cage, cage, weights
+        return out
+
+    def step(self, t: int) -> dict[str, float]:
+        """One optimisation step; returns the loss terms as floats (NaN for terms not computed)."""
+        out = self.losses(t)
+        warm = self.model_config.keypoint_source == "learned" and t < self.config.warmup
+        if self.opt_keypoints is not None:
+            self.opt_keypoints.zero_grad(set_to_none=True)
+        self.opt_deformer.zero_grad(set_to_none=True)
+        out["loss"].backward()
+        if self.opt_keypoints is not None:
+            self.opt_keypoints.step()
+        if not warm:
+            self.opt_deformer.step()
+        return {k: float(out[k].detach()) if k in out else math.nan for k in HISTORY_COLUMNS[1:]}
+
+    # ----------------------------------------------------------------------------------------------- validation
+    @torch.no_grad()
+    def validate(self) -> tuple[float, float]:
+        """Mean chamfer of the fixed validation pairs (sample 0), deformed and undeformed."""
+        if self._val_pairs is None:
+            return math.nan, math.nan
+        data, b = self.val_set, self.config.batch
+        deformed_sum, plain_sum = 0.0, 0.0
+        zero = torch.zeros(1, dtype=torch.int64, device=self.device)
+        for s in range(0, len(self._val_pairs), b):
+            pairs = torch.from_numpy(self._val_pairs[s:s + b]).to(self.device)
+            src, tgt = pairs[:, 0], pairs[:, 1]
+            shapes = torch.cat([src, tgt])
+            samples = zero.expand(len(shapes))
+            points = data["points"][shapes, samples]
+            kp = self._keypoints(data, shapes, samples, points)
+            n = len(src)
+            result = self.model.deform(points[:n], data["cages"][src, 0], data["weights"][src, 0], kp[:n], kp[n:])
+            deformed_sum += float(chamfer(result.deformed, points[n:]).sum())
+            plain_sum += float(chamfer(points[:n], points[n:]).sum())
+        count = len(self._val_pairs)
+        return deformed_sum / count, plain_sum / count
+
+    # ----------------------------------------------------------------------------------------------- state
+    def state(self) -> dict:
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "iteration": self.iteration,
+            "model_config": self.model_config.to_dict(),
+            "train_config": self.config.to_dict(),
+            "sample_settings": self.settings.to_dict(),
+            "states": {k: v.detach().cpu() for k, v in self.model.state_dict().items()},
+            "optimizers": {
+                "keypoint": None if self.opt_keypoints is None else self.opt_keypoints.state_dict(),
+                "deformer": self.opt_deformer.state_dict(),
+            },
+            "history": {
+                "train": torch.tensor(self.history, dtype=torch.float64).reshape(-1, len(HISTORY_COLUMNS)),
+                "val": torch.tensor(self.val_history, dtype=torch.float64).reshape(-1, 3),
+            },
+            "seconds": self.seconds,
+        }
+
+    def load_state(self, ckpt: dict) -> None:
+        """Continue from a checkpoint written by :meth:`save` with the same recipe."""
+        saved = TrainConfig.from_dict(ckpt["train_config"])
+        mine = self.config.to_dict()
+        diffs = {k: (v, mine[k]) for k, v in saved.to_dict().items() if k != "iterations" and mine[k] != v}
+        if diffs:
+            raise InputError("cannot resume: the recipe differs from the checkpoint's (saved, requested): "
+                             + ", ".join(f"{k}={a!r} vs {b!r}" for k, (a, b) in diffs.items()))
+        if SampleSettings.from_dict(ckpt["sample_settings"]) != self.settings:
+            raise InputError(f"cannot resume: sample settings differ: saved {ckpt['sample_settings']}, "
+                             f"requested {self.settings.to_dict()}")
+        self.model.load_state_dict(ckpt["states"])
+        if self.opt_keypoints is not None:
+            self.opt_keypoints.load_state_dict(ckpt["optimizers"]["keypoint"])
+        self.opt_deformer.load_state_dict(ckpt["optimizers"]["deformer"])
+        self.iteration = int(ckpt["iteration"])
+        self.history = ckpt["history"]["train"].tolist()
+        self.val_history = ckpt["history"]["val"].tolist()
+        self.seconds = float(ckpt.get("seconds", 0.0))
+
+    def save(self) -> None:
+        """Write checkpoint, model.json, record.json, losses.csv and losses.png (each atomically)."""
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        state = self.state()
+        _atomic_write(self.out_dir / CHECKPOINT_NAME, lambda tmp: torch.save(state, tmp))
+        _write_json(self.out_dir / "model.json", {
+            "model_config": self.model_config.to_dict(), "train_config": self.config.to_dict(),
+            "sample_settings": self.settings.to_dict()})
+        _write_json(self.out_dir / "record.json", self.record())
+        self._write_curves()
+
+    def record(self) -> dict:
+        last = self.history[-1] if self.history else None
+        recent = np.asarray(self.history[-50:]) if self.history else np.zeros((0, len(HISTORY_COLUMNS)))
+        metrics: dict = {"iterations_done": self.iteration}
+        if len(recent):
+            for j, name in enumerate(HISTORY_COLUMNS[1:], 1):
+                column = recent[:, j][~np.isnan(recent[:, j])]
+                metrics[f"{name}_last50"] = float(column.mean()) if len(column) else None
+        if self.val_history:
+            metrics["val_chamfer"] = self.val_history[-1][1]
+            metrics["val_chamfer_undeformed"] = self.val_history[-1][2]
+            metrics["val_pairs"] = self.config.val_pairs
+        return {
+            "data": self.data.to_dict(),
+            "command": self.command,
+            "seed": self.config.seed,
+            "iterations": self.config.iterations,
+            "metrics": metrics,
+            "skipped": [s._asdict() for s in self.data.skipped],
+            "model_config": self.model_config.to_dict(),
+            "train_config": self.config.to_dict(),
+            "train_seconds": round(self.seconds, 2),
+            "device": str(self.device),
+            "threads": torch.get_num_threads(),
+            "versions": {"torch": torch.__version__, "numpy": np.__version__, "python": platform.python_version()},
+            "last": None if last is None else dict(zip(HISTORY_COLUMNS, last)),
+        }
+
+    def _write_curves(self) -> None:
+        rows = self.history
+
+        def write_csv(tmp: str) -> None:
+            with open(tmp, "w") as f:
+                f.write(",".join(HISTORY_COLUMNS) + "\n")
+                for row in rows:
+                    f.write(f"{int(row[0])}," + ",".join("" if math.isnan(v) else f"{v:.8g}" for v in row[1:]) + "\n")
+
+        _atomic_write(self.out_dir / "losses.csv", write_csv)
+        if not rows:
+            return
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        h = np.asarray(rows)
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        for j, name in enumerate(HISTORY_COLUMNS[1:], 1):
+            ok = ~np.isnan(h[:, j])
+            if ok.any() and name != "inf":
+                axes[0].plot(h[ok, 0], h[ok, j], label=name, lw=0.8)
+        if self.val_history:
+            v = np.asarray(self.val_history)
+            axes[0].plot(v[:, 0], v[:, 1], "o-", label="val chamfer", ms=3)
+            axes[0].plot(v[:, 0], v[:, 2], "--", label="val undeformed", lw=0.8)
+        axes[0].set_yscale("log")
+        axes[0].set_xlabel("iteration")
+        axes[0].legend()
+        axes[0].set_title("losses")
+        ok = ~np.isnan(h[:, 4])
+        if ok.any():
+            axes[1].plot(h[ok, 0], h[ok, 4], lw=0.8)
+        axes[1].set_yscale("log")
+        axes[1].set_xlabel("iteration")
+        axes[1].set_title("influence regulariser (unweighted)")
+        fig.tight_layout()
+        _atomic_write(self.out_dir / "losses.png", lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+        plt.close(fig)
+
+    # ----------------------------------------------------------------------------------------------- loop
+    def run(self, *, progress: bool = True, stop_at: int | None = None) -> dict:
+        """Train from :attr:`iteration` to ``config.iterations`` (or ``stop_at``), checkpointing every
+        ``save_every`` iterations and at the end. Returns the record."""
+        from tqdm import tqdm
+
+        cfg = self.config
+        end = cfg.iterations if stop_at is None else min(stop_at, cfg.iterations)
+        self.model.train()
+        bar = tqdm(total=end, initial=self.iteration, desc="training", unit="it", disable=not progress)
+        try:
+            while self.iteration < end:
+                t = self.iteration
+                start = time.perf_counter()
+                terms = self.step(t)
+                self.iteration = t + 1
+                self.history.append([float(t)] + [terms[k] for k in HISTORY_COLUMNS[1:]])
+                self.seconds += time.perf_counter() - start
+                if not math.isfinite(terms["loss"]):
+                    raise FloatingPointError(f"training diverged at iteration {t}: loss {terms['loss']}")
+                if self.iteration % 10 == 0:
+                    bar.set_postfix({k: f"{v:.3g}" for k, v in terms.items() if not math.isnan(v)}, refresh=False)
+                bar.update()
+                if self.iteration % cfg.save_every == 0 or self.iteration == end:
+                    val = self.validate()
+                    self.val_history.append([float(self.iteration), *val])
+                    self.save()
+                    log.info("iteration %d: loss %.5g, val chamfer %.5g (undeformed %.5g)", self.iteration,
+                             terms["loss"], *val)
+        finally:
+            bar.close()
+        return self.record()
+
+
+def train(data: PreparedData, config: TrainConfig, out_dir: str | os.PathLike, *, device: str = "auto",
+          resume: bool = False, progress: bool = True, command: str | None = None,
+          stop_at: int | None = None) -> dict:
+    """Train (or resume) a model in ``out_dir``; returns the training record (also in ``out_dir/record.json``)."""
+    trainer = Trainer(config, data, out_dir, device=device, command=command)
+    if resume:
+        trainer.load_state(load_checkpoint(Path(out_dir) / CHECKPOINT_NAME))
+        log.info("resuming %s at iteration %d", out_dir, trainer.iteration)
+    return trainer.run(progress=progress, stop_at=stop_at)
