@@ -65,6 +65,18 @@ def test_zero_move_reproduces_the_input(toy, chair_file, tmp_path):
     np.testing.assert_array_equal(again.triangles, original.triangles)
 
 
+def test_scan_option(toy, chair_file, tmp_path):
+    """--scan orients the input to the bundle's template first and maps results back onto the input."""
+    from scipy.spatial.transform import Rotation
+
+    mesh = read_mesh(chair_file)
+    rotation = Rotation.from_euler("zyx", [70, 20, -30], degrees=True).as_matrix()
+    scan = tmp_path / "scan.ply"
+    write_mesh(scan, mesh.with_vertices(mesh.vertices @ rotation.T * 3 + 5))
+    assert kpd("deform", toy, scan, "--scan", "--move", "0:0,0,0", "--out", tmp_path / "same.ply") == 0
+    np.testing.assert_array_equal(read_mesh(tmp_path / "same.ply").vertices, read_mesh(scan).vertices)
+
+
 def textured_chair(path: Path) -> Mesh:
     """The procedural demo chair with per-corner UVs, a texture and vertex colours, written to ``path``."""
     from kpd.commands.demo import procedural_chair

@@ -123,7 +123,6 @@ def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray]):
         targets = model.sync(rig, {i: targets[i] for i in moves})
     vertices = rig.deform(targets)
     if scan is not None:
-        vertices = scan.to_original(vertices)
-        if not moves:
-            vertices = mesh.vertices  # a zero edit is exact, not a round trip through the similarity
+        # map the vertex offsets back (not the positions), so an edit that moves nothing changes nothing exactly
+        vertices = mesh.vertices + scan.vector_to_original(vertices - work.vertices)
     return mesh.with_vertices(vertices)

@@ -79,7 +79,12 @@ class ScanFrame:
         return self.result.to_original(points)
 
     def vector_to_aligned(self, vector):
+        """(3,) offset in the scan's units -> the aligned frame (rotation and scale only)."""
         return self.result.transform[:3, :3] @ vector
+
+    def vector_to_original(self, vectors):
+        """(N, 3) offsets in the aligned frame -> the scan's units."""
+        return vectors @ self.result.inverse[:3, :3].T
 
     def report(self) -> dict:
         return self.result.to_dict()
