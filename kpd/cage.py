@@ -53,7 +53,7 @@ _MAX_LEVEL = 7  # 163,842 vertices; more is never a cage
 # a point at radius r ends with r <= (1 - margin) * R(direction).
 _ENCLOSE_MARGIN = 0.02
 _ENCLOSE_ROUNDS = 10
-_CHUNK_PAIRS = 1 << 20  # point-face pairs per chunk in the vectorised loops
+_CHUNK_PAIRS = 1 << 15  # point-face pairs per chunk in the vectorised loops
 
 
 class Cage(NamedTuple):
@@ -167,11 +167,13 @@ def fit_cage(
     toward the origin by ``step`` of its position (``c <- c - step * c``); the others stay. The points are expected in
     the [-1, 1] box (:class:`kpd.geometry.Normalizer`), centred on the origin.
 
-    The authors' rule can leave parts of the shape outside the cage (a few percent of a chair's points), where mean
-    value coordinates misplace them. ``enclose=True`` goes beyond the authors: afterwards, every face whose cone
-    (seen from the origin) holds a point that is outside the cage, or closer to it than 2 % of the cage's radial
-    distance, has its three vertices pushed out along their rays just enough to bring those points inside. Vertices
-    only move outward, so points already inside stay inside, and the result is deterministic.
+    The authors' rule can leave parts of the shape outside the cage (a few percent of a chair's points, and the box
+    corners are outside even the template), where the cage's mean value coordinates extrapolate instead of
+    interpolate. ``enclose=True`` goes beyond the authors: afterwards, each point that is outside the cage, or closer
+    to it than 2 % of the cage's radial distance in its direction, raises the vertices of the face its ray from the
+    origin crosses, along their rays, the lowest first to a common radius, just enough to bring the point to that
+    margin. Vertices only move outward, so points already inside stay inside; one pass suffices (a second checks),
+    and the result is deterministic. It needs a template star-shaped about the origin (any fitted icosphere is).
 
     Parameters
     ----------
@@ -180,7 +182,7 @@ def fit_cage(
     distance : stop distance of a vertex from the nearest point.
     iterations : maximum number of shrinking rounds.
     step : fraction of its position a vertex moves toward the origin per round.
-    enclose : push faces out until every point is strictly inside.
+    enclose : push vertices out until every point is inside, with the margin.
 
     Returns
     -------
@@ -241,11 +243,13 @@ def _enclose(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.
     # The cone (face) of each point and its coordinates in that face's unit directions; both fixed by the directions.
     face_of = np.empty(len(points), dtype=np.int64)
     coords = np.empty((len(points), 3))
+    inv_rows = np.ascontiguousarray(inv.reshape(-1, 3).T)  # (3, 3F)
     chunk = max(1, _CHUNK_PAIRS // len(faces))
     for start in range(0, len(points), chunk):
         p = points[start : start + chunk]
-        lam = np.einsum("fij,nj->nfi", inv, p)  # (n, F, 3)
-        best = lam.min(axis=2).argmax(axis=1)  # (n,) the face whose cone holds the point most surely
+        lam = (p @ inv_rows).reshape(len(p), len(faces), 3)  # (n, F, 3)
+        least = np.minimum(np.minimum(lam[:, :, 0], lam[:, :, 1]), lam[:, :, 2])  # (n, F)
+        best = least.argmax(axis=1)  # (n,) the face whose cone holds the point most surely
         face_of[start : start + chunk] = best
         coords[start : start + chunk] = lam[np.arange(len(p)), best]
     # Rounding at cone borders: drop coordinates that are noise next to the others (the margin dwarfs them).
@@ -327,22 +331,23 @@ def winding_number(points: Any, vertices: Any, faces: Any) -> np.ndarray:
     points = as_points(points, min_count=0)
     vertices = as_points(vertices, "vertices")
     faces = _check_faces(faces, len(vertices), "faces")
-    tri = vertices[faces]  # (F, 3, 3)
+    corners = [vertices[faces[:, k]].T.copy() for k in range(3)]  # 3 x (3, F)
     out = np.empty(len(points))
     chunk = max(1, _CHUNK_PAIRS // len(faces))
     for start in range(0, len(points), chunk):
-        p = points[start : start + chunk, None, :]  # (n, 1, 3)
-        a, b, c = tri[None, :, 0] - p, tri[None, :, 1] - p, tri[None, :, 2] - p  # (n, F, 3) each
-        la, lb, lc = (np.sqrt(np.einsum("nfi,nfi->nf", v, v)) for v in (a, b, c))  # (n, F)
-        num = np.einsum("nfi,nfi->nf", a, np.cross(b, c))
-        den = (
-            la * lb * lc
-            + np.einsum("nfi,nfi->nf", a, b) * lc
-            + np.einsum("nfi,nfi->nf", a, c) * lb
-            + np.einsum("nfi,nfi->nf", b, c) * la
+        x = points[start : start + chunk].T[:, :, None]  # (3, n, 1)
+        a, b, c = (corner[:, None, :] - x for corner in corners)  # (3, n, F) each, per component
+        la, lb, lc = (np.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2) for v in (a, b, c))  # (n, F)
+        num = (
+            a[0] * (b[1] * c[2] - b[2] * c[1]) + a[1] * (b[2] * c[0] - b[0] * c[2]) + a[2] * (b[0] * c[1] - b[1] * c[0])
         )
+        den = la * lb * lc + _dot3(a, b) * lc + _dot3(a, c) * lb + _dot3(b, c) * la
         out[start : start + chunk] = 2.0 * np.arctan2(num, den).sum(axis=1)  # Van Oosterom & Strackee
     return out / (4.0 * np.pi)
+
+
+def _dot3(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
 
 
 def points_outside(points: Any, vertices: Any, faces: Any) -> np.ndarray:

@@ -148,9 +148,9 @@ def _kernel(t: _Tables, pts: np.ndarray, out: np.ndarray, ws: _Workspace) -> np.
         np.multiply(a[j], b[k], out=gi)
         np.multiply(a[k], b[j], out=tmp)
         gi -= tmp
-    np.multiply(g[0][:E], g[0][:E], out=length)
+    np.square(g[0][:E], out=length)
     for i in (1, 2):
-        np.multiply(g[i][:E], g[i][:E], out=tmp)
+        np.square(g[i][:E], out=tmp)
         length += tmp
     np.sqrt(length, out=length)  # |G| = |a||b| sin θ
     np.multiply(a[0], b[0], out=theta)
@@ -165,7 +165,7 @@ def _kernel(t: _Tables, pts: np.ndarray, out: np.ndarray, ws: _Workspace) -> np.
         np.negative(h[i][:E], out=h[i][E:])
         np.negative(g[i][:E], out=g[i][E:])
     # Per face: m = Σ_k θ_k G_k / |G_k|, D = det[p_0 - x, p_1 - x, p_2 - x], w_k = G_k . m / D.
-    f1, f2, d = ws.f1, ws.f2, ws.d
+    f1, d = ws.f1, ws.d
     r0, r1, r2 = t.rows
     for i in range(3):
         m = ws.m[i]
@@ -185,12 +185,12 @@ def _kernel(t: _Tables, pts: np.ndarray, out: np.ndarray, ws: _Workspace) -> np.
     np.divide(1.0, d, out=d)
     for k in range(3):
         wk = ws.w[k * F : (k + 1) * F]
-        np.take(g[0], t.rows[k], axis=0, out=f1, mode="clip")
-        np.multiply(f1, ws.m[0], out=wk)
+        np.take(g[0], t.rows[k], axis=0, out=wk, mode="clip")
+        wk *= ws.m[0]
         for i in (1, 2):
             np.take(g[i], t.rows[k], axis=0, out=f1, mode="clip")
-            np.multiply(f1, ws.m[i], out=f2)
-            wk += f2
+            f1 *= ws.m[i]
+            wk += f1
         wk *= d
     # Scatter the corners to the vertices, normalise, transpose into the output.
     wc = ws.wc
