@@ -219,14 +219,14 @@ def model_from_checkpoint(checkpoint: Mapping) -> KeypointDeformer:
 
 
 def load_training_shapes(root: str | os.PathLike, category: str, settings_dict: Mapping, *,
-                         cache_dir: str | os.PathLike | None = None, seed: int = 0,
-                         progress: bool = True) -> TrainingShapes:
+                         cache_dir: str | os.PathLike | None = None, seed: int = 0, split_file: str | None = None,
+                         val_fraction: float = 0.1, progress: bool = True) -> TrainingShapes:
     """The cached training samples of a category (sampled into the cache first if needed)."""
     from kpd.data import SampleSettings, prepare
 
     settings = SampleSettings.from_dict(dict(settings_dict))
     prepared = prepare(root, category, settings=settings, cache_dir=cache_dir, seed=seed, splits=("train",),
-                       progress=progress)
+                       split_file=split_file, val_fraction=val_fraction, progress=progress)
     samples = prepared.samples["train"]
     source = {"root": str(prepared.category.root), "category": prepared.category.category, "split": "train",
               "shapes": len(samples), "samples_per_shape": int(samples.points.shape[1]),
@@ -274,11 +274,17 @@ def export_checkpoint(
     if root is None:
         raise InputError("the training data folder is not in the run's record; pass --data")
     settings = ckpt["sample_settings"]
+    split_file, val_fraction = _recorded_split(recorded.get("split_source", "")) if data is None else (None, 0.1)
     try:
         shapes = load_training_shapes(root, category, settings, seed=int(record.get("seed", 0)),
-                                      cache_dir=cache_dir or recorded.get("cache"), progress=progress)
+                                      cache_dir=cache_dir or recorded.get("cache"), split_file=split_file,
+                                      val_fraction=val_fraction, progress=progress)
     except DataError as exc:
         raise InputError(f"cannot read the training shapes for the prior ({exc}); pass --data") from exc
+    usable = (recorded.get("usable") or {}).get("train")
+    if usable is not None and usable != len(shapes.names):
+        log.warning("the run trained on %d shapes; the prior is fitted on %d (the split could not be reproduced "
+                    "exactly)", usable, len(shapes.names))
     training = {key: value for key, value in record.items() if key != "skipped"}
     training["skipped_shapes"] = len(record.get("skipped", []))
     training["checkpoint"] = {"file": str(path if path.is_file() else path / CHECKPOINT_NAME),
@@ -290,6 +296,17 @@ def export_checkpoint(
         up = "+z"
     return export_model(model, out, category=category, point_count=int(settings.get("points", 1024)), shapes=shapes,
                         fit_prior=fit_prior, cage_fit=cage_fit, up=up, training=training, force=force)
+
+
+def _recorded_split(source: str) -> tuple[str | None, float]:
+    """The split file and validation share of a run, from its record's ``split_source`` text
+    (``"<file or folders>[; val carved from train (<fraction>, seed <seed>)]"``)."""
+    import re
+
+    first = source.split(";")[0].strip()
+    split_file = first if first and Path(first).is_file() else None
+    match = re.search(r"val carved from train \(([0-9.eE+-]+)", source)
+    return split_file, float(match.group(1)) if match else 0.1
 
 
 # --- from the authors' code -----------------------------------------------------------------------------------------
