@@ -504,7 +504,7 @@ class EvalShape:
     keypoints : (J, 3) float64 annotated keypoints in the evaluation frame, or None.
     semantic_ids : (J,) int64 or None.
     labels : (N,) int64 part labels of ``points``, or None.
-    path : the geometry file; frame : how its frame is known ("keypointnet", "shapenetpart", "points", "fitted:<map>").
+    path : the geometry file; frame : how its frame is known ("keypointnet", "shapenetpart", "fitted:<map>").
     fit_distance : for a fitted frame, the largest keypoint-to-surface distance after the fit (evaluation units).
     """
 
@@ -669,14 +669,17 @@ class ModelKeypoints:
     model : a loaded Model.
     up : the frame the model was trained in: ``"+z"`` (ModelNet: the shape is rotated by the inverse of
         :data:`MODELNET_TO_REFERENCE` before prediction and the keypoints back) or ``"+y"`` (the reference frame,
-        ShapeNet/KeypointNet as the authors use it); ``None`` reads the bundle's record and assumes ``"+y"`` when it
-        has none.
+        ShapeNet/KeypointNet as the authors use it); ``None`` reads the bundle's record (an error when it has none:
+        a wrong frame would give meaningless scores).
     seed : sampling seed passed to the model.
     """
 
     def __init__(self, model: Any, *, up: str | None = None, seed: int = 0) -> None:
         self.model = model
-        self.up = up or model.up or "+y"
+        self.up = up or model.up
+        if self.up is None:
+            raise InputError(f"the bundle {model.bundle.path} does not record the frame it was trained in; say it "
+                             "with up='+z' (ModelNet) or up='+y' (ShapeNet / KeypointNet), --up on the command line")
         if self.up not in _UP_TO_REFERENCE:
             raise InputError(f"up must be '+y' or '+z'; got {self.up!r}")
         self.to_reference = _UP_TO_REFERENCE[self.up]
@@ -827,8 +830,8 @@ def pck_protocol(dataset: KeypointNet, source, *, geometry_dirs: Sequence[str | 
         "protocol": "pck",
         "definition": f"PCK@{threshold:g} by linear regression (KeypointDeformer Fig. 4, after Thewlis et al. 2017): "
                       f"a ridge-regularised affine map (relative ridge {ridge:g}) from the flattened unsupervised "
-                      f"keypoints to the annotated ones, fitted on {fit_split}; a regressed keypoint on {test_split} is "
-                      f"correct within {threshold:g} (Euclidean) in the [-1, 1] box of the KeypointNet cloud, after "
+                      f"keypoints to the annotated ones, fitted on {fit_split}; a regressed keypoint on {test_split} "
+                      f"is correct within {threshold:g} (Euclidean) in the [-1, 1] box of the KeypointNet cloud, after "
                       f"the authors' axis fix",
         "data": {
             "dataset": "KeypointNet", "root": str(dataset.root), "category": dataset.category,
@@ -872,8 +875,8 @@ def parts_protocol(dataset: ShapeNetPart, category: str, source, *, split: str =
                       f"frequency[k, p] = fraction of shapes in which k is associated with p; score = mean over "
                       f"keypoints of max over parts (the paper's); part_score = mean over parts of max over keypoints "
                       f"(the reverse reduction)",
-        "data": {"dataset": "ShapeNetPart", "root": str(dataset.root), "category": dataset.name(dataset.synset(category)),
-                 "synset": dataset.synset(category), "split": split,
+        "data": {"dataset": "ShapeNetPart", "root": str(dataset.root),
+                 "category": dataset.name(dataset.synset(category)), "synset": dataset.synset(category), "split": split,
                  "shapes": [s.describe() for s in kept], "skipped": _skipped_json(missing)},
         "keypoints": source.describe(),
         "settings": {"radius": radius},

@@ -294,3 +294,35 @@ def test_alignment_pairs_match_training_evaluation():
         np.testing.assert_array_equal(ann.alignment_pairs(n, count, seed), evaluate.fixed_pairs(n, count, seed))
     with pytest.raises(DataError, match="at least 2"):
         ann.alignment_pairs(1, 3)
+
+
+class _TopModel:
+    """A stand-in for kpd.runtime.Model whose one 'keypoint' is the highest point (max z: ModelNet's up)."""
+
+    up = "+z"
+    num_keypoints = 1
+    category = "chair"
+
+    class bundle:  # noqa: N801
+        path = "top.kpd"
+
+    def keypoints_batch(self, shapes, seed=0):
+        out = []
+        for s in shapes:
+            pts = s.vertices if isinstance(s, Mesh) else np.asarray(s)
+            out.append(pts[[np.argmax(pts[:, 2])]])
+        return np.stack(out)
+
+
+def test_model_keypoints_rotate_into_the_model_frame_and_back(chair_shapes):
+    shapes, _ = chair_shapes
+    chosen = [shapes[PCD_CHAIR], shapes[FITTED_CHAIRS[1]], shapes[PART_CHAIR]]
+    got, skipped = ann.ModelKeypoints(_TopModel())(chosen)
+    assert not skipped
+    for s, k in zip(chosen, got):
+        geometry = s.geometry.vertices if isinstance(s.geometry, Mesh) else s.geometry
+        top = s.normalizer.apply(geometry[[np.argmax(geometry[:, 1])]])  # y up in the reference frame
+        np.testing.assert_allclose(k, top, atol=1e-12)
+        assert k[0, 1] > 0.9  # near the top of the [-1, 1] box
+    with pytest.raises(InputError, match="'\\+y' or '\\+z'"):
+        ann.ModelKeypoints(_TopModel(), up="-x")

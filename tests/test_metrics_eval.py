@@ -324,6 +324,7 @@ def test_eval_with_a_bundle(data_dir, toy_bundle, tmp_path, capsys):
 def test_eval_errors_are_one_line(data_dir, toy_bundle, tmp_path, capsys):
     parts = data_dir / "shapenetpart_sample"
     out = tmp_path / "x.json"
+    no_up = make_toy_bundle(tmp_path / "no_up.kpd", up=None)
     cases = [
         (["parts", parts, "--category", "chair", "--model", toy_bundle], "shuffled_test_file_list.json"),
         (["parts", tmp_path / "nowhere", "--category", "chair", "--model", toy_bundle], "does not exist"),
@@ -332,6 +333,7 @@ def test_eval_errors_are_one_line(data_dir, toy_bundle, tmp_path, capsys):
         (["coverage", parts, "--category", "chair", "--split", "all", "--keypoints", tmp_path],
          "gave keypoints for none"),
         (["parts", parts, "--category", "chair", "--split", "all", "--model", tmp_path / "none.kpd"], ""),
+        (["parts", parts, "--category", "chair", "--split", "all", "--model", no_up], "--up"),
     ]
     for argv, message in cases:
         code, _, err = _run(capsys, *argv, "--out", out, "--quiet")
