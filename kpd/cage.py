@@ -140,7 +140,7 @@ def _check_faces(faces: Any, n_vertices: int, name: str = "cage faces") -> np.nd
     arr = np.ascontiguousarray(arr, dtype=np.int64)
     lo, hi = int(arr.min()), int(arr.max())
     if lo < 0 or hi >= n_vertices:
-        raise InputError(f"{name} must index {n_vertices} vertices, i.e. lie in [0, {n_vertices - 1}]; got [{lo}, {hi}]")
+        raise InputError(f"{name} must lie in [0, {n_vertices - 1}] for {n_vertices} vertices; got [{lo}, {hi}]")
     return arr
 
 

@@ -346,11 +346,12 @@ def mvc_weights(
 def mvc_weights_reference(points: Any, cage_vertices: Any, cage_faces: Any) -> np.ndarray:
     """Slow reference for :func:`mvc_weights`: Ju et al.'s pseudo-code, one point and one face at a time.
 
-    The half-angle form: θ_i = 2 asin(l_i / 2), h = Σθ_i / 2, c_i = 2 sin h sin(h - θ_i) / (sin θ_{i+1} sin θ_{i-1})
-    - 1, s_i = sign(det[u_1, u_2, u_3]) sqrt(1 - c_i²), w_i = (θ_i - c_{i+1} θ_{i-1} - c_{i-1} θ_{i+1}) /
-    (d_i sin θ_{i+1} s_{i-1}), a face dropped when some s_i is 0; the same one-hot and on-face rules as
-    :func:`mvc_weights`. Its rounding grows near faces and edges (sqrt(1 - c²), asin near 1): trust it to ~1e-10
-    only farther than ~1e-3 from the cage's faces, or exactly on them.
+    The half-angle form: θ_i = 2 asin(l_i / 2), h = Σθ_i / 2,
+    c_i = 2 sin h sin(h - θ_i) / (sin θ_{i+1} sin θ_{i-1}) - 1, s_i = sign(det[u_1, u_2, u_3]) sqrt(1 - c_i²),
+    w_i = (θ_i - c_{i+1} θ_{i-1} - c_{i-1} θ_{i+1}) / (d_i sin θ_{i+1} s_{i-1}), a face dropped when some s_i is 0
+    (Ju's coplanar rule), and the same one-hot and on-face rules as :func:`mvc_weights`. Its rounding grows near
+    faces and edges (sqrt(1 - c²), asin near 1): trust it to ~1e-10 only farther than ~1e-3 from the cage's faces,
+    or exactly on them.
     """
     points, t = _prepare(points, cage_vertices, cage_faces)
     v, faces = t.vertices.tolist(), t.faces.tolist()
@@ -383,18 +384,16 @@ def mvc_weights_reference(points: Any, cage_vertices: Any, cage_faces: Any) -> n
             dd = [d[i] for i in face]
             theta = [2.0 * math.asin(min(1.0, _norm(_sub(uu[(k + 1) % 3], uu[(k + 2) % 3])) / 2.0)) for k in range(3)]
             h = sum(theta) / 2.0
-            c = [
-                2.0 * math.sin(h) * math.sin(h - theta[k]) / (math.sin(theta[(k + 1) % 3]) * math.sin(theta[(k + 2) % 3]))
-                - 1.0
-                for k in range(3)
-            ]
+            sin = [math.sin(th) for th in theta]
+            c = [2.0 * math.sin(h) * math.sin(h - th) / (sin[(k + 1) % 3] * sin[(k + 2) % 3]) - 1.0
+                 for k, th in enumerate(theta)]
             sgn = math.copysign(1.0, _dot(uu[0], _cross(uu[1], uu[2])))
             s = [sgn * math.sqrt(max(0.0, 1.0 - ck * ck)) for ck in c]
             if min(abs(sk) for sk in s) <= _EPS_REFERENCE:
                 continue  # Ju's rule: x on the face's plane, outside it
             for k in range(3):
                 kp, km = (k + 1) % 3, (k + 2) % 3
-                w[face[k]] += (theta[k] - c[kp] * theta[km] - c[km] * theta[kp]) / (dd[k] * math.sin(theta[kp]) * s[km])
+                w[face[k]] += (theta[k] - c[kp] * theta[km] - c[km] * theta[kp]) / (dd[k] * sin[kp] * s[km])
         total = sum(w)
         out[n] = np.asarray(w) / total
     return out

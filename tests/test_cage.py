@@ -187,7 +187,7 @@ def test_enclose_rejects_a_cage_that_is_not_star_shaped():
         ({"iterations": -1}, "iterations"),
         ({"iterations": 2.5}, "iterations"),
         ({"template": "sphere"}, "template"),
-        ({"template": Cage(np.zeros((42, 3)), np.full((80, 3), 50))}, r"\[0, 41\]"),
+        ({"template": Cage(np.zeros((42, 3)), np.full((80, 3), 50))}, r"\[0, 41\] for 42 vertices"),
     ],
 )
 def test_fit_cage_rejects_bad_arguments(kwargs, match):

@@ -213,7 +213,7 @@ def test_deformation_is_linear_in_the_cage():
         (np.zeros((5, 2)), TEMPLATE.vertices, TEMPLATE.faces, {}, r"points must have shape \(N, 3\)"),
         ([[np.nan, 0, 0]], TEMPLATE.vertices, TEMPLATE.faces, {}, "finite"),
         (np.zeros((1, 3)), TEMPLATE.vertices[:3], TEMPLATE.faces, {}, "at least 4"),
-        (np.zeros((1, 3)), TEMPLATE.vertices, TEMPLATE.faces + 1, {}, r"\[0, 41\]"),
+        (np.zeros((1, 3)), TEMPLATE.vertices, TEMPLATE.faces + 1, {}, r"\[0, 41\] for 42 vertices"),
         (np.zeros((1, 3)), TEMPLATE.vertices, TEMPLATE.faces[1:], {}, "closed surface"),
         (np.zeros((1, 3)), TEMPLATE.vertices, TEMPLATE.faces.astype(float) + 0.5, {}, "integer"),
         (np.zeros((1, 3)), np.vstack([TEMPLATE.vertices, [[0, 0, 0]]]), TEMPLATE.faces, {}, "vertex 42 is in none"),
