@@ -85,7 +85,11 @@ class PointConv(nn.Module):
 
 
 class PointNetFeatures(nn.Module):
-    """PointNet encoder 3 -> 64 -> 128 -> ``bottleneck`` (ReLU, ReLU, none), max over points: (B, N, 3) -> (B, D)."""
+    """PointNet encoder 3 -> 64 -> 128 -> ``bottleneck`` (ReLU, ReLU, none), max over points: (B, N, 3) -> (B, D).
+
+    The last layer has no activation, so its bias is added after the max-pool (``max_i(x_i W + b) = max_i(x_i W) + b``
+    exactly, as rounding is monotone), which spares a (B, N, D) pass forward and backward.
+    """
 
     def __init__(self, bottleneck: int) -> None:
         super().__init__()
@@ -94,7 +98,9 @@ class PointNetFeatures(nn.Module):
         self.conv3 = PointConv(128, bottleneck, None)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        return self.conv3(self.conv2(self.conv1(points))).amax(dim=1)
+        h = self.conv2(self.conv1(points))  # (B, N, 128)
+        last = self.conv3.conv
+        return torch.matmul(h, last.weight.squeeze(-1).T).max(dim=1).values + last.bias  # (B, D)
 
 
 class LinearBlock(nn.Module):
