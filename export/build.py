@@ -274,9 +274,16 @@ def export_checkpoint(
     if root is None:
         raise InputError("the training data folder is not in the run's record; pass --data")
     settings = ckpt["sample_settings"]
-    split_file, val_fraction = _recorded_split(recorded.get("split_source", "")) if data is None else (None, 0.1)
+    discover = recorded.get("discover") or {}
+    if data is not None:
+        split_file, val_fraction = None, 0.1
+    elif discover:
+        split_file, val_fraction = discover.get("split_file"), float(discover.get("val_fraction", 0.1))
+    else:
+        split_file, val_fraction = _recorded_split(recorded.get("split_source", ""))
+    seed = int(discover.get("seed", record.get("seed", 0)))
     try:
-        shapes = load_training_shapes(root, category, settings, seed=int(record.get("seed", 0)),
+        shapes = load_training_shapes(root, category, settings, seed=seed,
                                       cache_dir=cache_dir or recorded.get("cache"), split_file=split_file,
                                       val_fraction=val_fraction, progress=progress)
     except DataError as exc:

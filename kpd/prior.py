@@ -13,8 +13,14 @@ Synchronisation works on *offsets*, so a shape keeps what makes it itself: with 
     minimise  ‖A z − (q_E − p_E)‖² / ridge + Σ_m z_m² / λ_m,        A = components restricted to E
 
 (a Gaussian MAP estimate: the edit is met up to noise of variance ``ridge`` and the coefficients have the variances
-``λ`` the training set showed). All keypoints move by ``z · components``; the edited ones are then set exactly to
-their targets. A zero edit moves nothing.
+``λ`` the training set showed). This is the conditional mean of probabilistic PCA (Tipping & Bishop 1999) given the
+edited coordinates, and the default ``ridge`` is its maximum-likelihood noise variance, the mean variance of the
+discarded directions (scikit-learn's ``noise_variance_``). All keypoints move by ``z · components``; the edited ones
+are then set exactly to their targets. A zero edit moves nothing.
+
+The keypoints live in each shape's own [-1, 1] box, so the prior knows proportions, not sizes: an edit far outside
+what the category shows (several standard deviations, say, raising a chair's top above the box) is explained by
+moving everything else a lot; ``scale`` in :meth:`KeypointPrior.sample` and modest edits stay in range.
 """
 
 from __future__ import annotations
@@ -41,6 +47,7 @@ class KeypointPrior:
     ridge : noise variance of an edit, in squared model-frame units ([-1, 1] box): how closely the
         component model must reproduce the edited keypoints before they are set exactly. Smaller follows the
         edit more literally with more component energy; larger keeps the other keypoints closer to where they were.
+        None (default) uses the fitted ``noise_variance_``.
 
     Attributes
     ----------
@@ -48,10 +55,12 @@ class KeypointPrior:
     components_ : (M, K, 3) float64, orthonormal principal directions (as flat 3K vectors), by decreasing variance.
     explained_variance_ : (M,) float64, variance of the training keypoint sets along each component.
     explained_variance_ratio_ : (M,) float64, share of the total variance.
+    noise_variance_ : float, mean variance of the discarded directions (probabilistic PCA's noise), floored at
+        1e-9 of the total variance.
     n_samples_ : int, keypoint sets the prior was fitted on.
     """
 
-    def __init__(self, *, n_components: int = 8, ridge: float = 1e-3) -> None:
+    def __init__(self, *, n_components: int = 8, ridge: float | None = None) -> None:
         self.n_components = n_components
         self.ridge = ridge
 
@@ -92,6 +101,8 @@ class KeypointPrior:
         self.explained_variance_ = variance[:m].copy()
         total = variance.sum()
         self.explained_variance_ratio_ = variance[:m] / total
+        rest = 3 * k - m
+        self.noise_variance_ = max(float(variance[m:].sum()) / rest if rest else 0.0, 1e-9 * float(total))
         self.n_samples_ = s
         log.info("prior: %d components explain %.1f%% of the keypoint variance over %d sets",
                  m, 100 * self.explained_variance_ratio_.sum(), s)
@@ -101,9 +112,17 @@ class KeypointPrior:
         m = self.n_components
         if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 1:
             raise InputError(f"n_components must be a positive integer; got {m!r}")
-        if not (isinstance(self.ridge, (int, float, np.floating)) and np.isfinite(self.ridge) and self.ridge > 0):
-            raise InputError(f"ridge must be a positive number; got {self.ridge!r}")
+        ridge = self.ridge
+        if ridge is not None and not (isinstance(ridge, (int, float, np.floating)) and not isinstance(ridge, bool)
+                                      and np.isfinite(ridge) and ridge > 0):
+            raise InputError(f"ridge must be a positive number or None; got {ridge!r}")
         return int(m)
+
+    @property
+    def ridge_(self) -> float:
+        """The ridge in use: ``ridge``, or the fitted ``noise_variance_`` when ``ridge`` is None."""
+        self._check_fitted()
+        return float(self.noise_variance_ if self.ridge is None else self.ridge)
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "components_"):
@@ -172,7 +191,7 @@ class KeypointPrior:
         targets = np.stack(targets)  # (E, 3)
         offsets = (targets - keypoints[indices]).ravel()  # (3E,)
         basis = self.components_[:, indices, :].reshape(len(self.components_), -1).T  # (3E, M)
-        normal = basis.T @ basis + self.ridge * np.diag(1.0 / self.explained_variance_)  # (M, M)
+        normal = basis.T @ basis + self.ridge_ * np.diag(1.0 / self.explained_variance_)  # (M, M)
         z = np.linalg.solve(normal, basis.T @ offsets)  # (M,)
         result += np.tensordot(z, self.components_, axes=1)
         result[indices] = targets
@@ -210,7 +229,8 @@ class KeypointPrior:
         self._check_fitted()
         return {
             "n_components": int(self.n_components),
-            "ridge": float(self.ridge),
+            "ridge": None if self.ridge is None else float(self.ridge),
+            "noise_variance": float(self.noise_variance_),
             "n_samples": int(self.n_samples_),
             "mean": self.mean_.tolist(),
             "components": self.components_.tolist(),
@@ -224,7 +244,9 @@ class KeypointPrior:
         if not isinstance(data, Mapping):
             raise InputError(f"a prior must be a dict; got {type(data).__name__}")
         try:
-            prior = cls(n_components=int(data["n_components"]), ridge=float(data["ridge"]))
+            ridge = data["ridge"]
+            prior = cls(n_components=int(data["n_components"]), ridge=None if ridge is None else float(ridge))
+            noise = float(data["noise_variance"])
             mean = np.asarray(data["mean"], dtype=np.float64)
             components = np.asarray(data["components"], dtype=np.float64)
             variance = np.asarray(data["explained_variance"], dtype=np.float64)
@@ -244,13 +266,17 @@ class KeypointPrior:
             raise InputError(f"prior explained_variance must have shape ({m},); got {variance.shape}")
         if not all(np.isfinite(a).all() for a in (mean, components, variance, ratio)) or not (variance > 0).all():
             raise InputError("prior arrays must be finite and its variances positive")
+        if not (np.isfinite(noise) and noise > 0):
+            raise InputError(f"prior noise_variance must be a positive number; got {noise}")
+        prior.noise_variance_ = noise
         prior.mean_, prior.components_, prior.explained_variance_ = mean, components, variance
         prior.explained_variance_ratio_, prior.n_samples_ = ratio, n_samples
         return prior
 
     def __repr__(self) -> str:
         fitted = f", K={len(self.mean_)}, fitted on {self.n_samples_}" if hasattr(self, "mean_") else ""
-        return f"KeypointPrior(n_components={self.n_components}, ridge={self.ridge:g}{fitted})"
+        ridge = "None" if self.ridge is None else f"{self.ridge:g}"
+        return f"KeypointPrior(n_components={self.n_components}, ridge={ridge}{fitted})"
 
 
 def _fix_signs(components: np.ndarray) -> np.ndarray:

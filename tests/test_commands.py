@@ -172,11 +172,17 @@ def test_sample_writes_variants_and_sheet(toy, chair_file, tmp_path):
 def test_demo_with_a_given_model(toy, tmp_path, capsys):
     out = tmp_path / "demo"
     assert kpd("demo", "--model", toy, "--out", out) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["deformed.ply", "demo.png", "input.ply", "keypoints.json",
-                                                     "rig.npz"]
+    assert sorted(p.name for p in out.iterdir()) == ["deformed.ply", "deformed_alone.ply", "demo.png", "input.ply",
+                                                     "keypoints.json", "rig.npz"]
     before, after = read_mesh(out / "input.ply"), read_mesh(out / "deformed.ply")
     np.testing.assert_array_equal(before.triangles, after.triangles)
-    assert "kpd deform --rig" in capsys.readouterr().out
+    record = json.loads((out / "keypoints.json").read_text())
+    moved = record["moved"]
+    np.testing.assert_array_equal(record["moved_with_prior"][moved], record["target"])
+    assert "kpd deform" in capsys.readouterr().out
+    bare = tmp_path / "bare_demo"
+    assert kpd("demo", "--model", make_toy_bundle(tmp_path / "np.kpd", prior=False), "--out", bare) == 0
+    assert not (bare / "deformed.ply").exists() and (bare / "deformed_alone.ply").is_file()
 
 
 def test_procedural_chair_is_closed_and_outward():
@@ -198,10 +204,15 @@ def test_demo_with_shipped_chair(tmp_path):
         pytest.skip("no shipped chair bundle yet")
     out = tmp_path / "demo"
     assert kpd("demo", "--out", out) == 0
-    before, after = read_mesh(out / "input.ply"), read_mesh(out / "deformed.ply")
-    height = np.ptp(before.vertices[:, 2])
-    assert np.ptp(after.vertices[:, 2]) > height * 1.05  # the chair got taller
-    np.testing.assert_allclose(after.vertex_colors, before.vertex_colors, atol=1 / 255)
+    before, alone, synced = (read_mesh(out / f"{name}.ply") for name in ("input", "deformed_alone", "deformed"))
+    width = np.ptp(before.vertices[:, :2], axis=0)
+    assert (np.ptp(alone.vertices[:, :2], axis=0) > width * 1.02).any()  # a leg was pulled outward
+    assert (np.ptp(synced.vertices[:, :2], axis=0) > width * 1.02).any()
+    np.testing.assert_allclose(synced.vertex_colors, before.vertex_colors, atol=1 / 255)
+    from PIL import Image
+
+    image = np.asarray(Image.open(out / "demo.png").convert("RGB"))
+    assert (image < 200).any(axis=2).mean() > 0.02
 
 
 # --- bad input: exit 2, one line, nothing written ---------------------------------------------------------------------

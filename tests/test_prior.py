@@ -41,8 +41,12 @@ def test_fit_matches_covariance_eigenvalues():
     sets = random_sets(s=60)
     prior = KeypointPrior(n_components=3).fit(sets)
     covariance = np.cov(sets.reshape(60, -1), rowvar=False)
-    eigen = np.sort(np.linalg.eigvalsh(covariance))[::-1][:3]
-    np.testing.assert_allclose(prior.explained_variance_, eigen, rtol=1e-9)
+    eigen = np.sort(np.linalg.eigvalsh(covariance))[::-1]
+    np.testing.assert_allclose(prior.explained_variance_, eigen[:3], rtol=1e-9)
+    # probabilistic PCA's noise: the mean of the discarded eigenvalues (the default ridge)
+    assert prior.noise_variance_ == pytest.approx(eigen[3:].mean(), rel=1e-9)
+    assert prior.ridge is None and prior.ridge_ == prior.noise_variance_
+    assert KeypointPrior(n_components=3, ridge=0.5).fit(sets).ridge_ == 0.5
 
 
 def test_unfitted_and_bad_params():
@@ -56,7 +60,7 @@ def test_unfitted_and_bad_params():
         KeypointPrior(n_components=8).fit(random_sets(s=5))
     with pytest.raises(InputError, match="n_components must be a positive integer"):
         KeypointPrior(n_components=0).fit(random_sets())
-    with pytest.raises(InputError, match="ridge must be a positive number"):
+    with pytest.raises(InputError, match="ridge must be a positive number or None"):
         KeypointPrior(ridge=-1.0).fit(random_sets())
     with pytest.raises(InputError, match="finite"):
         KeypointPrior().fit(np.full((10, 4, 3), np.nan))
@@ -75,7 +79,7 @@ def test_sync_checks_edits(prior):
 @settings(max_examples=60, deadline=None)
 @given(
     data=st.data(),
-    ridge=st.sampled_from([1e-6, 1e-3, 1.0]),
+    ridge=st.sampled_from([None, 1e-6, 1e-3, 1.0]),
 )
 def test_sync_meets_edits_exactly(prior, data, ridge):
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
@@ -126,7 +130,7 @@ def test_sample_and_coefficients(prior):
 
 def test_dict_roundtrip_is_exact(prior):
     again = KeypointPrior.from_dict(json.loads(json.dumps(prior.to_dict())))
-    for name in ("mean_", "components_", "explained_variance_", "explained_variance_ratio_"):
+    for name in ("mean_", "components_", "explained_variance_", "explained_variance_ratio_", "noise_variance_"):
         np.testing.assert_array_equal(getattr(again, name), getattr(prior, name))
     assert (again.n_components, again.ridge, again.n_samples_) == (prior.n_components, prior.ridge, prior.n_samples_)
     bad = prior.to_dict()

@@ -16,8 +16,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh", default=None, help="your own chair mesh instead of the built-in procedural chair "
                                                      "(z up, back toward +y, like ModelNet)")
     parser.add_argument("--model", default="chair", help="bundle to use (default: the shipped chair model)")
-    parser.add_argument("--raise", dest="amount", type=float, default=0.3, metavar="FRACTION",
-                        help="raise the highest keypoint by this fraction of the shape's height (default 0.3)")
+    parser.add_argument("--amount", type=float, default=0.12, metavar="FRACTION",
+                        help="how far to pull one leg outward, as a fraction of the shape's height (default 0.12)")
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
 
 
@@ -33,46 +33,68 @@ def run(args: argparse.Namespace) -> int:
     from kpd.io import read_mesh, write_mesh
     from kpd.runtime import Model
 
-    if not (np.isfinite(args.amount) and -1 < args.amount < 5):
-        raise InputError(f"--raise must lie in (-1, 5); got {args.amount}")
+    if not (np.isfinite(args.amount) and 0 <= args.amount <= 1):
+        raise InputError(f"--amount must lie in [0, 1]; got {args.amount}")
     out = check_output(args.out, force=args.force, inputs=(args.mesh,))
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} is a file; demo writes a folder")
     model = Model.load(args.model)
     mesh = read_mesh(args.mesh) if args.mesh is not None else procedural_chair()
     rig = model.rig(mesh)
-    up = _axis(model.up)
     rest = rig.keypoints  # (K, 3) in the mesh's units
-    top = int(np.argmax(rest @ up))
-    height = float(np.ptp(mesh.vertices @ up))
-    edits = {top: rest[top] + args.amount * height * up}
-    synced = model.prior is not None
-    targets = model.sync(rig, edits) if synced else rig.moved({top: edits[top] - rest[top]})
-    deformed = rig.deformed_mesh(targets)
+    leg, target = pick_edit(rest, _axis(model.up), float(np.ptp(mesh.vertices @ _axis(model.up))), args.amount)
+    alone = rig.moved({leg: target - rest[leg]})
+    synced = model.sync(rig, {leg: target}) if model.prior is not None else None
 
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
     try:
         write_mesh(staging / "input.ply", mesh)
-        write_mesh(staging / "deformed.ply", deformed)
+        write_mesh(staging / "deformed_alone.ply", rig.deformed_mesh(alone))
+        meshes, keypoints = [mesh, rig.deformed_mesh(alone)], [rest, alone]
+        titles = ["input", f"keypoint {leg} pulled outward"]
+        if synced is not None:
+            write_mesh(staging / "deformed.ply", rig.deformed_mesh(synced))
+            meshes.append(rig.deformed_mesh(synced))
+            keypoints.append(synced)
+            titles.append("the same, with the category prior")
         rig.save(staging / "rig.npz")
         record = {
             "model": str(args.model), "category": model.category, "input": args.mesh or "procedural chair",
-            "frame": "input", "moved": top, "prior": synced, "rest_keypoints": rest.tolist(),
-            "deformed_keypoints": targets.tolist(),
+            "frame": "input", "moved": leg, "target": target.tolist(), "rest_keypoints": rest.tolist(),
+            "moved_alone": alone.tolist(), "moved_with_prior": None if synced is None else synced.tolist(),
         }
         (staging / "keypoints.json").write_text(json.dumps(record, indent=1) + "\n")
-        moved = np.flatnonzero(np.linalg.norm(targets - rest, axis=1) > 1e-9 * max(height, 1e-12))
-        render_sheet([mesh, deformed], staging / "demo.png", titles=["input", f"keypoint {top} raised"
-                     + (" (prior: the others follow)" if synced else "")], keypoints=[rest, targets], columns=2,
-                     up=_up_letter(model.up), cell=4.0,
-                     arrows=[(rest[moved], targets[moved]), None])
+        arrows = [(rest[[leg]], target[None]), None] + ([None] if synced is not None else [])
+        render_sheet(meshes, staging / "demo.png", titles=titles, keypoints=keypoints, columns=len(meshes),
+                     up=_up_letter(model.up), cell=3.6, arrows=arrows)
         replace_path(staging, out)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    print(f"wrote {out}/: input.ply, deformed.ply (keypoint {top} raised by {args.amount:g} of the height"
-          f"{', the others moved by the category prior' if synced else ''}), rig.npz, keypoints.json, demo.png")
-    print(f"next: kpd deform --rig {out}/rig.npz --move {top}:0,0,1 --out taller.ply")
+    files = "input.ply, deformed_alone.ply" + (", deformed.ply" if synced is not None else "")
+    print(f"wrote {out}/: {files}, rig.npz, keypoints.json, demo.png (keypoint {leg}, a leg, pulled outward by "
+          f"{args.amount:g} of the height" + (", and again with the category prior moving the others)" if synced
+                                               is not None else ")"))
+    print(f"next: kpd deform {args.model} {out}/input.ply --move {leg}:0,0,2 --prior --out taller.ply")
     return 0
+
+
+def pick_edit(keypoints: np.ndarray, up: np.ndarray, height: float, amount: float) -> tuple[int, np.ndarray]:
+    """The demo's edit: of the four lowest keypoints (the legs of a chair), the one farthest from the keypoints'
+    vertical axis, pulled horizontally outward by ``amount * height``.
+
+    Returns
+    -------
+    index : int, target : (3,) float64.
+    """
+    heights = keypoints @ up
+    low = np.argsort(heights, kind="stable")[: min(4, len(keypoints))]
+    centre = keypoints.mean(axis=0)
+    flat = keypoints[low] - centre
+    flat -= np.outer(flat @ up, up)  # horizontal parts (n, 3)
+    i = int(np.argmax(np.linalg.norm(flat, axis=1)))
+    direction = flat[i] / max(np.linalg.norm(flat[i]), 1e-12)
+    index = int(low[i])
+    return index, keypoints[index] + amount * height * direction
 
 
 def _axis(up: str | None) -> np.ndarray:
