@@ -781,6 +781,12 @@ def _skipped_json(skipped: list[Skipped]) -> dict:
     return {"count": len(skipped), "reasons": reasons, "shapes": [s._asdict() for s in skipped]}
 
 
+def _few_shapes(n: int, enough: int = 20) -> list[str]:
+    """A note for the result when a protocol ran on too few shapes to mean much."""
+    return [f"only {n} scored shape{'s' if n != 1 else ''}: this checks the protocol, it is not a benchmark number"] \
+        if n < enough else []
+
+
 def _stats(values: np.ndarray) -> dict:
     values = np.asarray(values, dtype=np.float64)
     return {"mean": float(values.mean()), "median": float(np.median(values)), "std": float(values.std()),
@@ -821,11 +827,22 @@ def pck_protocol(dataset: KeypointNet, source, *, geometry_dirs: Sequence[str | 
         annotated = np.stack([s.keypoints[[int(np.flatnonzero(s.semantic_ids == c)[0]) for c in common]]
                               for s in kept])
         sets[split] = (kept, keypoints, annotated)
+    skipped_all = list(dict.fromkeys(skipped_all))  # once each when the two splits overlap
     train, test = sets[fit_split], sets[test_split]
     if train[1].shape[1] != test[1].shape[1]:
         raise DataError(f"the source gave {train[1].shape[1]} keypoints on {fit_split} and {test[1].shape[1]} on "
                         f"{test_split}")
     result = regression_pck(train[1], train[2], test[1], test[2], threshold=threshold, ridge=ridge)
+    notes = []
+    overlap = {s.model_id for s in train[0]} & {s.model_id for s in test[0]}
+    if overlap:
+        notes.append(f"{len(overlap)} test shapes are also fit shapes: the score is optimistic")
+    if len(train[0]) <= 3 * train[1].shape[1]:
+        notes.append(f"{len(train[0])} fit shapes for {3 * train[1].shape[1] + 1} regressor inputs: the map is "
+                     f"underdetermined and the score says little about the keypoints")
+    notes += _few_shapes(len(test[0]))
+    for note in notes:
+        log.info("pck: %s", note)
     return {
         "protocol": "pck",
         "definition": f"PCK@{threshold:g} by linear regression (KeypointDeformer Fig. 4, after Thewlis et al. 2017): "
@@ -855,6 +872,7 @@ def pck_protocol(dataset: KeypointNet, source, *, geometry_dirs: Sequence[str | 
             "per_shape": [{"id": s.model_id, "pck": float(np.mean(e <= threshold)), "mean_error": float(e.mean())}
                           for s, e in zip(test[0], result.errors)],
         },
+        "notes": notes,
     }
 
 
@@ -890,6 +908,7 @@ def parts_protocol(dataset: ShapeNetPart, category: str, source, *, split: str =
             "best_part": [int(p) for p in result.best_part],
             "associated": [float(v) for v in result.associated],
         },
+        "notes": _few_shapes(len(kept)),
     }
 
 
@@ -918,6 +937,7 @@ def das_protocol(dataset: KeypointNet, source, *, split: str = "all", geometry_d
         "settings": {},
         "results": {"das": result.score, "forward": result.forward, "backward": result.backward,
                     "shapes": len(kept), "keypoints": int(keypoints.shape[1])},
+        "notes": _few_shapes(len(kept)),
     }
 
 
@@ -957,6 +977,7 @@ def coverage_protocol(root: str | os.PathLike, category: str, source, *, split: 
                     "keypoints": int(keypoints.shape[1]),
                     "per_shape": [{"id": s.model_id, "coverage": c, "inclusivity": i}
                                   for s, c, i in zip(kept, cov, inc)]},
+        "notes": _few_shapes(len(kept)),
     }
 
 

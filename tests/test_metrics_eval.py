@@ -294,6 +294,8 @@ def test_eval_pck_das_coverage_with_files(data_dir, tmp_path, capsys):
                          "--fit-split", "all", "--test-split", "all", "--ridge", "0", "--out", out, "--quiet")
     result = json.loads(out.read_text())
     assert code == 0 and result["results"]["pck"] == 1.0  # annotations regress onto themselves
+    assert any("also fit shapes" in n for n in result["notes"]) and "note: only 4 scored shapes" in text
+    assert result["data"]["skipped"]["count"] == 995  # once each, although fit and test are the same split
     assert result["data"]["common_semantic_ids"] == common.tolist() and result["results"]["test_shapes"] == 4
     code, _, err = _run(capsys, "pck", kpn, "--category", "chair", "--keypoints", folder, "--out", out, "--quiet")
     assert code == 2 and "exists; pass --force" in err

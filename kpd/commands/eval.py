@@ -290,6 +290,8 @@ def _run_protocol(args: argparse.Namespace) -> int:
     print(f"{args.task}: {result['data'].get('category', '')} from {args.data}")
     for name, value in rows:
         print(f"  {name:<{width}}  {value}")
+    for note in result.get("notes", []):
+        print(f"  note: {note}")
     print(f"wrote {out}")
     return 0
 
