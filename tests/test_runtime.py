@@ -183,6 +183,7 @@ def test_graph_disagreeing_with_manifest_refused(tmp_path):
 
 def test_thread_settings(bundle_path):
     assert Model.load(bundle_path, threads=2, inter_op_threads=1).num_keypoints == K
+    assert Model.load(bundle_path, threads=1, spinning=True).num_keypoints == K
     with pytest.raises(InputError, match="threads must be a non-negative integer"):
         Model.load(bundle_path, threads=-1)
 
