@@ -25,6 +25,8 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 import open3d as o3d
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -203,6 +205,8 @@ def _with_points(shape: Any, points: np.ndarray, linear: np.ndarray) -> Any:
     """``shape`` with its points replaced (topology, colours, UVs kept); normals turned by ``linear`` (3, 3)."""
     if isinstance(shape, np.ndarray):
         return points
+    if hasattr(shape, "with_vertices"):
+        return shape.with_vertices(points)  # kpd.io.Mesh: same topology, UVs, colours; normals recomputed
     if _is_mesh(shape):
         changes: dict[str, Any] = {"vertices": points}
         field = "vertex_normals"
@@ -291,7 +295,9 @@ def _find_ground(
         return None, plane, f"dominant plane holds {share:.1%} of the points (< {min_share:.0%}): not a ground"
     rest = points[~mask]
     if len(rest) < 10:
-        return None, plane, "the dominant plane is (almost) the whole scan: not removed"
+        if up is not None and abs(float(np.dot(normal, up))) < math.cos(math.radians(30.0)):
+            return None, plane, "the scan is (almost) only a plane, and not a horizontal one: not removed"
+        return np.ones(len(points), dtype=bool), plane, "the scan is (almost) only a ground plane: all removed"
     signed = rest @ normal + offset  # (N',)
     above = float((signed > 0).mean())
     if above < 0.5:
@@ -314,19 +320,54 @@ def _find_ground(
     return mask | below, plane, f"ground plane with {int((mask | below).sum())} points removed"
 
 
+def _triangle_pieces(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, int]:
+    """Connected pieces of a mesh, (T,) piece label per triangle and the number of pieces. Vertices at the same
+    position are welded first, so that the copies a scanner makes along texture seams do not split a surface."""
+    if len(triangles) == 0:
+        return np.zeros(0, dtype=np.int64), 0
+    extent = float(np.abs(vertices).max()) or 1.0
+    keys = np.round(vertices / (1e-9 * extent)).astype(np.int64)
+    _, welded = np.unique(keys, axis=0, return_inverse=True)
+    welded = welded.reshape(-1)
+    t = welded[triangles]  # (T, 3)
+    n = int(welded.max()) + 1
+    rows = np.concatenate([t[:, 0], t[:, 1]])
+    cols = np.concatenate([t[:, 1], t[:, 2]])
+    graph = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n, n))
+    count, labels = connected_components(graph, directed=False)
+    return labels[t[:, 0]], count
+
+
+def _large_pieces(vertices: np.ndarray, triangles: np.ndarray, min_piece: float) -> np.ndarray:
+    """(T,) bool: triangles of pieces whose area is at least ``min_piece`` times the largest piece's."""
+    labels, count = _triangle_pieces(vertices, triangles)
+    if count == 0:
+        return np.ones(0, dtype=bool)
+    a, b, c = (vertices[triangles[:, i]] for i in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)  # (T,)
+    piece_area = np.bincount(labels, weights=area, minlength=count)
+    return piece_area[labels] >= min_piece * piece_area.max()
+
+
+def _count_pieces(vertices: np.ndarray, triangles: np.ndarray, mask: np.ndarray) -> int:
+    labels, _ = _triangle_pieces(vertices, np.asarray(triangles, dtype=np.int64))
+    return int(len(np.unique(labels[mask])))
+
+
 def clean(
     shape: Any,
     *,
     outliers: bool = True,
     neighbors: int = 20,
     std_ratio: float = 2.0,
-    ground: bool = True,
+    ground: bool | None = None,
     ground_distance: float = 0.01,
     ground_min_share: float = 0.05,
-    ground_area_ratio: float = 1.5,
+    ground_area_ratio: float = 1.3,
     up: Any = None,
     pieces: bool = True,
     min_piece: float = 0.05,
+    min_points: int = 10,
     seed: int = 0,
 ) -> CleanResult:
     """Clean a scan; each step is switchable and reported.
@@ -337,16 +378,23 @@ def clean(
     outliers : statistical outlier removal of point sets (Open3D ``remove_statistical_outlier``): a point goes when its
         mean distance to its ``neighbors`` nearest points exceeds the average by ``std_ratio`` standard deviations.
         Not applied to mesh vertices, whose spacing follows the tessellation; meshes lose small pieces instead.
-    ground : remove a dominant plane found by RANSAC if it looks like a ground (see ``_find_ground``).
+    ground : remove a dominant plane found by RANSAC if it looks like a ground (see ``_find_ground``). None (the
+        default) searches only when ``up`` is known: without it a table top or a seat cannot be told from a floor.
     ground_distance : RANSAC inlier distance as a fraction of the scan's bounding-box diagonal.
     ground_min_share, ground_area_ratio : thresholds of the ground test.
     up : the scan's up axis if known (``'z'``, ``'-y'``, three numbers): the ground must then face up.
     pieces : drop connected pieces of a mesh whose area is below ``min_piece`` times the largest piece's.
+    min_points : fewer points (mesh vertices) left than this is an error.
     seed : seeds the RANSAC plane search.
 
     Returns
     -------
     CleanResult(shape, report)
+
+    Raises
+    ------
+    InputError
+        For points that are not (N, 3) or not finite, and for a scan with fewer than ``min_points`` left.
     """
     points = _shape_points(shape)
     up_vector = None if up is None else parse_axis(up)
@@ -356,22 +404,14 @@ def clean(
     mesh = _is_mesh(shape)
 
     if mesh and pieces:
-        triangles = np.asarray(shape.triangles, dtype=np.int64)
-        if len(triangles):
-            o3d_mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(points),
-                                                 o3d.utility.Vector3iVector(triangles.astype(np.int32)))
-            labels, _, areas = o3d_mesh.cluster_connected_triangles()
-            labels, areas = np.asarray(labels), np.asarray(areas)
-            small = areas < min_piece * areas.max()
-            pieces_removed = int(small.sum())
-            if pieces_removed:
-                before = len(shape.vertices)
-                shape = _take_triangles(shape, ~small[labels])
-                pieces_vertices = before - len(shape.vertices)
-            else:
-                pieces_vertices = 0
+        keep = _large_pieces(points, np.asarray(shape.triangles, dtype=np.int64), min_piece)
+        pieces_removed = int(keep.size and (~keep).any() and _count_pieces(points, shape.triangles, ~keep))
+        if pieces_removed:
+            before = len(shape.vertices)
+            shape = _take_triangles(shape, keep)
+            pieces_vertices = before - len(shape.vertices)
         else:
-            pieces_removed = pieces_vertices = 0
+            pieces_vertices = 0
     elif not mesh and outliers:
         if len(points) > neighbors:
             _, kept = _pcd(points).remove_statistical_outlier(neighbors, std_ratio)
@@ -382,7 +422,9 @@ def clean(
         else:
             outliers_removed = 0
 
-    if ground:
+    if ground is None and up_vector is None:
+        note = "not searched: the up axis is unknown (give up=..., or ground=True to search anyway)"
+    elif ground is not False:
         points = _shape_points_raw(shape)
         if len(points) == 0:
             ground_removed, note = 0, "nothing left to search"
@@ -402,10 +444,10 @@ def clean(
         log.info("ground: %s", note)
 
     n_out = len(_shape_points_raw(shape))
-    if n_out == 0:
-        raise InputError(f"the scan is empty after cleaning: {n_in} point(s) in, 0 left "
-                         f"(outliers {outliers_removed}, ground {ground_removed}, pieces {pieces_vertices}); "
-                         "switch a step off or check the scan")
+    if n_out < min_points:
+        raise InputError(f"the scan is (nearly) empty after cleaning: {n_in} point(s) in, {n_out} left, at least "
+                         f"{min_points} needed (removed: outliers {outliers_removed}, ground {ground_removed}, "
+                         f"small pieces {pieces_vertices}); switch a step off or check the scan")
     report = CleanReport(n_in, n_out, outliers_removed, ground_removed, plane, note, pieces_removed, pieces_vertices)
     log.info("clean: %s", report)
     return CleanResult(shape, report)
@@ -650,11 +692,13 @@ class ScanAligner:
         out = []
         for run in range(self.fpfh_runs):
             o3d.utility.random.seed(self.seed + run)
-            result = reg.registration_ransac_based_on_feature_matching(
-                source, target, source_fpfh, target_fpfh, True, distance,
-                reg.TransformationEstimationPointToPoint(False), 3,
-                [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(distance)],
-                reg.RANSACConvergenceCriteria(20000, 0.999))
+            with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):  # "too few correspondences"
+                result = reg.registration_ransac_based_on_feature_matching(
+                    source, target, source_fpfh, target_fpfh, True, distance,
+                    reg.TransformationEstimationPointToPoint(False), 3,
+                    [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+                     reg.CorrespondenceCheckerBasedOnDistance(distance)],
+                    reg.RANSACConvergenceCriteria(20000, 0.999))
             rot = np.asarray(result.transformation)[:3, :3].copy()
             if np.isfinite(rot).all() and abs(np.linalg.det(rot) - 1.0) < 1e-6:
                 out.append(rot)

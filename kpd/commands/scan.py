@@ -1,0 +1,136 @@
+"""kpd scan: clean a real scan, orient it to a reference shape or a model's template, normalise it."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "clean a real scan, turn it into a reference's or a model's frame and normalise it to [-1, 1] (with a report)"
+EXAMPLE = "kpd scan my_sneaker.ply --reference sneaker_template.ply --out aligned.ply --report report.json --up z"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scan", metavar="SCAN", help="the scan: a mesh (.obj .ply .off .stl .gltf .glb) or points "
+                                                      "(.ply .pcd .xyz .pts .npy .npz)")
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--reference", metavar="REF", default=None,
+                        help="a shape in the frame to turn the scan into (mesh or points)")
+    source.add_argument("--model", metavar="MODEL", default=None,
+                        help="a bundle (.kpd folder, .zip, or a shipped name: chair): orient to its template shape")
+    parser.add_argument("--out", required=True, help="the cleaned, oriented, normalised scan (a mesh scan needs a "
+                                                     "mesh format; a point scan a point format)")
+    parser.add_argument("--report", required=True, help="JSON report: the cleaning counts, the orientation scores "
+                                                        "and the 4x4 transforms to the aligned frame and back")
+    parser.add_argument("--up", default=None, metavar="AXIS",
+                        help="the scan's known up axis (x, y, z, -z, ...): only rotations about it are searched, "
+                             "and a ground plane below the scan may be removed")
+    parser.add_argument("--reference-up", default=None, metavar="AXIS",
+                        help="the reference's up axis (default: --up, or the model's recorded up axis)")
+    parser.add_argument("--no-outliers", action="store_true", help="keep statistical outliers (point scans)")
+    parser.add_argument("--no-ground", action="store_true", help="never remove a ground plane")
+    parser.add_argument("--ground", action="store_true",
+                        help="look for a ground plane even without --up (may take a table top for a floor)")
+    parser.add_argument("--no-pieces", action="store_true", help="keep small disconnected pieces (mesh scans)")
+    parser.add_argument("--reference-points", type=int, default=5000,
+                        help="points sampled on a mesh reference (default 5000)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of sampling, RANSAC and subsets (default 0)")
+    parser.add_argument("--force", action="store_true", help="replace --out and --report if they exist")
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    import sys
+    from pathlib import Path
+
+    from kpd.commands import check_output
+    from kpd.errors import InputError
+    from kpd.geometry import sample_surface
+    from kpd.io import MESH_FORMATS, POINT_FORMATS, Mesh, atomic_output, read_shape, write_mesh, write_points
+    from kpd.scan import parse_axis, preprocess
+
+    if args.ground and args.no_ground:
+        raise InputError("--ground and --no-ground contradict each other; give one")
+    if args.reference_points < 10:
+        raise InputError(f"--reference-points must be at least 10; got {args.reference_points}")
+    for name in ("up", "reference_up"):
+        if getattr(args, name) is not None:
+            parse_axis(getattr(args, name), "--" + name.replace("_", "-"))
+    out_suffix = Path(args.out).suffix.lower()
+    if Path(args.report).suffix.lower() != ".json":
+        raise InputError(f"--report {args.report}: the report is JSON and must end in .json")
+    inputs = (args.scan, args.reference)
+    out = check_output(args.out, force=args.force, inputs=inputs)
+    report_path = check_output(args.report, force=args.force, inputs=inputs)
+    if out.resolve() == report_path.resolve():
+        raise InputError("--out and --report name the same file")
+
+    scan = read_shape(args.scan)
+    is_mesh = isinstance(scan, Mesh)
+    formats = MESH_FORMATS if is_mesh else POINT_FORMATS
+    if out_suffix not in formats:
+        kind = "mesh" if is_mesh else "point cloud"
+        raise InputError(f"--out {args.out}: the scan is a {kind}, so --out must end in one of {' '.join(formats)}")
+
+    reference_up = args.reference_up
+    if args.model is not None:
+        from kpd.bundle import read_bundle
+        from kpd.errors import BundleError
+
+        bundle = read_bundle(args.model)
+        reference = bundle.template_points
+        if reference is None:
+            raise BundleError(f"{args.model}: the bundle has no template shape to orient scans to; give --reference")
+        reference_name = f"model {args.model} template ({bundle.manifest.get('template', {}).get('source')})"
+        if reference_up is None and args.up is not None:
+            reference_up = bundle.manifest.get("input", {}).get("up")
+    elif args.reference is not None:
+        shape = read_shape(args.reference)
+        if isinstance(shape, Mesh):
+            reference = sample_surface(shape.vertices, shape.triangles, args.reference_points, args.seed).points
+        else:
+            reference = shape.points
+        reference_name = str(args.reference)
+    else:
+        reference, reference_name = None, None
+
+    clean_params = {"outliers": not args.no_outliers, "pieces": not args.no_pieces, "seed": args.seed,
+                    "ground": False if args.no_ground else (True if args.ground else None), "up": args.up}
+    orient_params = {"seed": args.seed}
+    if args.up is not None:
+        orient_params["up"] = args.up
+        if reference_up is not None:
+            orient_params["reference_up"] = reference_up
+    result = preprocess(scan, reference, clean_params=clean_params, **orient_params)
+
+    record = {
+        "scan": str(args.scan),
+        "reference": reference_name,
+        "up": args.up,
+        "reference_up": reference_up,
+        "output": str(out),
+        "frame": "aligned = transform @ [x, y, z, 1] of the cleaned scan; inverse maps back (original units)",
+        **result.to_dict(),
+    }
+    with atomic_output(out) as tmp_out, atomic_output(report_path) as tmp_report:
+        if is_mesh:
+            write_mesh(tmp_out, result.shape)
+        else:
+            write_points(tmp_out, result.shape)
+        tmp_report.write_text(json.dumps(record, indent=1) + "\n")
+
+    c = result.clean
+    removed = ", ".join(f"{name} {value}" for name, value in (("outliers", c.outliers_removed),
+                                                               ("ground", c.ground_removed),
+                                                               ("small-piece vertices", c.pieces_vertices_removed))
+                        if value)
+    print(f"cleaned: {c.input_count} -> {c.output_count} points ({removed or 'nothing removed'})")
+    o = result.orientation
+    if o is None:
+        print("not oriented (no --reference or --model): cleaned and normalised only")
+    else:
+        runner = "none" if o.runner_up_rotation is None else f"{o.runner_up_score:.4f} at {o.runner_up_angle:.0f} deg"
+        print(f"oriented: score {o.score:.4f}, runner-up {runner}, margin {o.margin:.3f}")
+        if o.ambiguous:
+            print("warning: the orientation is ambiguous (a rotation far from the chosen one fits almost as well; "
+                  "symmetric or round object?): check the result, or pass --up", file=sys.stderr)
+    print(f"wrote {out} and {report_path}")
+    return 0
