@@ -760,6 +760,7 @@ class ScanAligner:
         ref_points, ref_normals = ref.points[:n], ref.normals[:n]  # random order: a prefix is a random subset
         scan_points, scan_normals = scan.points[:n], scan.normals[:n]
         axis = None if self.up_ is None else self.reference_up_
+        tilt = None if self.up_ is None else _rotation_between(self.up_, self.reference_up_)
         a, r, t = np.ones(3), rot, np.zeros(3)
         kept_s = max(3, int(self.trim * len(scan_points)))
         kept_r = max(3, int(self.trim * len(ref_points)))
@@ -781,6 +782,8 @@ class ScanAligner:
             o2 = np.argpartition(d2, kept_r - 1)[:kept_r]
             x = np.concatenate([scan_points[o1], scan.points[i2[o2]]])  # (k, 3) scan working frame
             y = np.concatenate([ref.points[i1[o1]], ref_points[o2]])  # (k, 3) their partners on the reference
+            if axis is not None:
+                x = x @ tilt.T  # then only a turn about the reference's up axis is left to find
             if self.scaling == "axes":
                 _, r_new, _ = _umeyama(x, (y - t) / a, axis=axis, with_scale=False)
                 turned = x @ r_new.T
@@ -791,6 +794,8 @@ class ScanAligner:
                 s_new, r_new, t_new = _umeyama(x, y, axis=axis, with_scale=self.scaling == "uniform")
                 a_new = np.full(3, float(np.clip(s_new, *self._SCALE_RANGE)))
                 t_new = y.mean(axis=0) - a_new * (x.mean(axis=0) @ r_new.T)
+            if axis is not None:
+                r_new = r_new @ tilt
             done = (rotation_angle(r_new, r) < 0.01 and np.abs(a_new - a).max() < 1e-5
                     and np.abs(t_new - t).max() < 1e-5)
             a, r, t = a_new, r_new, t_new
