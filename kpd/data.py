@@ -369,6 +369,9 @@ def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
     try:
         with os.fdopen(fd, "wb") as f:
             np.savez(f, **arrays)
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -538,7 +541,11 @@ def prepare(root: str | os.PathLike, category: str | None = None, *, settings: S
             cache_dir: str | os.PathLike | None = None, split_file: str | os.PathLike | None = None,
             val_fraction: float = 0.1, seed: int = 0, splits: tuple[str, ...] = ("train", "val"),
             processes: int = 2, progress: bool = True, min_shapes: int = 2) -> PreparedData:
-    """Discover, ingest and load the requested splits; DataError when the first split has fewer than ``min_shapes``."""
+    """Discover, ingest and load the requested splits.
+
+    DataError when the first split has fewer than ``min_shapes`` usable shapes; a later split with none is left out of
+    ``samples`` (with a warning), so training runs without validation rather than failing.
+    """
     cat = discover(root, category, split_file=split_file, val_fraction=val_fraction, seed=seed)
     cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     samples: dict[str, ShapeSamples] = {}
@@ -548,10 +555,12 @@ def prepare(root: str | os.PathLike, category: str | None = None, *, settings: S
         done = ingest(files, settings, cache_dir, processes=processes, progress=progress,
                       desc=f"sampling {cat.category} {split}")
         skipped.extend(done.skipped)
-        need = min_shapes if i == 0 else 1
-        if len(done.entries) < need:
+        if i == 0 and len(done.entries) < min_shapes:
             raise DataError(f"category {cat.category!r} ({cat.layout} at {cat.root}): the {split} split has "
-                            f"{len(done.entries)} usable shape(s) of {len(files)}; need at least {need}")
+                            f"{len(done.entries)} usable shape(s) of {len(files)}; need at least {min_shapes}")
+        if not done.entries:
+            log.warning("the %s split of %r has no usable shapes; it is left out", split, cat.category)
+            continue
         samples[split] = load_samples(done.entries, settings)
     options = {"root": str(Path(root).resolve()), "category": category,
                "split_file": None if split_file is None else str(Path(split_file).resolve()),

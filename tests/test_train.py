@@ -240,15 +240,15 @@ def test_short_run_lowers_the_losses(chairs, tmp_path):
 
 
 def test_resume_equals_uninterrupted_bitwise(chairs, tmp_path):
-    config = small_config(iterations=30, warmup=8, save_every=15)
+    config = small_config(iterations=16, warmup=4, save_every=8)
     full = Trainer(config, chairs, tmp_path / "full", device="cpu", command="test")
     full.run(progress=False)
     first = Trainer(config, chairs, tmp_path / "cut", device="cpu", command="test")
-    first.run(progress=False, stop_at=15)
+    first.run(progress=False, stop_at=8)
     del first  # "killed"
     resumed = Trainer(config, chairs, tmp_path / "cut", device="cpu", command="test")
     resumed.load_state(load_checkpoint(tmp_path / "cut"))
-    assert resumed.iteration == 15
+    assert resumed.iteration == 8
     resumed.run(progress=False)
     for (name, p), (_, q) in zip(full.model.state_dict().items(), resumed.model.state_dict().items()):
         assert torch.equal(p, q), name
@@ -299,3 +299,68 @@ def test_fps_keypoint_baseline_trains_only_the_deformer(chairs, tmp_path):
     kp = predictor.keypoints(points)
     idx = np_fps(points[0].astype(np.float64), 4, start=int(np.argmax((points[0] ** 2).sum(1))))
     np.testing.assert_allclose(kp[0], points[0][idx])
+
+
+# ----------------------------------------------------------------------------------------------- command line
+
+def test_train_command_reports_skipped_meshes_and_resumes(data_dir, tmp_path, capsys):
+    from kpd.cli import main
+
+    shapes = tmp_path / "shapes"
+    shapes.mkdir()
+    for name in sorted((data_dir / "modelnet10" / "chair" / "train").glob("*.ply"))[:7]:
+        shutil.copy(name, shapes / name.name)
+    (shapes / "empty.ply").write_bytes(b"")
+    (shapes / "corrupt.obj").write_text("v 0 0\nf 1 2 3\n")
+    out = tmp_path / "run"
+    args = ["train", str(shapes), "--keypoints", "4", "--out", str(out), "--iterations", "6", "--batch", "4",
+            "--points", "256", "--samples", "2", "--warmup", "2", "--save-every", "3", "--val-pairs", "4",
+            "--cache", str(tmp_path / "cache"), "--processes", "1", "--quiet", "--threads", "1"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "empty.ply" in err and "corrupt.obj" in err
+    record = json.loads((out / "record.json").read_text())
+    skipped = {s["path"].rsplit("/", 1)[1] for s in record["skipped"]}
+    assert skipped <= {"empty.ply", "corrupt.obj"} and "empty.ply" in skipped
+    assert record["metrics"]["iterations_done"] == 6 and record["data"]["layout"] == "flat"
+    assert json.loads((out / "model.json").read_text())["model_config"]["keypoints"] == 4
+    assert main(args) == 2  # exists: refuses without --resume / --force
+    assert "pass --resume" in capsys.readouterr().err
+    assert main([a if a != "6" else "9" for a in args] + ["--resume"]) == 0
+    assert load_checkpoint(out)["iteration"] == 9
+    assert main(args[:-2] + ["--resume", "--alpha-kpt", "1"]) == 2
+    assert "alpha_kpt" in capsys.readouterr().err
+
+
+def test_eval_commands_on_a_tiny_run(data_dir, tmp_path, capsys):
+    from kpd.cli import main
+
+    shapes = tmp_path / "shapes"
+    shapes.mkdir()
+    files = sorted((data_dir / "modelnet10" / "chair" / "train").glob("*.ply"))[:10]
+    for name in files:
+        shutil.copy(name, shapes / name.name)
+    stems = [f.stem for f in files]
+    (tmp_path / "split.json").write_text(json.dumps({"train": stems[:5], "val": stems[5:7], "test": stems[7:]}))
+    common = ["--points", "256", "--samples", "2", "--cache", str(tmp_path / "cache"), "--processes", "1"]
+    run = tmp_path / "run"
+    assert main(["train", str(shapes), "--keypoints", "4", "--out", str(run), "--iterations", "4", "--batch", "2",
+                 "--warmup", "1", "--split-file", str(tmp_path / "split.json"), "--quiet", "--threads", "1",
+                 "--val-pairs", "2", *common]) == 0
+    out = tmp_path / "align.json"
+    assert main(["eval", "alignment", str(run), "--baseline", str(run), "--pairs", "5", "--out", str(out),
+                 "--gallery", str(tmp_path / "g.png"), "--gallery-pairs", "2", "--quiet",
+                 "--cache", str(tmp_path / "cache")]) == 0
+    result = json.loads(out.read_text())
+    assert result["test_shapes"] == 3 and len(result["per_pair"]) == 5
+    assert all(p["source"] != p["target"] for p in result["per_pair"])
+    assert result["chamfer_x1e3"]["model"]["mean"] == result["chamfer_x1e3"]["baseline"]["mean"]
+    assert (tmp_path / "g.png").stat().st_size > 1000
+    out = tmp_path / "kp.json"
+    assert main(["eval", "keypoints", str(run), "--samples", "2", "--max-train", "4", "--out", str(out), "--quiet",
+                 "--cache", str(tmp_path / "cache")]) == 0
+    result = json.loads(out.read_text())
+    assert result["test_shapes"] == 3 and result["stability"]["mean"] >= 0
+    assert sorted(result["mirror"]["permutation"]) == [0, 1, 2, 3]
+    assert main(["eval", "keypoints", str(run), "--out", str(out), "--quiet"]) == 2  # exists
+    assert "--force" in capsys.readouterr().err

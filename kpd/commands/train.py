@@ -94,6 +94,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--threads must be at least 1; got {args.threads}")
     config = recipe(args)
     config.check()
+    import time
+
+    started = time.perf_counter()
 
     import torch
 
@@ -115,7 +118,8 @@ def run(args: argparse.Namespace) -> int:
     record = train(data, config, out, device=args.device, resume=args.resume, progress=not args.quiet,
                    command=command)
     metrics = record["metrics"]
-    print(f"done: {record['metrics']['iterations_done']} iterations in {record['train_seconds']:.0f} s; "
+    print(f"done: {record['metrics']['iterations_done']} iterations; {record['train_seconds']:.0f} s in steps, "
+          f"{record['run_seconds']:.0f} s training loop, {time.perf_counter() - started:.0f} s in this command; "
           f"val chamfer {metrics.get('val_chamfer', float('nan')):.5f} "
           f"(undeformed {metrics.get('val_chamfer_undeformed', float('nan')):.5f}); {out}")
     return 0

@@ -154,9 +154,10 @@ def alignment_gallery(path: str | os.PathLike, sources: np.ndarray, targets: np.
 
     def panel(i, j, pts, kp, title, color):
         ax = fig.add_subplot(rows, cols, i * cols + j + 1, projection="3d")
-        ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=0.6, c=color, alpha=0.5, linewidths=0)
+        ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=2.0, c=color, alpha=0.7, linewidths=0)
         if kp is not None:
-            ax.scatter(kp[:, 0], kp[:, 1], kp[:, 2], s=18, c=np.arange(len(kp)), cmap="tab20", depthshade=False)
+            ax.scatter(kp[:, 0], kp[:, 1], kp[:, 2], s=30, c=np.arange(len(kp)), cmap="tab20", depthshade=False,
+                       edgecolors="black", linewidths=0.4)
         ax.set_xlim(-1, 1), ax.set_ylim(-1, 1), ax.set_zlim(-1, 1)
         ax.set_box_aspect((1, 1, 1))
         ax.view_init(elev=20, azim=-60)
@@ -170,7 +171,7 @@ def alignment_gallery(path: str | os.PathLike, sources: np.ndarray, targets: np.
         panel(i, cols - 1, targets[i], keypoints[first][1][i],
               f"target (undeformed {scores['no_deformation'][i]:.2f})", "tab:red")
     fig.tight_layout()
-    _atomic_write(Path(path), lambda tmp: fig.savefig(tmp, dpi=90, format="png"))
+    _atomic_write(Path(path), lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
     plt.close(fig)
 
 
@@ -189,8 +190,10 @@ def evaluate_keypoints(run: str | os.PathLike, *, samples: int = 5, seed: int = 
     - stability: keypoints from ``samples`` independent surface samples of each test mesh; mean distance to the
       per-keypoint centroid (:func:`kpd.metrics.keypoint_stability`), averaged over shapes;
     - surface distance: keypoints (of every sample) to the normalised mesh surface;
-    - mirror consistency (``mirror_axis`` 0/1/2 = x/y/z; None skips): keypoints of the mirrored cloud, mirrored
-      back, against the keypoints, after the best fixed permutation fitted on (up to ``max_train``) train shapes.
+    - mirror consistency (``mirror_axis`` 0/1/2 = x/y/z; None skips): keypoints of the mirrored shape (an
+      independent sample of it, so that a method that merely commutes with reflecting its input cloud, like FPS, is
+      not scored 0 by construction), mirrored back, against the keypoints of the shape, after the best fixed
+      permutation fitted on (up to ``max_train``) train shapes.
       Also reported: each axis's mirror asymmetry of the test shapes (chamfer of a sample and its mirror image) next
       to the chamfer between two samples of the same shape, which shows which plane is a symmetry plane.
 
@@ -227,8 +230,9 @@ def evaluate_keypoints(run: str | os.PathLike, *, samples: int = 5, seed: int = 
         stability.append(keypoint_stability(kp))
         surface.append(surface_distance(kp.reshape(-1, 3), vertices, triangles))
         kps.append(kp[0])
-        if mirror_axis is not None:
-            mk = predictor.keypoints(_mirror(clouds[:1], mirror_axis).astype(np.float32)).astype(np.float64)[0]
+        if mirror_axis is not None:  # the mirrored shape, seen through another independent sample
+            other = clouds[1:2] if samples >= 2 else clouds[:1]
+            mk = predictor.keypoints(_mirror(other, mirror_axis).astype(np.float32)).astype(np.float64)[0]
             mirrored.append(_mirror(mk, mirror_axis))
         if samples >= 2:
             same.append(chamfer(clouds[0], clouds[1]))
@@ -259,8 +263,9 @@ def evaluate_keypoints(run: str | os.PathLike, *, samples: int = 5, seed: int = 
         train = data.samples["train"]
         pick = np.random.default_rng([seed, 6]).permutation(len(train))[:max_train]
         clouds = train.points[pick, 0]
+        others = train.points[pick, 1 if train.points.shape[1] > 1 else 0]
         kp_train = np.concatenate([predictor.keypoints(clouds[s:s + 32]) for s in range(0, len(clouds), 32)])
-        mk_train = np.concatenate([predictor.keypoints(_mirror(clouds[s:s + 32], mirror_axis))
+        mk_train = np.concatenate([predictor.keypoints(_mirror(others[s:s + 32], mirror_axis))
                                    for s in range(0, len(clouds), 32)])
         permutation = fit_mirror_permutation(kp_train.astype(np.float64), _mirror(mk_train, mirror_axis))
         result["mirror"] = {

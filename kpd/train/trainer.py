@@ -69,7 +69,8 @@ class TrainConfig:
     warmup : keypoint-only iterations at the start (code 200; paper 0).
     clamp : clamp keypoints to [-1, 1] (code; the paper has no clamp).
     paper_m : M = ⌊C/K⌋ (paper) instead of max(5, ⌊C/K⌋) (code); ``m`` overrides both.
-    keypoint_source : ``learned`` (Φ) or ``fps`` (farthest-point keypoints of each shape; only the deformer trains).
+    keypoint_source : ``learned`` (Φ) or ``fps`` (farthest-point keypoints of each shape; only the deformer trains,
+        from the first iteration: ``warmup`` and the keypoint regulariser do not apply).
     save_every : checkpoint (and validation) interval in iterations.
     val_pairs : fixed validation pairs scored at every checkpoint.
     """
@@ -128,11 +129,19 @@ def resolve_device(device: str = "auto") -> torch.device:
     return dev
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _atomic_write(path: Path, write) -> None:
+    """Write ``path`` through ``write(tmp)`` on a temporary file in the same folder, then rename it into place."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
     try:
         write(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -212,7 +221,8 @@ class Trainer:
         self.iteration = 0
         self.history: list[list[float]] = []
         self.val_history: list[list[float]] = []
-        self.seconds = 0.0
+        self.seconds = 0.0  # time in optimisation steps
+        self.run_seconds = 0.0  # wall time of the training loop, with validation and checkpoints
         self._val_pairs = self._validation_pairs()
 
     # ----------------------------------------------------------------------------------------------- data
@@ -229,7 +239,7 @@ class Trainer:
             n_shapes, r, n, _ = samples.points.shape
             flat_p = out["points"].reshape(n_shapes * r, n, 3)
             flat_c = out["cages"].reshape(n_shapes * r, -1, 3)
-            w = [mvc_weights(flat_p[i:i + 64], flat_c[i:i + 64], faces) for i in range(0, len(flat_p), 64)]
+            w = [mvc_weights(flat_p[i:i + 8], flat_c[i:i + 8], faces) for i in range(0, len(flat_p), 8)]
             out["weights"] = torch.cat(w).reshape(n_shapes, r, n, -1)
         if self.config.keypoint_source == "fps":
             n_shapes, r, n, _ = samples.points.shape
@@ -361,6 +371,7 @@ class Trainer:
                 "val": torch.tensor(self.val_history, dtype=torch.float64).reshape(-1, 3),
             },
             "seconds": self.seconds,
+            "run_seconds": self.run_seconds,
         }
 
     def load_state(self, ckpt: dict) -> None:
@@ -382,6 +393,7 @@ class Trainer:
         self.history = ckpt["history"]["train"].tolist()
         self.val_history = ckpt["history"]["val"].tolist()
         self.seconds = float(ckpt.get("seconds", 0.0))
+        self.run_seconds = float(ckpt.get("run_seconds", 0.0))
 
     def save(self) -> None:
         """Write checkpoint, model.json, record.json, losses.csv and losses.png (each atomically)."""
@@ -416,6 +428,7 @@ class Trainer:
             "model_config": self.model_config.to_dict(),
             "train_config": self.config.to_dict(),
             "train_seconds": round(self.seconds, 2),
+            "run_seconds": round(self.run_seconds, 2),
             "device": str(self.device),
             "threads": torch.get_num_threads(),
             "versions": {"torch": torch.__version__, "numpy": np.__version__, "python": platform.python_version()},
@@ -473,6 +486,7 @@ class Trainer:
         end = cfg.iterations if stop_at is None else min(stop_at, cfg.iterations)
         self.model.train()
         bar = tqdm(total=end, initial=self.iteration, desc="training", unit="it", disable=not progress)
+        loop_start = time.perf_counter() - self.run_seconds
         try:
             while self.iteration < end:
                 t = self.iteration
@@ -487,6 +501,7 @@ class Trainer:
                     bar.set_postfix({k: f"{v:.3g}" for k, v in terms.items() if not math.isnan(v)}, refresh=False)
                 bar.update()
                 if self.iteration % cfg.save_every == 0 or self.iteration == end:
+                    self.run_seconds = time.perf_counter() - loop_start
                     val = self.validate()
                     self.val_history.append([float(self.iteration), *val])
                     self.save()
