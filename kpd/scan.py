@@ -571,12 +571,16 @@ class ScanAligner:
     up : the scan's up axis if known (``'z'``, ``'-y'`` or three numbers). The search is then restricted to the rotations
         that take it to ``reference_up`` followed by any rotation about ``reference_up``.
     reference_up : the reference's up axis; defaults to ``up``.
-    n_points : points of each shape used in the search (a voxel-thinned random subset).
-    coarse_points, coarse_iterations : the cheap first ICP run on every hypothesis.
+    n_points : points of each shape used in the search: a random subset of the shape thinned on a ``voxel`` grid
+        (``voxel`` in units of the shape's RMS radius), so that dense and sparse regions weigh alike.
+    coarse_points, coarse_iterations : the cheap first ICP (positions only) run from every starting rotation.
     refine_top : how many distinct hypotheses get the full ICP (``iterations``).
-    trim : share of nearest-neighbour pairs kept in each direction by ICP and by the score (robust to outliers and
-        missing parts).
-    with_scale : let ICP adjust the scale (the shapes are first brought to unit RMS radius).
+    trim : share of nearest-neighbour pairs kept in each direction by ICP (robust to outliers and missing parts).
+    scaling : what ICP may adjust besides the rotation: ``'axes'`` a scale per reference axis (shapes of a category
+        differ in proportions), ``'uniform'`` one scale, ``'none'`` nothing (both start at unit RMS radius).
+    normal_weight : weight of the (unoriented) normal direction in ICP's nearest-neighbour matching; 0 for positions
+        only.
+    score_trim : share of nearest-neighbour distances kept in each direction by the score, a trimmed RMS distance.
     fpfh_runs : FPFH + RANSAC candidates added to the search (0 to turn them off).
     distinct_angle : the runner-up must differ from the best by more than this many degrees.
     ambiguity_margin : relative margin (runner-up score / best score - 1) below which the result is flagged ambiguous.
@@ -589,34 +593,32 @@ class ScanAligner:
         up: Any = None,
         reference_up: Any = None,
         n_points: int = 1000,
+        voxel: float = 0.02,
         coarse_points: int = 300,
         coarse_iterations: int = 8,
         iterations: int = 30,
         refine_top: int = 6,
         trim: float = 0.8,
         scaling: str = "axes",
+        normal_weight: float = 0.5,
+        score_trim: float = 0.95,
         fpfh_runs: int = 2,
         distinct_angle: float = 30.0,
         ambiguity_margin: float = DEFAULT_AMBIGUITY_MARGIN,
-        score_trim: float = 0.95,
-        normal_weight: float = 0.5,
-        score_mode: str = "icp",
-        voxel: float = 0.02,
         seed: int = 0,
     ) -> None:
-        self.voxel = voxel
-        self.score_mode = score_mode
-        self.normal_weight = normal_weight
-        self.score_trim = score_trim
         self.up = up
         self.reference_up = reference_up
         self.n_points = n_points
+        self.voxel = voxel
         self.coarse_points = coarse_points
         self.coarse_iterations = coarse_iterations
         self.iterations = iterations
         self.refine_top = refine_top
         self.trim = trim
         self.scaling = scaling
+        self.normal_weight = normal_weight
+        self.score_trim = score_trim
         self.fpfh_runs = fpfh_runs
         self.distinct_angle = distinct_angle
         self.ambiguity_margin = ambiguity_margin
@@ -625,8 +627,14 @@ class ScanAligner:
     # -- set-up -------------------------------------------------------------------------------------------------------
 
     def _check_params(self) -> None:
-        if not 0.1 <= self.trim <= 1.0:
-            raise InputError(f"trim must lie in [0.1, 1]; got {self.trim}")
+        for name in ("trim", "score_trim"):
+            if not 0.1 <= getattr(self, name) <= 1.0:
+                raise InputError(f"{name} must lie in [0.1, 1]; got {getattr(self, name)}")
+        if self.scaling not in ("axes", "uniform", "none"):
+            raise InputError(f"scaling must be 'axes', 'uniform' or 'none'; got {self.scaling!r}")
+        if not (self.voxel > 0 and self.normal_weight >= 0 and self.ambiguity_margin >= 0):
+            raise InputError(f"voxel must be > 0, normal_weight and ambiguity_margin >= 0; got {self.voxel}, "
+                             f"{self.normal_weight}, {self.ambiguity_margin}")
         for name in ("n_points", "coarse_points", "iterations", "refine_top"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"{name} must be at least 1; got {getattr(self, name)}")
@@ -809,19 +817,6 @@ class ScanAligner:
         squared = 0.5 * ((np.partition(d1, k1 - 1)[:k1] ** 2).mean() + (np.partition(d2, k2 - 1)[:k2] ** 2).mean())
         return a, r, t, math.sqrt(squared)
 
-    def _box_score(self, scan: _Cloud, r: np.ndarray) -> float:
-        q = 0.02
-        ref = self.reference_
-        turned = scan.points @ r.T
-        lo_s, hi_s = np.quantile(turned, q, axis=0), np.quantile(turned, 1 - q, axis=0)
-        lo_r, hi_r = np.quantile(ref.points, q, axis=0), np.quantile(ref.points, 1 - q, axis=0)
-        fitted = (turned - lo_s) / np.maximum(hi_s - lo_s, 1e-9) * (hi_r - lo_r) + lo_r
-        d1, _ = ref.tree3.query(fitted)
-        d2, _ = cKDTree(fitted).query(ref.points)
-        k1, k2 = max(1, int(self.score_trim * len(d1))), max(1, int(self.score_trim * len(d2)))
-        squared = 0.5 * ((np.partition(d1, k1 - 1)[:k1] ** 2).mean() + (np.partition(d2, k2 - 1)[:k2] ** 2).mean())
-        return math.sqrt(squared)
-
     def orient(self, points: Any) -> Orientation:
         """Find the rotation of ``points`` (N, 3) (or a PointSet / Mesh) into the reference's frame."""
         self._check_fitted()
@@ -847,8 +842,6 @@ class ScanAligner:
 
         def refine(r0: np.ndarray, source: str) -> tuple:
             a, r, t, score = self._icp(scan, r0, self.iterations)
-            if self.score_mode == "box":
-                score = self._box_score(scan, r)
             return score, a, r, t, source
 
         refined = sorted((refine(r0, source) for _, r0, source in chosen), key=lambda c: c[0])
