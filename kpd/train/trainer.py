@@ -39,7 +39,7 @@ from kpd.data import PreparedData, SampleSettings, ShapeSamples
 from kpd.errors import InputError
 from kpd.train.losses import influence_loss, keypoint_loss, similarity_loss
 from kpd.train.nets import KeypointDeformer, ModelConfig
-from kpd.train.ops import chamfer, farthest_point_sampling, fps_keypoints, gather_points, mvc_weights
+from kpd.train.ops import chamfer, farthest_point_sampling, fps_keypoints, gather_points, mvc_weights, serial
 
 __all__ = ["TrainConfig", "Trainer", "train", "resolve_device", "load_checkpoint", "CHECKPOINT_FORMAT",
            "CHECKPOINT_VERSION"]
@@ -323,10 +323,11 @@ class Trainer:
             self.opt_keypoints.zero_grad(set_to_none=True)
         self.opt_deformer.zero_grad(set_to_none=True)
         out["loss"].backward()
-        if self.opt_keypoints is not None:
-            self.opt_keypoints.step()
-        if not warm:
-            self.opt_deformer.step()
+        with serial(self.device):  # memory-bound; see kpd.train.ops.serial
+            if self.opt_keypoints is not None:
+                self.opt_keypoints.step()
+            if not warm:
+                self.opt_deformer.step()
         return {k: float(out[k].detach()) if k in out else math.nan for k in HISTORY_COLUMNS[1:]}
 
     # ----------------------------------------------------------------------------------------------- validation
