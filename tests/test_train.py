@@ -364,3 +364,22 @@ def test_eval_commands_on_a_tiny_run(data_dir, tmp_path, capsys):
     assert sorted(result["mirror"]["permutation"]) == [0, 1, 2, 3]
     assert main(["eval", "keypoints", str(run), "--out", str(out), "--quiet"]) == 2  # exists
     assert "--force" in capsys.readouterr().err
+
+
+def test_recipe_flags_map_to_the_paper_values():
+    import argparse
+
+    from kpd.commands import train as cmd
+
+    parser = argparse.ArgumentParser()
+    cmd.add_arguments(parser)
+    code = cmd.recipe(parser.parse_args(["data", "--out", "x"]))
+    assert (code.alpha_kpt, code.alpha_inf, code.inf_reg, code.warmup, code.wc_lr, code.clamp, code.paper_m) == (
+        2.0, 1e6, "code", 200, 1e-2, True, False)
+    paper = cmd.recipe(parser.parse_args(["data", "--out", "x", "--paper"]))
+    assert (paper.alpha_kpt, paper.alpha_inf, paper.inf_reg, paper.warmup, paper.wc_lr, paper.clamp,
+            paper.paper_m) == (1.0, 1e-6, "paper", 0, 1e-3, False, True)
+    mixed = cmd.recipe(parser.parse_args(["data", "--out", "x", "--inf-reg", "paper", "--warmup", "0",
+                                          "--no-clamp", "--paper-m", "--keypoint-source", "fps"]))
+    assert (mixed.alpha_inf, mixed.warmup, mixed.clamp, mixed.paper_m, mixed.keypoint_source, mixed.alpha_kpt) == (
+        1e-6, 0, False, True, "fps", 2.0)
