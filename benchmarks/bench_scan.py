@@ -5,7 +5,7 @@ clean and corrupted (noise, outliers, a cut-away cap). For chairs and tables the
 category: the medoid (by chamfer distance in the [-1, 1] frame) of a seeded sample of *training* shapes, so never the
 scan itself; for the sneaker it is the unrotated scan sampled independently. Both methods see the same scans.
 
-    .venv/bin/python benchmarks/bench_scan.py                 # the full run (a few tens of minutes on one core)
+    .venv/bin/python benchmarks/bench_scan.py                 # the full run (about 35 minutes on one core)
     .venv/bin/python benchmarks/bench_scan.py --cases 5       # a quick check
 
 Rules (also written into the JSON): see ``RULES`` below.
