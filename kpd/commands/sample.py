@@ -23,8 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_model_arguments(parser)
     parser.add_argument("mesh", metavar="MESH", help="the mesh to vary")
     parser.add_argument("--n", type=int, default=16, help="number of variants (default 16)")
-    parser.add_argument("--scale", type=float, default=1.0,
-                        help="standard deviations of the prior's components (default 1: as varied as the category)")
+    parser.add_argument("--scale", type=float, default=0.5,
+                        help="standard deviations of the prior's components (default 0.5; 1 is as varied as the "
+                             "whole category, which bends diverse categories such as tables strongly)")
     parser.add_argument("--sample-seed", type=int, default=0, help="seed of the prior draws (default 0)")
     parser.add_argument("--format", default=None, metavar="EXT",
                         help="file type of the variants (.obj .ply ...); default: the input's, else .ply")
