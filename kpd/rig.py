@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 
 RIG_FORMAT = "kpd-rig/1"
 _CAGE_SAMPLE_POINTS = 2048
+_EDIT_BLOCK = 4096  # mesh vertices per matmul in Rig.deform
 
 
 class Rig:
@@ -171,7 +172,11 @@ class Rig:
         """
         offsets = self._offsets(keypoints)
         out = np.empty_like(self._rest_vertices) if out is None else out
-        np.matmul(self._basis, offsets, out=out)
+        # Row blocks small enough that BLAS runs each on the calling thread: the product is memory-bound, and a
+        # multi-threaded BLAS call stalls for tens of milliseconds when another process holds the other cores.
+        for start in range(0, len(out), _EDIT_BLOCK):
+            block = slice(start, start + _EDIT_BLOCK)
+            np.matmul(self._basis[block], offsets, out=out[block])
         np.add(out, self._rest_vertices, out=out)
         return out
 
