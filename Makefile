@@ -31,14 +31,15 @@ $(STAMP): pyproject.toml | $(PY)
 venv: system $(STAMP)
 
 demo: venv
-	$(VENV)/bin/kpd demo --out demo-output
+	$(VENV)/bin/kpd demo --out demo-output --force
 
 test: venv
 	$(PY) -m pytest -n 2 -q
 	$(VENV)/bin/lint-imports
 
 bench: venv
-	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b; done
+	@mkdir -p benchmarks/results; for b in benchmarks/bench_*.py; do n=$$(basename $$b .py); n=$${n#bench_}; \
+	  echo "== $$b -> benchmarks/results/$$n.json"; $(PY) $$b > benchmarks/results/$$n.json.tmp && mv benchmarks/results/$$n.json.tmp benchmarks/results/$$n.json; done
 
 clean:
 	rm -rf $(VENV) demo-output .pytest_cache .hypothesis build *.egg-info

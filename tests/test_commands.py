@@ -215,6 +215,19 @@ def test_demo_with_shipped_chair(tmp_path):
     assert (image < 200).any(axis=2).mean() > 0.02
 
 
+def test_bench_times_the_deployment_path(toy, chair_file, tmp_path):
+    out = tmp_path / "bench.json"
+    assert kpd("bench", toy, "--vertices", "2000", "--mesh", chair_file, "--repeats", "3", "--out", out) == 0
+    result = json.loads(out.read_text())
+    assert result["K"] == Model.load(toy).num_keypoints
+    (row,) = result["meshes"]  # --mesh replaces the procedural chairs
+    assert row["vertices"] == len(read_mesh(chair_file).vertices)
+    assert all(row[key] > 0 for key in ("predict_ms", "bind_ms", "edit_ms"))
+    assert kpd("bench", toy, "--vertices", "3000", "--repeats", "3", "--out", out, "--force") == 0
+    (row,) = json.loads(out.read_text())["meshes"]
+    assert abs(row["vertices"] - 3000) < 600  # procedural chair near the asked size
+
+
 # --- bad input: exit 2, one line, nothing written ---------------------------------------------------------------------
 
 def _nan_mesh(path: Path) -> Path:
@@ -259,6 +272,10 @@ BAD = [
     ("demo", lambda e: ["--model", e.toy, "--out", e.existing]),
     ("demo", lambda e: ["--model", e.work / "nothing.kpd", "--out", e.work / "d"]),
     ("demo", lambda e: ["--model", e.toy, "--mesh", e.empty, "--out", e.work / "d"]),
+    ("bench", lambda e: [e.toy, "--vertices", "5", "--out", e.work / "b.json"]),
+    ("bench", lambda e: [e.toy, "--mesh", e.work / "missing.ply", "--repeats", "1", "--out", e.work / "b.json"]),
+    ("bench", lambda e: [e.toy, "--repeats", "0"]),
+    ("bench", lambda e: [e.toy, "--out", e.existing]),
 ]
 
 
