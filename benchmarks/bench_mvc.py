@@ -22,28 +22,8 @@ import time
 import numpy as np
 
 from kpd.cage import fit_cage, icosphere, points_outside
+from kpd.commands.bench import best_seconds
 from kpd.mvc import mvc_weights
-
-
-def best_seconds(fn, repeats: int) -> float:
-    fn()  # warm-up
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - start)
-    return best
-
-
-def best_cpu_seconds(fn, repeats: int) -> float:
-    """CPU time of this process (all threads): on a loaded machine, closer to what an idle one would take."""
-    fn()
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.process_time()
-        fn()
-        best = min(best, time.process_time() - start)
-    return best
 
 
 def chair_points(n: int, seed: int) -> np.ndarray:
@@ -84,7 +64,8 @@ def main() -> None:
         scatter = rng.standard_normal((3 * f, c))
         mvc = best_seconds(lambda: mvc_weights(points, cage.vertices, cage.faces), args.repeats)
         one = best_seconds(lambda: mvc_weights(points, cage.vertices, cage.faces, threads=1), args.repeats)
-        cpu_one = best_cpu_seconds(lambda: mvc_weights(points, cage.vertices, cage.faces, threads=1), args.repeats)
+        cpu_one = best_seconds(lambda: mvc_weights(points, cage.vertices, cage.faces, threads=1), args.repeats,
+                               clock=time.process_time)  # CPU time: a busy shared machine inflates it less
         matmul = best_seconds(lambda: corner @ scatter, args.repeats)
         result["mvc_bind"][str(n)] = {
             "points": n,

@@ -20,37 +20,16 @@ import argparse
 import json
 import os
 import platform
-import statistics
-import time
 
 import numpy as np
 
+from kpd.commands.bench import best_seconds, median_ms
 from kpd.commands.demo import procedural_chair
 from kpd.rig import Rig
 from kpd.runtime import Model
 
 # grid spacing of the procedural chair's faces -> vertex count (0.52: 10,400; 0.16: about 100k)
 SIZES = {"10k": 0.52, "100k": 0.16}
-
-
-def median_ms(fn, repeats: int, warmup: int = 20) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1000 * statistics.median(times)
-
-
-def best_s(fn, repeats: int) -> float:
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 def main() -> None:
@@ -70,13 +49,13 @@ def main() -> None:
         mesh = procedural_chair(edge=edge)
         prediction = model.predict(mesh)
         rig = model.rig(mesh, prediction=prediction)
-        bind_s = best_s(lambda: Rig.bind(mesh, prediction.keypoints, prediction.influence,
+        bind_s = best_seconds(lambda: Rig.bind(mesh, prediction.keypoints, prediction.influence,
                                          normalizer=prediction.normalizer, points=prediction.points), args.bind_repeats)
 
         edited = rig.keypoints
         edited[0] += [0.0, 0.0, 1.0]  # one keypoint moved by 1 unit (the chair is 36 units tall)
         out = np.empty_like(mesh.vertices)
-        edit_ms = median_ms(lambda: rig.deform(edited, out=out), args.repeats)
+        edit_ms = median_ms(lambda: rig.deform(edited, out=out), args.repeats, warmup=20)
 
         basis = np.ascontiguousarray(rig.basis)
         offsets = np.ascontiguousarray(np.random.default_rng(0).normal(size=(basis.shape[1], 3)))

@@ -26,16 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def median_ms(fn, repeats: int, warmup: int = 5) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1000 * statistics.median(times)
+from kpd.commands.bench import median_ms
 
 
 def solo_ms(side: str, bundle, run: str | None, threads: int, repeats: int) -> float:

@@ -28,7 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
 
 
-def _median_ms(fn, repeats: int, warmup: int) -> float:
+def median_ms(fn, repeats: int, warmup: int = 10) -> float:
+    """Median wall time of ``fn()`` in milliseconds over ``repeats`` calls after ``warmup`` untimed ones."""
     for _ in range(warmup):
         fn()
     times = []
@@ -37,6 +38,17 @@ def _median_ms(fn, repeats: int, warmup: int) -> float:
         fn()
         times.append(time.perf_counter() - start)
     return 1000 * statistics.median(times)
+
+
+def best_seconds(fn, repeats: int, clock=time.perf_counter) -> float:
+    """Fastest of ``repeats`` calls of ``fn()`` after one untimed call, in seconds of ``clock``."""
+    fn()
+    best = float("inf")
+    for _ in range(repeats):
+        start = clock()
+        fn()
+        best = min(best, clock() - start)
+    return best
 
 
 def _meshes(args: argparse.Namespace):
@@ -72,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     model = Model.load(args.model, threads=args.threads)
     load_ms = 1000 * (time.perf_counter() - start)
     cloud = np.random.default_rng(args.seed).uniform(-1, 1, (1, model.point_count, 3)).astype(np.float32)
-    networks_ms = _median_ms(lambda: model.run(cloud), args.repeats, warmup=10)
+    networks_ms = median_ms(lambda: model.run(cloud), args.repeats, warmup=10)
     result = {
         "model": str(args.model), "category": model.category, "K": model.num_keypoints, "C": model.num_cage_vertices,
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count(),
@@ -92,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
         edited = rig.keypoints
         edited[0] += 0.05 * np.ptp(mesh.vertices, axis=0).max()
         buffer = np.empty_like(mesh.vertices)
-        edit_ms = _median_ms(lambda: rig.deform(edited, out=buffer), args.repeats, warmup=10)
+        edit_ms = median_ms(lambda: rig.deform(edited, out=buffer), args.repeats, warmup=10)
         result["meshes"].append({"mesh": name, "vertices": len(mesh.vertices), "predict_ms": round(predict_ms, 1),
                                  "bind_ms": round(bind_ms, 1), "edit_ms": round(edit_ms, 3)})
 
