@@ -24,6 +24,7 @@ from kpd.scan import (
     proper_signed_permutations,
     rotation_angle,
     similarity_matrices,
+    support_plane,
 )
 
 # --- fixtures ---------------------------------------------------------------------------------------------------
@@ -55,6 +56,15 @@ def lumpy(n: int, seed: int) -> np.ndarray:
     bump = sphere(n // 4, seed + 1, center=(0.7, 0.3, 0.2), radius=0.25)
     tail = np.c_[np.linspace(-1.6, -1.0, n // 8), np.zeros(n // 8), np.linspace(0.0, 0.4, n // 8)]
     return np.concatenate([x, bump, tail])
+
+
+def table(n: int, seed: int) -> np.ndarray:
+    """A table standing on z = 0: a top at z = 1 and four legs."""
+    rng = np.random.default_rng(seed)
+    top = np.c_[rng.uniform(-1.0, 1.0, n), rng.uniform(-0.6, 0.6, n), rng.uniform(1.0, 1.05, n)]
+    legs = [np.c_[rng.normal(x, 0.02, n // 8), rng.normal(y, 0.02, n // 8), rng.uniform(0.0, 1.0, n // 8)]
+            for x, y in ((-0.9, -0.5), (-0.9, 0.5), (0.9, -0.5), (0.9, 0.5))]
+    return np.concatenate([top, *legs])
 
 
 @pytest.fixture(scope="module")
@@ -148,6 +158,31 @@ def test_up_restricts_the_search_to_turns_about_it(chair):
     assert rotation_angle(o.rotation @ true) < 5.0
     for h in o.hypotheses:  # every hypothesis takes the scan's up to the reference's up
         np.testing.assert_allclose(h.rotation @ [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], atol=1e-9)
+
+
+def test_support_plane_stands_a_table_on_its_legs():
+    points = table(4000, 0)
+    guess = Rotation.from_rotvec([0.15, -0.1, 0.0]).as_matrix() @ [0.0, 0.0, 1.0]  # 10 degrees off
+    found = support_plane(points, guess)
+    assert np.degrees(np.arccos(found.normal @ [0.0, 0.0, 1.0])) < 1.0
+    assert found.stability > 0.2 and found.count > 0
+    overhang = points.copy()
+    overhang[:4000, 0] += 2.5  # the top pushed beyond the legs: the centroid is no longer over the leg tips
+    assert support_plane(overhang, [0.0, 0.0, 1.0], max_angle=10.0).stability < 0.0
+
+
+def test_reference_up_turns_on_the_support_prior(chair):
+    reference = sample_surface(chair.vertices, chair.triangles, 3000, seed=1).points  # ModelNet10: z up
+    scan = sample_surface(chair.vertices, chair.triangles, 4000, seed=2).points
+    true = rotation(8)
+    aligner = ScanAligner(reference_up="z").fit(reference)
+    assert np.degrees(np.arccos(aligner.reference_support_.normal[2])) < 3.0
+    o = aligner.orient(scan @ true.T)  # the scan's up is unknown: all rotations are searched
+    assert rotation_angle(o.rotation @ true) < 5.0
+    assert o.hypotheses[0].source.endswith("+support")
+    assert ScanAligner().fit(reference).reference_support_ is None  # no reference_up: no prior
+    with pytest.raises(InputError, match="snap_angle"):
+        ScanAligner(snap_angle=95.0).fit(reference)
 
 
 def test_round_object_is_ambiguous_and_asymmetric_one_is_not():

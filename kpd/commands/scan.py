@@ -24,7 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the scan's known up axis (x, y, z, -z, ...): only rotations about it are searched, "
                              "and a ground plane below the scan may be removed")
     parser.add_argument("--reference-up", default=None, metavar="AXIS",
-                        help="the reference's up axis (default: --up, or the model's recorded up axis)")
+                        help="the reference's up axis (default: the model's recorded up axis, else --up); without "
+                             "--up it still helps: each hypothesis is stood on the scan's own support plane")
     parser.add_argument("--no-outliers", action="store_true", help="keep statistical outliers (point scans)")
     parser.add_argument("--no-ground", action="store_true", help="never remove a ground plane")
     parser.add_argument("--ground", action="store_true",
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         if reference is None:
             raise BundleError(f"{args.model}: the bundle has no template shape to orient scans to; give --reference")
         reference_name = f"model {args.model} template ({bundle.manifest.get('template', {}).get('source')})"
-        if reference_up is None and args.up is not None:
+        if reference_up is None:  # the model's frame records its up axis; it turns on the support prior
             reference_up = bundle.manifest.get("input", {}).get("up")
     elif args.reference is not None:
         shape = read_shape(args.reference)
@@ -97,8 +98,8 @@ def run(args: argparse.Namespace) -> int:
     orient_params = {"seed": args.seed}
     if args.up is not None:
         orient_params["up"] = args.up
-        if reference_up is not None:
-            orient_params["reference_up"] = reference_up
+    if reference_up is not None:
+        orient_params["reference_up"] = reference_up
     result = preprocess(scan, reference, clean_params=clean_params, **orient_params)
 
     record = {
