@@ -345,6 +345,7 @@ def main() -> int:
         "machine": {"python": platform.python_version(), "open3d": o3d.__version__, "cpus": os.cpu_count(),
                     "load_average_at_end": [round(v, 2) for v in os.getloadavg()]},
         "settings": {k: v for k, v in vars(defaults).items() if not k.startswith("_")},
+        "reference_up_per_category": {name: UP_AXIS[name].tolist() for name in results},
         "rules": RULES,
         "results": results,
         "pooled_recovered_share": {variant: {condition: pooled(condition, variant) for condition in
