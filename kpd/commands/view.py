@@ -1,0 +1,241 @@
+"""kpd view: open the keypoint editor (an Open3D window) on a shape or a rig."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kpd.errors import InputError
+
+HELP = "edit a shape in a window: pick keypoints, drag them, watch the mesh deform; save the mesh and the session"
+EXAMPLE = ("kpd view chair my_chair.obj --out my_chair_edited.obj    "
+           "(or: kpd view --rig chair_rig.npz --model chair --events log.jsonl)")
+
+
+def add_source_arguments(parser: argparse.ArgumentParser) -> None:
+    """MODEL SHAPE | --rig, with --scan/--up, --seed, --threads (shared by ``kpd view`` and ``kpd render``)."""
+    from kpd.commands.keypoints import add_scan_arguments
+
+    parser.add_argument("model", metavar="MODEL", nargs="?", default=None,
+                        help="a bundle (.kpd folder or .zip) or a shipped name (chair, table)")
+    parser.add_argument("shape", metavar="SHAPE", nargs="?", default=None, help="the mesh to edit (with MODEL)")
+    parser.add_argument("--rig", default=None, help="instead of MODEL SHAPE: a rig (.npz from kpd) or a folder in "
+                                                    "the authors' demo format")
+    parser.add_argument("--model", dest="prior_model", default=None, metavar="MODEL",
+                        help="with --rig: a model whose category prior drives the prior toggle and the sliders")
+    parser.add_argument("--seed", type=int, default=0, help="surface-sampling seed (with MODEL)")
+    parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (with MODEL)")
+    add_scan_arguments(parser)
+
+
+def add_view_arguments(parser: argparse.ArgumentParser) -> None:
+    """What to show and from where (shared by ``kpd view`` and ``kpd render``)."""
+    parser.add_argument("--size", default=None, metavar="WxH", help="size of the 3D view in pixels (default 960x720)")
+    parser.add_argument("--view-up", default="+z", metavar="AXIS", help="the shape's up axis for the camera "
+                                                                         "(default +z, as ModelNet; the sneaker scan: "
+                                                                         "+z)")
+    parser.add_argument("--azimuth", type=float, default=30.0, help="camera degrees around the up axis (default 30)")
+    parser.add_argument("--elevation", type=float, default=20.0, help="camera degrees above the horizon (default 20)")
+    parser.add_argument("--zoom", type=float, default=1.0, help="> 1 moves the camera closer")
+    parser.add_argument("--cage", action="store_true", help="show the cage as a wireframe")
+    parser.add_argument("--ghost", action="store_true", help="show the original shape as a ghost")
+    parser.add_argument("--no-labels", action="store_true", help="hide the keypoint numbers")
+
+
+def parse_size(text: str | None) -> tuple[int, int]:
+    if text is None:
+        return 960, 720
+    parts = text.lower().split("x")
+    try:
+        width, height = (int(p) for p in parts)
+    except ValueError as exc:
+        raise InputError(f"--size must look like 960x720; got {text!r}") from exc
+    if not (16 <= width <= 8192 and 16 <= height <= 8192):
+        raise InputError(f"--size must be between 16x16 and 8192x8192; got {text!r}")
+    return width, height
+
+
+def view_settings(args: argparse.Namespace, **extra: Any):
+    from kpd.viewer.render import ViewSettings
+
+    width, height = parse_size(args.size)
+    return ViewSettings(width=width, height=height, up=args.view_up, azimuth=args.azimuth, elevation=args.elevation,
+                        zoom=args.zoom, show_cage=args.cage, show_ghost=args.ghost, show_labels=not args.no_labels,
+                        **extra)
+
+
+class Source:
+    """The rig to show and, when a model is known, its category prior."""
+
+    def __init__(self, rig: Any, prior: Any, name: str) -> None:
+        self.rig, self.prior, self.name = rig, prior, name
+
+
+def load_source(args: argparse.Namespace, *, need_prior: bool = False) -> Source:
+    """Resolve ``MODEL SHAPE`` (with ``--scan``) or ``--rig`` (with ``--model``) into a rig and an optional prior,
+    as ``kpd deform`` does. Bad combinations and a model of another keypoint count end in :class:`InputError`."""
+    from kpd.commands.deform import load_rig
+    from kpd.commands.keypoints import ScanFrame
+    from kpd.io import read_mesh
+    from kpd.runtime import Model
+
+    with_model = args.model is not None or args.shape is not None
+    if with_model == (args.rig is not None):
+        raise InputError("give either MODEL SHAPE or --rig RIG")
+    if with_model and (args.model is None or args.shape is None):
+        raise InputError("give both MODEL and SHAPE (for example: kpd view chair chair.obj)")
+    if args.rig is not None and args.scan:
+        raise InputError("--scan needs MODEL SHAPE, not --rig")
+    if with_model and args.prior_model is not None:
+        raise InputError("--model goes with --rig; with MODEL SHAPE the prior comes from MODEL")
+    if args.up is not None and not args.scan:
+        raise InputError("--up goes with --scan (the camera's up axis is --view-up)")
+    if args.rig is not None:
+        if not Path(args.rig).exists():
+            raise InputError(f"{args.rig}: no such rig file or folder")
+        rig = load_rig(args.rig)
+        prior = None
+        if args.prior_model is not None:
+            model = Model.load(args.prior_model, threads=args.threads)
+            if model.num_keypoints != rig.num_keypoints:
+                raise InputError(f"the model {args.prior_model} has {model.num_keypoints} keypoints; the rig "
+                                 f"{args.rig} has {rig.num_keypoints}")
+            prior = model.prior
+        if need_prior and prior is None:
+            raise InputError("--prior needs a category prior: pass --model MODEL with --rig")
+        return Source(rig, prior, Path(args.rig).name)
+    if not Path(args.shape).is_file():
+        raise InputError(f"{args.shape}: no such file")
+    model = Model.load(args.model, threads=args.threads)
+    if need_prior and model.prior is None:
+        raise InputError(f"{args.model}: this bundle has no category prior; drop --prior")
+    mesh = read_mesh(args.shape)
+    if args.scan:
+        scan = ScanFrame(model, mesh, args.up)
+        aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
+        rig = ScanRig(aligned, mesh, scan)
+    else:
+        rig = model.rig(mesh, seed=args.seed)
+    return Source(rig, model.prior, Path(args.shape).name)
+
+
+class _ScanFrameNormalizer:
+    """The scan's own frame -> the model frame: the scan alignment, then the aligned rig's normaliser."""
+
+    def __init__(self, scan: Any, normalizer: Any) -> None:
+        self.scan, self.normalizer = scan, normalizer
+        self._linear = np.asarray(scan.result.transform, dtype=np.float64)[:3, :3]  # (3, 3) original -> aligned
+        self._inverse = np.linalg.inv(self._linear)
+
+    def apply(self, x: Any) -> np.ndarray:
+        return self.normalizer.apply(self.scan.to_aligned(np.asarray(x, dtype=np.float64)))
+
+    def invert(self, y: Any) -> np.ndarray:
+        return self.scan.to_original(self.normalizer.invert(np.asarray(y, dtype=np.float64)))
+
+    def apply_vectors(self, d: Any) -> np.ndarray:
+        return self.normalizer.apply_vectors(np.asarray(d, dtype=np.float64) @ self._linear.T)
+
+    def invert_vectors(self, d: Any) -> np.ndarray:
+        return self.normalizer.invert_vectors(np.asarray(d, dtype=np.float64)) @ self._inverse.T
+
+
+class ScanRig:
+    """A rig made in the model's orientation (``kpd view --scan``) shown and saved in the scan's own frame and units.
+
+    It offers what the editor and the renderer use of :class:`kpd.rig.Rig`: ``mesh``, ``keypoints``, ``cage``,
+    ``normalizer``, ``num_keypoints``, ``deform``, ``deform_cage``, ``deformed_mesh``, ``moved``.
+    """
+
+    def __init__(self, aligned: Any, mesh: Any, scan: Any) -> None:
+        self.aligned, self.mesh, self.scan = aligned, mesh, scan
+        self.cage = aligned.cage
+        self.normalizer = _ScanFrameNormalizer(scan, aligned.normalizer)
+        self._rest = scan.to_original(aligned.keypoints)
+
+    @property
+    def num_keypoints(self) -> int:
+        return self.aligned.num_keypoints
+
+    @property
+    def keypoints(self) -> np.ndarray:
+        return self._rest.copy()
+
+    def deform(self, keypoints: Any, *, out: np.ndarray | None = None) -> np.ndarray:
+        keypoints = np.asarray(keypoints, dtype=np.float64)
+        if keypoints.shape != self._rest.shape:
+            raise InputError(f"keypoints must have shape ({self.num_keypoints}, 3); got {keypoints.shape}")
+        offsets = self.aligned.deform(self.scan.to_aligned(keypoints)) - self.aligned.mesh.vertices  # (V, 3)
+        result = self.mesh.vertices + self.scan.vector_to_original(offsets)
+        if out is not None:
+            out[...] = result
+            return out
+        return result
+
+    def deform_cage(self, keypoints: Any) -> np.ndarray:
+        return self.scan.to_original(self.aligned.deform_cage(self.scan.to_aligned(np.asarray(keypoints))))
+
+    def deformed_mesh(self, keypoints: Any) -> Any:
+        return self.mesh.with_vertices(self.deform(keypoints))
+
+    def moved(self, moves: dict) -> np.ndarray:
+        keypoints = self.keypoints
+        for index, delta in moves.items():
+            if not 0 <= index < self.num_keypoints:
+                raise InputError(f"keypoint index must lie in [0, {self.num_keypoints}); got {index}")
+            keypoints[index] += np.asarray(delta, dtype=np.float64)
+        return keypoints
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_source_arguments(parser)
+    add_view_arguments(parser)
+    parser.add_argument("--out", default=None, help="where 'save mesh' (S) writes the deformed mesh "
+                                                    "(.obj .ply .off .stl .gltf .glb)")
+    parser.add_argument("--session", default=None, help="where 'save session' (J) writes and 'load session' (L) "
+                                                        "reads the edit session (JSON); default kpd_session.json")
+    parser.add_argument("--load-session", default=None, metavar="JSON", help="apply a saved edit session at start")
+    parser.add_argument("--screenshot", default="kpd_view.png",
+                        help="screenshot file name; P writes NAME_001.png, NAME_002.png, ... (default kpd_view.png)")
+    parser.add_argument("--prior", action="store_true", help="start with the prior toggle on")
+    parser.add_argument("--step", type=float, default=0.01, help="arrow-key nudge step, as a fraction of the shape's "
+                                                                  "diagonal (default 0.01)")
+    parser.add_argument("--events", default=None, metavar="JSONL",
+                        help="append one JSON line per editor event (selection, keypoints, camera) to this file")
+    parser.add_argument("--force", action="store_true", help="let 'save mesh' and 'save session' replace existing "
+                                                             "files")
+
+
+def run(args: argparse.Namespace) -> int:
+    import os
+
+    from kpd.commands import check_output
+    from kpd.commands.keypoints import check_suffix
+    from kpd.io import MESH_FORMATS
+
+    if args.out is not None:
+        check_suffix(args.out, MESH_FORMATS, "mesh")
+        check_output(args.out, force=args.force, inputs=(args.rig, args.shape))
+    if args.session is not None:
+        if Path(args.session).suffix.lower() != ".json":
+            raise InputError(f"--session {args.session}: an edit session is a .json file")
+        if args.load_session is None or Path(args.load_session).resolve() != Path(args.session).resolve():
+            check_output(args.session, force=args.force, inputs=(args.load_session,))
+    if args.load_session is not None and not Path(args.load_session).is_file():
+        raise InputError(f"{args.load_session}: no such session file")
+    if not (args.step > 0 and np.isfinite(args.step)):
+        raise InputError(f"--step must be a positive number; got {args.step}")
+    settings = view_settings(args, prior=bool(args.prior), nudge_step=float(args.step))
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise InputError("kpd view needs a display ($DISPLAY is not set); for images without one use kpd render, "
+                         "or run it under xvfb-run")
+    source = load_source(args, need_prior=args.prior)
+    from kpd.viewer.app import EditorApp
+
+    app = EditorApp(source.rig, prior=source.prior, settings=settings, out=args.out, session_path=args.session,
+                    screenshot_path=args.screenshot, events=args.events, title=f"kpd view - {source.name}",
+                    initial_session=args.load_session)
+    return app.run()

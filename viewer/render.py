@@ -1,0 +1,990 @@
+"""Draw a rig -- its (deformed) mesh with its own colours or texture, the keypoints as coloured markers with their
+numbers, optionally the cage as a wireframe and the rest shape as a ghost -- the same way in the editor's window
+and in an image file.
+
+:class:`RigScene` builds and updates the Open3D geometries of one rig; the editor (:mod:`kpd.viewer.app`) and the
+renderers here both use it, with one :class:`ViewSettings`. :func:`render_rig` draws without a window of its own:
+
+``backend="xvfb"``
+    a private X server (``Xvfb``) with an Open3D window in a child process, read back with the scene's
+    ``render_to_image``. Needs the ``Xvfb`` program but no display; fast with software rendering.
+``backend="window"``
+    the same child process on the current ``$DISPLAY``.
+``backend="offscreen"``
+    Open3D's ``rendering.OffscreenRenderer`` in this process: truly headless (EGL/Vulkan), but slow on software
+    rasterisers (Mesa's lavapipe takes seconds per frame where the window path takes a fraction of one).
+``backend="auto"`` (default)
+    ``xvfb`` when the ``Xvfb`` program is installed, else ``offscreen``.
+
+Keypoint numbers are drawn into the image after rendering (a small built-in digit font at the projected keypoint
+positions), so images from every backend carry them; the editor shows them as 3D labels instead.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import logging
+import math
+import os
+import select
+import shutil
+import signal
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+
+from kpd.errors import InputError, KpdError
+
+__all__ = [
+    "ViewSettings", "RigScene", "Frame", "render_rig", "render_frames", "write_png", "read_png", "keypoint_palette",
+    "camera_pose", "project", "pixel_ray", "overlay_labels", "BACKENDS", "private_display",
+]
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("auto", "xvfb", "window", "offscreen")
+
+# The first twelve keypoint colours are picked by hand to be saturated and far apart (and far from the grey of an
+# uncoloured mesh and from a white or black background); more keypoints get golden-angle hues.
+_PALETTE = np.array([
+    [0.90, 0.10, 0.10], [0.10, 0.35, 0.95], [0.10, 0.70, 0.20], [1.00, 0.55, 0.00], [0.60, 0.15, 0.85],
+    [0.00, 0.75, 0.85], [0.95, 0.20, 0.70], [0.80, 0.75, 0.00], [0.55, 0.30, 0.10], [0.00, 0.50, 0.45],
+    [0.35, 0.90, 0.10], [0.15, 0.15, 0.55],
+])
+
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+@dataclass
+class ViewSettings:
+    """How a rig is drawn: the one settings object of the editor and of :func:`render_rig`.
+
+    Sizes are relative to the rest mesh's bounding-box diagonal, so they suit shapes in any units.
+    """
+
+    width: int = 960
+    height: int = 720
+    show_keypoints: bool = True
+    show_labels: bool = True
+    show_cage: bool = False
+    show_ghost: bool = False
+    xray: bool = False  # the mesh see-through, so keypoints inside it stay visible
+    keypoint_size: float = 0.018  # marker radius / diagonal
+    up: str = "+z"  # the shape's up axis: +x, -x, +y, -y, +z or -z
+    azimuth: float = 30.0  # degrees around the up axis, from the front view
+    elevation: float = 20.0  # degrees above the horizontal
+    fov: float = 35.0  # vertical field of view, degrees
+    zoom: float = 1.0  # > 1 moves the camera closer
+    background: tuple = (1.0, 1.0, 1.0)
+    mesh_color: tuple = (0.80, 0.80, 0.82)  # used when the mesh has neither colours nor a texture
+    ghost_color: tuple = (0.30, 0.50, 0.95, 0.22)
+    cage_color: tuple = (0.95, 0.45, 0.05)
+    prior: bool = False  # editor: moving keypoints moves the others as the category prior says
+    nudge_step: float = 0.01  # editor: arrow-key step / diagonal
+
+    def __post_init__(self) -> None:
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 16 <= value <= 8192:
+                raise InputError(f"{name} must be an integer in [16, 8192]; got {value!r}")
+        up_axis(self.up)
+        for name in ("keypoint_size", "fov", "zoom", "nudge_step"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InputError(f"{name} must be a positive number; got {value!r}")
+        if not self.fov < 170:
+            raise InputError(f"fov must be below 170 degrees; got {self.fov}")
+
+    def replace(self, **changes: Any) -> "ViewSettings":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "ViewSettings":
+        known = {f.name for f in dataclasses.fields(cls)}
+        values = {k: (tuple(v) if isinstance(v, list) else v) for k, v in data.items() if k in known}
+        return cls(**values)
+
+
+def up_axis(up: str) -> np.ndarray:
+    """(3,) unit vector of ``"+z"``, ``"-y"``, ``"x"``..."""
+    text = str(up).strip().lower()
+    sign = -1.0 if text.startswith("-") else 1.0
+    name = text.lstrip("+-")
+    if name not in _AXES:
+        raise InputError(f"up must be one of x, y, z with an optional sign (+z, -y...); got {up!r}")
+    axis = np.zeros(3)
+    axis[_AXES[name]] = sign
+    return axis
+
+
+def keypoint_palette(k: int) -> np.ndarray:
+    """(K, 3) float64 in [0, 1]: a distinct colour per keypoint."""
+    if k <= len(_PALETTE):
+        return _PALETTE[:k].copy()
+    extra = []
+    for i in range(k - len(_PALETTE)):
+        hue = (0.13 + i * 0.618033988749895) % 1.0
+        extra.append(_hsv(hue, 0.85, 0.9))
+    return np.vstack([_PALETTE, np.array(extra)])
+
+
+def _hsv(h: float, s: float, v: float) -> list[float]:
+    i = int(h * 6) % 6
+    f = h * 6 - int(h * 6)
+    p, q, t = v * (1 - s), v * (1 - f * s), v * (1 - (1 - f) * s)
+    return [(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)][i]
+
+
+# --- camera ----------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A look-at camera: ``center`` looked at from ``eye`` with ``up``; vertical ``fov`` in degrees."""
+
+    center: np.ndarray
+    eye: np.ndarray
+    up: np.ndarray
+    fov: float
+    near: float
+    far: float
+
+
+def camera_pose(vertices: Any, settings: ViewSettings) -> Camera:
+    """The camera of a view: orbiting the bounding-box centre of ``vertices`` (V, 3) at the settings' azimuth and
+    elevation around the up axis, far enough for the whole box (with a margin for edits) to fit.
+
+    The front view (azimuth 0) looks along the horizontal axis that follows the up axis (x -> y -> z -> x) in the
+    positive direction, i.e. from ``-that axis``: for ModelNet (z up, chair backs towards +y) that is the view from
+    the front of a chair.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    center = (lo + hi) / 2
+    radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
+    up = up_axis(settings.up)
+    a = int(np.flatnonzero(up)[0])
+    front = np.zeros(3)
+    front[(a + 1) % 3] = -1.0  # from the front: the camera sits on the negative side of the next axis
+    side = np.cross(up, front)
+    az, el = math.radians(settings.azimuth), math.radians(settings.elevation)
+    direction = math.cos(el) * (math.cos(az) * front + math.sin(az) * side) + math.sin(el) * up
+    fov = math.radians(settings.fov)
+    distance = 1.15 * radius / math.sin(fov / 2) / settings.zoom
+    eye = center + distance * direction
+    return Camera(center=center, eye=eye, up=up, fov=float(settings.fov), near=max(distance - 3 * radius, distance / 100),
+                  far=distance + 3 * radius)
+
+
+def look_at_matrix(camera: Camera) -> np.ndarray:
+    """(4, 4) world -> camera (OpenGL: camera looks down -z)."""
+    f = camera.center - camera.eye
+    f = f / np.linalg.norm(f)
+    s = np.cross(f, camera.up)
+    if np.linalg.norm(s) < 1e-9:  # looking straight along up
+        s = np.cross(f, np.roll(camera.up, 1))
+    s = s / np.linalg.norm(s)
+    u = np.cross(s, f)
+    m = np.eye(4)
+    m[0, :3], m[1, :3], m[2, :3] = s, u, -f
+    m[:3, 3] = -m[:3, :3] @ camera.eye
+    return m
+
+
+def perspective_matrix(fov: float, aspect: float, near: float, far: float) -> np.ndarray:
+    """(4, 4) OpenGL perspective projection, vertical ``fov`` in degrees."""
+    t = 1.0 / math.tan(math.radians(fov) / 2)
+    m = np.zeros((4, 4))
+    m[0, 0], m[1, 1] = t / aspect, t
+    m[2, 2], m[2, 3] = (far + near) / (near - far), 2 * far * near / (near - far)
+    m[3, 2] = -1.0
+    return m
+
+
+def project(points: Any, view: Any, projection: Any, width: float, height: float) -> tuple[np.ndarray, np.ndarray]:
+    """Screen positions of world points.
+
+    Parameters
+    ----------
+    points : (N, 3) float64, world coordinates.
+    view, projection : (4, 4) camera matrices (OpenGL conventions, as Open3D's ``Camera`` returns them).
+    width, height : the viewport in pixels.
+
+    Returns
+    -------
+    pixels : (N, 2) float64, x to the right and y down from the top-left corner of the viewport.
+    depth : (N,) float64, distance in front of the camera along its axis (negative behind it).
+    """
+    points = np.asarray(points, dtype=np.float64)
+    homogeneous = np.hstack([points, np.ones((len(points), 1))])  # (N, 4)
+    eye = homogeneous @ np.asarray(view, dtype=np.float64).T  # (N, 4)
+    clip = eye @ np.asarray(projection, dtype=np.float64).T
+    w = np.where(np.abs(clip[:, 3]) < 1e-12, 1e-12, clip[:, 3])
+    ndc = clip[:, :2] / w[:, None]
+    pixels = np.column_stack([(ndc[:, 0] + 1) / 2 * width, (1 - ndc[:, 1]) / 2 * height])
+    return pixels, -eye[:, 2]
+
+
+def pixel_ray(x: float, y: float, view: Any, projection: Any, width: float, height: float) -> tuple[np.ndarray, np.ndarray]:
+    """The world ray through pixel (x, y) of a perspective camera: origin (3,) at the eye and unit direction (3,).
+
+    Works for any near and far planes, including the infinite far plane of Open3D's window cameras (unprojecting
+    the far plane there divides by zero).
+    """
+    view = np.asarray(view, dtype=np.float64)
+    projection = np.asarray(projection, dtype=np.float64)
+    ndc_x, ndc_y = 2 * x / width - 1, 1 - 2 * y / height
+    # eye space, on the plane z_e = -1: clip = P @ (x_e, y_e, -1, 1) with w = 1
+    x_e = (ndc_x + projection[0, 2]) / projection[0, 0]
+    y_e = (ndc_y + projection[1, 2]) / projection[1, 1]
+    rotation, translation = view[:3, :3], view[:3, 3]
+    origin = -rotation.T @ translation
+    direction = rotation.T @ np.array([x_e, y_e, -1.0])
+    return origin, direction / np.linalg.norm(direction)
+
+
+def plane_hit(origin: np.ndarray, direction: np.ndarray, point: np.ndarray, normal: np.ndarray) -> np.ndarray | None:
+    """Where a ray meets the plane through ``point`` with ``normal``; None when parallel."""
+    denominator = float(direction @ normal)
+    if abs(denominator) < 1e-12:
+        return None
+    t = float((point - origin) @ normal) / denominator
+    return origin + t * direction
+
+
+# --- the scene ---------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Frame:
+    """What changes while editing: the mesh vertices, the keypoints, the cage, the selection (user units)."""
+
+    vertices: np.ndarray  # (V, 3)
+    keypoints: np.ndarray  # (K, 3)
+    cage: np.ndarray | None = None  # (C, 3)
+    selection: tuple = ()
+
+
+def _sphere_template(resolution: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    import open3d as o3d
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=resolution)
+    return np.asarray(sphere.vertices).copy(), np.asarray(sphere.triangles).copy()
+
+
+def cage_edges(faces: Any) -> np.ndarray:
+    """(E, 2) int64 unique undirected edges of triangles (F, 3)."""
+    faces = np.asarray(faces, dtype=np.int64)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return np.unique(np.sort(edges, axis=1), axis=0)
+
+
+class _MeshPart:
+    """The triangles of one material (one texture, or the whole mesh) as a legacy Open3D mesh."""
+
+    def __init__(self, name: str, mesh: Any, triangles: np.ndarray, texture: np.ndarray | None) -> None:
+        import open3d as o3d
+
+        self.name = name
+        used = np.unique(mesh.triangles[triangles])  # (Vp,)
+        self.all_vertices = len(used) == len(mesh.vertices)
+        self.used = used
+        local = np.searchsorted(used, mesh.triangles[triangles])  # (Tp, 3)
+        part = o3d.geometry.TriangleMesh()
+        part.vertices = o3d.utility.Vector3dVector(mesh.vertices[used])
+        part.triangles = o3d.utility.Vector3iVector(local.astype(np.int32))
+        if mesh.vertex_colors is not None:
+            part.vertex_colors = o3d.utility.Vector3dVector(mesh.vertex_colors[used])
+        if texture is not None and mesh.triangle_uvs is not None:
+            corners = (3 * triangles[:, None] + np.arange(3)).ravel()  # (3 Tp,)
+            part.triangle_uvs = o3d.utility.Vector2dVector(mesh.triangle_uvs[corners])
+        part.compute_vertex_normals()
+        self.o3d = part
+        self.texture = texture
+        self.has_colors = mesh.vertex_colors is not None
+
+    def set_vertices(self, vertices: np.ndarray, normals: bool) -> None:
+        import open3d as o3d
+
+        self.o3d.vertices = o3d.utility.Vector3dVector(vertices if self.all_vertices else vertices[self.used])
+        if normals:
+            self.o3d.compute_vertex_normals()
+
+
+class RigScene:
+    """The Open3D geometries of one shape being edited, and their materials.
+
+    Parameters
+    ----------
+    mesh : kpd.io.Mesh, the rest mesh in user units (its colours, UVs and textures are shown).
+    num_keypoints : K.
+    cage_faces : (F, 3) int64 or None: the cage's triangles, drawn as a wireframe.
+    settings : ViewSettings.
+
+    Geometry names: ``mesh:<i>`` (one per texture), ``ghost``, ``keypoints``, ``selected``, ``cage``.
+    """
+
+    def __init__(self, mesh: Any, num_keypoints: int, cage_faces: Any = None, *,
+                 settings: ViewSettings | None = None) -> None:
+        self.mesh = mesh
+        self.settings = settings or ViewSettings()
+        self.num_keypoints = int(num_keypoints)
+        self.colors = keypoint_palette(self.num_keypoints)
+        lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+        self.diagonal = float(np.linalg.norm(hi - lo)) or 1.0
+        self.edges = None if cage_faces is None else cage_edges(cage_faces)
+        self._sphere_v, self._sphere_t = _sphere_template()
+        self.parts = self._split_parts()
+        self._scene = None
+        self._frame: Frame | None = None
+
+    @property
+    def marker_radius(self) -> float:
+        return self.settings.keypoint_size * self.diagonal
+
+    def _split_parts(self) -> list[_MeshPart]:
+        mesh = self.mesh
+        t = len(mesh.triangles)
+        if mesh.textures and mesh.triangle_uvs is not None:
+            ids = mesh.triangle_material_ids if mesh.triangle_material_ids is not None else np.zeros(t, np.int64)
+            parts = []
+            for material in np.unique(ids):
+                triangles = np.flatnonzero(ids == material)
+                texture = mesh.textures[int(material)] if 0 <= material < len(mesh.textures) else None
+                parts.append(_MeshPart(f"mesh:{len(parts)}", mesh, triangles, texture))
+            return parts
+        return [_MeshPart("mesh:0", mesh, np.arange(t), None)]
+
+    # --- materials ---------------------------------------------------------------------------------------------
+
+    def _mesh_material(self, part: _MeshPart) -> Any:
+        import open3d as o3d
+        from open3d.visualization import rendering
+
+        material = rendering.MaterialRecord()
+        s = self.settings
+        plain = part.texture is None and not part.has_colors
+        color = list(s.mesh_color) if plain else [1.0, 1.0, 1.0]
+        if s.xray:
+            material.shader = "defaultLitTransparency"
+            material.base_color = color + [0.45]
+        else:
+            material.shader = "defaultLit"
+            material.base_color = color + [1.0]
+        material.base_roughness = 0.7
+        material.base_reflectance = 0.3
+        if part.texture is not None:
+            image = np.ascontiguousarray(part.texture[::-1])  # Open3D's texture rows run bottom-up
+            if image.ndim == 3 and image.shape[2] == 1:
+                image = np.ascontiguousarray(image[:, :, 0])
+            material.albedo_img = o3d.geometry.Image(image)
+        return material
+
+    def _marker_material(self) -> Any:
+        from open3d.visualization import rendering
+
+        material = rendering.MaterialRecord()
+        material.shader = "defaultUnlit"
+        material.base_color = [1.0, 1.0, 1.0, 1.0]
+        return material
+
+    def _ghost_material(self) -> Any:
+        from open3d.visualization import rendering
+
+        material = rendering.MaterialRecord()
+        material.shader = "defaultLitTransparency"
+        material.base_color = list(self.settings.ghost_color)
+        return material
+
+    def _cage_material(self) -> Any:
+        from open3d.visualization import rendering
+
+        material = rendering.MaterialRecord()
+        material.shader = "unlitLine"
+        material.line_width = 1.5
+        material.base_color = list(self.settings.cage_color) + [1.0]
+        return material
+
+    # --- geometry ------------------------------------------------------------------------------------------------
+
+    def _markers(self, keypoints: np.ndarray, indices: Sequence[int], scale: float) -> Any:
+        import open3d as o3d
+
+        indices = np.asarray(list(indices), dtype=np.int64)
+        n = len(self._sphere_v)
+        radius = self.marker_radius * scale
+        vertices = (keypoints[indices][:, None, :] + radius * self._sphere_v[None]).reshape(-1, 3)  # (k n, 3)
+        triangles = (self._sphere_t[None] + n * np.arange(len(indices))[:, None, None]).reshape(-1, 3)
+        colors = np.repeat(self.colors[indices], n, axis=0)
+        markers = o3d.geometry.TriangleMesh()
+        markers.vertices = o3d.utility.Vector3dVector(vertices)
+        markers.triangles = o3d.utility.Vector3iVector(triangles.astype(np.int32))
+        markers.vertex_colors = o3d.utility.Vector3dVector(colors)
+        return markers
+
+    def _halo(self, keypoints: np.ndarray, indices: Sequence[int]) -> Any:
+        """Dark shells around the selected markers (a wireframe ring would need thick lines Open3D lacks)."""
+        import open3d as o3d
+
+        indices = list(indices)
+        n = len(self._sphere_v)
+        radius = self.marker_radius * 1.9
+        vertices = (keypoints[indices][:, None, :] + radius * self._sphere_v[None]).reshape(-1, 3)
+        triangles = (self._sphere_t[None] + n * np.arange(len(indices))[:, None, None]).reshape(-1, 3)
+        halo = o3d.geometry.TriangleMesh()
+        halo.vertices = o3d.utility.Vector3dVector(vertices)
+        halo.triangles = o3d.utility.Vector3iVector(triangles.astype(np.int32))
+        halo.vertex_colors = o3d.utility.Vector3dVector(np.tile([0.05, 0.05, 0.05], (len(vertices), 1)))
+        halo.compute_vertex_normals()
+        return halo
+
+    def _plain_mesh(self, vertices: np.ndarray) -> Any:
+        import open3d as o3d
+
+        plain = o3d.geometry.TriangleMesh()
+        plain.vertices = o3d.utility.Vector3dVector(vertices)
+        plain.triangles = o3d.utility.Vector3iVector(self.mesh.triangles.astype(np.int32))
+        plain.compute_vertex_normals()
+        return plain
+
+    def _cage_lines(self, cage: np.ndarray) -> Any:
+        import open3d as o3d
+
+        lines = o3d.geometry.LineSet()
+        lines.points = o3d.utility.Vector3dVector(cage)
+        lines.lines = o3d.utility.Vector2iVector(self.edges.astype(np.int32))
+        lines.colors = o3d.utility.Vector3dVector(np.tile(self.settings.cage_color, (len(self.edges), 1)))
+        return lines
+
+    @staticmethod
+    def _replace(scene: Any, name: str, geometry: Any, material: Any) -> None:
+        if scene.has_geometry(name):
+            scene.remove_geometry(name)
+        scene.add_geometry(name, geometry, material, False)
+
+    def attach(self, scene: Any, frame: Frame) -> None:
+        """Add every geometry of ``frame`` to an ``open3d.visualization.rendering.Open3DScene``."""
+        self._scene = scene
+        scene.set_background(list(self.settings.background) + [1.0])
+        self._ghost = self._plain_mesh(self.mesh.vertices)
+        self._frame = None
+        self.update(frame, normals=True)
+        self.apply_settings(self.settings)
+
+    def update(self, frame: Frame, *, normals: bool = True, mesh: bool = True) -> None:
+        """Show ``frame``: new mesh vertices (``normals`` recomputed or kept from the last update), keypoint markers,
+        selection halos and cage."""
+        scene = self._scene
+        if scene is None:
+            raise KpdError("RigScene.update before attach")
+        s = self.settings
+        keypoints = np.asarray(frame.keypoints, dtype=np.float64)
+        if mesh:
+            vertices = np.asarray(frame.vertices, dtype=np.float64)
+            for part in self.parts:
+                part.set_vertices(vertices, normals)
+                self._replace(scene, part.name, part.o3d, self._mesh_material(part))
+        selection = [i for i in frame.selection if 0 <= i < self.num_keypoints]
+        self._replace(scene, "keypoints", self._markers(keypoints, range(self.num_keypoints), 1.0),
+                      self._marker_material())
+        if scene.has_geometry("selected"):
+            scene.remove_geometry("selected")
+        if selection and s.show_keypoints:
+            # the selected markers drawn larger, with the markers' own (unlit) material: a new material kind would
+            # cost a shader compile, which software renderers make slow
+            self._replace(scene, "selected", self._markers(keypoints, selection, 1.6), self._marker_material())
+        if self.edges is not None and frame.cage is not None:
+            self._replace(scene, "cage", self._cage_lines(np.asarray(frame.cage, dtype=np.float64)),
+                          self._cage_material())
+        self._frame = Frame(np.asarray(frame.vertices), keypoints, frame.cage, tuple(selection))
+        self._show()
+
+    def _ghost_material_dark(self) -> Any:
+        from open3d.visualization import rendering
+
+        material = rendering.MaterialRecord()
+        material.shader = "defaultLitTransparency"
+        material.base_color = [0.0, 0.0, 0.0, 0.35]
+        return material
+
+    def apply_settings(self, settings: ViewSettings) -> None:
+        """Apply visibility and material settings (the editor calls this after every settings change)."""
+        old = self.settings
+        self.settings = settings
+        scene = self._scene
+        if scene is None:
+            return
+        scene.set_background(list(settings.background) + [1.0])
+        if settings.xray != old.xray or not scene.has_geometry(self.parts[0].name):
+            for part in self.parts:
+                if scene.has_geometry(part.name):
+                    scene.modify_geometry_material(part.name, self._mesh_material(part))
+        if settings.keypoint_size != old.keypoint_size and self._frame is not None:
+            self.update(self._frame, mesh=False)
+        if not scene.has_geometry("ghost"):
+            scene.add_geometry("ghost", self._ghost, self._ghost_material(), False)
+        self._show()
+
+    def _show(self) -> None:
+        scene, s = self._scene, self.settings
+        scene.show_geometry("ghost", s.show_ghost)
+        scene.show_geometry("keypoints", s.show_keypoints)
+        if scene.has_geometry("selected"):
+            scene.show_geometry("selected", s.show_keypoints)
+        if scene.has_geometry("cage"):
+            scene.show_geometry("cage", s.show_cage)
+
+    def label_positions(self, keypoints: Any) -> np.ndarray:
+        """(K, 3) where the numbers go: beside each marker, along the camera-independent up axis."""
+        return np.asarray(keypoints, dtype=np.float64) + 1.6 * self.marker_radius * up_axis(self.settings.up)
+
+
+# --- keypoint numbers in images ----------------------------------------------------------------------------------
+
+_DIGITS = {
+    "0": ["01110", "10001", "10011", "10101", "11001", "10001", "01110"],
+    "1": ["00100", "01100", "00100", "00100", "00100", "00100", "01110"],
+    "2": ["01110", "10001", "00001", "00010", "00100", "01000", "11111"],
+    "3": ["11110", "00001", "00001", "01110", "00001", "00001", "11110"],
+    "4": ["00010", "00110", "01010", "10010", "11111", "00010", "00010"],
+    "5": ["11111", "10000", "11110", "00001", "00001", "10001", "01110"],
+    "6": ["00110", "01000", "10000", "11110", "10001", "10001", "01110"],
+    "7": ["11111", "00001", "00010", "00100", "01000", "01000", "01000"],
+    "8": ["01110", "10001", "10001", "01110", "10001", "10001", "01110"],
+    "9": ["01110", "10001", "10001", "01111", "00001", "00010", "01100"],
+}
+_GLYPHS = {c: np.array([[ch == "1" for ch in row] for row in rows]) for c, rows in _DIGITS.items()}
+
+
+def _text_mask(text: str, scale: int) -> np.ndarray:
+    glyphs = [_GLYPHS[c] for c in text if c in _GLYPHS]
+    if not glyphs:
+        return np.zeros((7 * scale, 1), dtype=bool)
+    spaced = []
+    for g in glyphs:
+        spaced += [g, np.zeros((7, 1), dtype=bool)]
+    mask = np.hstack(spaced[:-1])
+    return np.kron(mask, np.ones((scale, scale), dtype=bool))
+
+
+def overlay_labels(image: np.ndarray, pixels: Any, labels: Sequence[str], colors: Any, *,
+                   scale: int | None = None, visible: Any = None) -> np.ndarray:
+    """Draw ``labels`` (digits) at ``pixels`` (N, 2) in ``colors`` (N, 3 in [0, 1]) with a white halo.
+
+    Parameters
+    ----------
+    image : (H, W, 3) uint8 (modified copy returned).
+    pixels : (N, 2) float, the label's lower-left corner (x right, y down).
+    visible : (N,) bool, labels to draw (default all).
+    """
+    out = np.array(image, dtype=np.uint8, copy=True)
+    h, w = out.shape[:2]
+    scale = scale or max(2, int(round(h / 300)))
+    pixels = np.asarray(pixels, dtype=np.float64)
+    colors = np.asarray(colors, dtype=np.float64)
+    visible = np.ones(len(labels), dtype=bool) if visible is None else np.asarray(visible, dtype=bool)
+    for text, (x, y), color, show in zip(labels, pixels, colors, visible):
+        if not show or not np.isfinite([x, y]).all():
+            continue
+        mask = _text_mask(str(text), scale)
+        mh, mw = mask.shape
+        halo = np.zeros((mh + 2 * scale, mw + 2 * scale), dtype=bool)
+        for dy in range(2 * scale + 1):
+            for dx in range(2 * scale + 1):
+                halo[dy:dy + mh, dx:dx + mw] |= mask
+        x0, y0 = int(round(x)) - scale, int(round(y)) - mh - scale
+        ink = np.clip(np.asarray(color) * 0.75 * 255, 0, 255).astype(np.uint8)
+        for layer, value in ((halo, np.array([255, 255, 255], np.uint8)), (None, ink)):
+            m = layer if layer is not None else np.pad(mask, scale)
+            ys, xs = np.nonzero(m)
+            ys, xs = ys + y0, xs + x0
+            keep = (ys >= 0) & (ys < h) & (xs >= 0) & (xs < w)
+            out[ys[keep], xs[keep]] = value
+    return out
+
+
+def label_image(image: np.ndarray, scene: RigScene, frame: Frame, camera: Camera) -> np.ndarray:
+    """Keypoint numbers drawn onto a rendered image of ``frame`` seen by ``camera``."""
+    s = scene.settings
+    if not (s.show_labels and s.show_keypoints):
+        return image
+    h, w = image.shape[:2]
+    view = look_at_matrix(camera)
+    projection = perspective_matrix(camera.fov, w / h, camera.near, camera.far)
+    pixels, depth = project(scene.label_positions(frame.keypoints), view, projection, w, h)
+    pixels = pixels + np.array([0.6, -0.2]) * _pixel_radius(scene, frame, camera, w, h)[:, None]
+    labels = [str(i) for i in range(scene.num_keypoints)]
+    return overlay_labels(image, pixels, labels, scene.colors, visible=depth > 0)
+
+
+def _pixel_radius(scene: RigScene, frame: Frame, camera: Camera, w: int, h: int) -> np.ndarray:
+    distance = np.linalg.norm(np.asarray(frame.keypoints) - camera.eye, axis=1)
+    focal = h / 2 / math.tan(math.radians(camera.fov) / 2)
+    return focal * scene.marker_radius / np.maximum(distance, 1e-12)
+
+
+# --- PNG ---------------------------------------------------------------------------------------------------------
+
+
+def write_png(path: str | os.PathLike, image: Any) -> Path:
+    """Write an (H, W, 3) or (H, W, 4) uint8 image as PNG, atomically."""
+    from kpd.io import atomic_output
+
+    array = np.asarray(image)
+    if array.dtype != np.uint8 or array.ndim != 3 or array.shape[2] not in (3, 4):
+        raise InputError(f"image must be (H, W, 3|4) uint8; got {array.shape} {array.dtype}")
+    h, w, c = array.shape
+    raw = b"".join(b"\x00" + array[y].tobytes() for y in range(h))
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    header = struct.pack(">IIBBBBB", w, h, 8, 6 if c == 4 else 2, 0, 0, 0)
+    data = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
+    path = Path(path)
+    with atomic_output(path) as tmp:
+        tmp.write_bytes(data)
+    return path
+
+
+def read_png(path: str | os.PathLike) -> np.ndarray:
+    """(H, W, 3) uint8 of a PNG file (through Open3D's reader)."""
+    import open3d as o3d
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such image")
+    image = np.asarray(o3d.io.read_image(str(path)))
+    if image.ndim != 3 or image.shape[2] < 3:
+        raise InputError(f"{path}: not an RGB image (shape {image.shape})")
+    return image[:, :, :3].copy()
+
+
+# --- rendering -----------------------------------------------------------------------------------------------------
+
+
+def _rig_frames(rig: Any, keypoint_sets: Sequence[Any], selections: Sequence[Sequence[int]] | None) -> list[Frame]:
+    frames = []
+    for i, keypoints in enumerate(keypoint_sets):
+        keypoints = np.asarray(keypoints, dtype=np.float64)
+        selection = tuple(selections[i]) if selections is not None else ()
+        frames.append(Frame(rig.deform(keypoints), keypoints, rig.deform_cage(keypoints), selection))
+    return frames
+
+
+def render_rig(rig: Any, keypoints: Any = None, *, settings: ViewSettings | None = None, selection: Sequence[int] = (),
+               backend: str = "auto", timeout: float = 300.0) -> np.ndarray:
+    """Draw a rig with its keypoints at ``keypoints`` (default: rest) without opening a window.
+
+    Parameters
+    ----------
+    rig : kpd.rig.Rig.
+    keypoints : (K, 3) float64 in the rig's units, or None for the rest keypoints.
+    settings : ViewSettings (size, camera, what to show).
+    selection : keypoint indices drawn as selected.
+    backend : one of :data:`BACKENDS` (see the module notes).
+    timeout : seconds to wait for a window backend's child process.
+
+    Returns
+    -------
+    image : (H, W, 3) uint8.
+    """
+    keypoints = rig.keypoints if keypoints is None else keypoints
+    return render_frames(rig, [keypoints], settings=settings, selections=[selection], backend=backend,
+                         timeout=timeout)[0]
+
+
+def render_frames(rig: Any, keypoint_sets: Sequence[Any], *, settings: ViewSettings | None = None,
+                  selections: Sequence[Sequence[int]] | None = None, backend: str = "auto",
+                  timeout: float = 300.0) -> list[np.ndarray]:
+    """:func:`render_rig` of several keypoint sets with one renderer (a gallery of edits): a list of (H, W, 3)."""
+    settings = settings or ViewSettings()
+    if backend not in BACKENDS:
+        raise InputError(f"backend must be one of {', '.join(BACKENDS)}; got {backend!r}")
+    k = rig.num_keypoints
+    for keypoints in keypoint_sets:
+        shape = np.shape(keypoints)
+        if shape != (k, 3):
+            raise InputError(f"keypoints must have shape ({k}, 3) for this rig; got {shape}")
+    frames = _rig_frames(rig, keypoint_sets, selections)
+    backend = resolve_backend(backend)
+    log.info("rendering %d frame(s) of %dx%d with the %s backend", len(frames), settings.width, settings.height, backend)
+    if backend == "offscreen":
+        return _render_offscreen(rig.mesh, k, rig.cage.faces, frames, settings)
+    return _render_in_child(rig.mesh, k, rig.cage.faces, frames, settings, backend, timeout)
+
+
+def resolve_backend(backend: str) -> str:
+    if backend == "auto":
+        return "xvfb" if shutil.which("Xvfb") else "offscreen"
+    if backend == "xvfb" and not shutil.which("Xvfb"):
+        raise KpdError("the xvfb backend needs the Xvfb program (Debian/Ubuntu: apt-get install xvfb); or use "
+                       "--backend offscreen")
+    if backend == "window" and not os.environ.get("DISPLAY"):
+        raise KpdError("the window backend needs a display ($DISPLAY is not set); use --backend xvfb or offscreen")
+    return backend
+
+
+def _configure_view(scene: Any, settings: ViewSettings) -> None:
+    from open3d.visualization import rendering
+
+    # Post-processing (tone mapping, bloom, ambient occlusion) would tint the background and the unlit keypoint
+    # colours; without it they come out exactly as given, and software rendering is faster.
+    scene.view.set_post_processing(False)
+    scene.set_lighting(rendering.Open3DScene.LightingProfile.SOFT_SHADOWS, _sun_direction(settings))
+
+
+def _sun_direction(settings: ViewSettings) -> np.ndarray:
+    up = up_axis(settings.up)
+    a = int(np.flatnonzero(up)[0])
+    front = np.zeros(3)
+    front[(a + 1) % 3] = 1.0
+    side = np.cross(up, front)
+    d = -0.8 * up + 0.45 * front + 0.4 * side
+    return (d / np.linalg.norm(d)).astype(np.float32)
+
+
+def _render_offscreen(mesh: Any, k: int, cage_faces: Any, frames: list[Frame], settings: ViewSettings) -> list[np.ndarray]:
+    with _quiet_native_output():
+        from open3d.visualization import rendering
+
+        renderer = rendering.OffscreenRenderer(settings.width, settings.height)
+        try:
+            scene = RigScene(mesh, k, cage_faces, settings=settings)
+            scene.attach(renderer.scene, frames[0])
+            _configure_view(renderer.scene, settings)
+            camera = camera_pose(mesh.vertices, settings)
+            renderer.setup_camera(camera.fov, camera.center.astype(np.float32), camera.eye.astype(np.float32),
+                                  camera.up.astype(np.float32), camera.near, camera.far)
+            images = []
+            for i, frame in enumerate(frames):
+                if i:
+                    scene.update(frame)
+                image = np.asarray(renderer.render_to_image())[:, :, :3].copy()
+                images.append(label_image(image, scene, frame, camera))
+        finally:
+            del renderer
+    return images
+
+
+@contextlib.contextmanager
+def _quiet_native_output() -> Iterator[None]:
+    """Send what Open3D's native code prints (Filament/Vulkan banners) to the log instead of the terminal."""
+    if log.isEnabledFor(logging.DEBUG):
+        yield
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with tempfile.TemporaryFile() as sink:
+        try:
+            os.dup2(sink.fileno(), 1)
+            os.dup2(sink.fileno(), 2)
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            sink.seek(0)
+            text = sink.read().decode("utf-8", "replace").strip()
+            if text:
+                log.debug("Open3D said:\n%s", text)
+
+
+# --- the window backends: a child process with an Open3D window -----------------------------------------------------
+
+
+def _save_job(folder: Path, mesh: Any, k: int, cage_faces: Any, frames: list[Frame], settings: ViewSettings) -> Path:
+    arrays = {
+        "vertices": np.stack([f.vertices for f in frames]),
+        "keypoints": np.stack([f.keypoints for f in frames]),
+        "triangles": mesh.triangles,
+        "rest": mesh.vertices,
+    }
+    if cage_faces is not None and frames[0].cage is not None:
+        arrays["cage"] = np.stack([f.cage for f in frames])
+        arrays["cage_faces"] = np.asarray(cage_faces)
+    for name in ("vertex_colors", "triangle_uvs", "triangle_material_ids"):
+        value = getattr(mesh, name)
+        if value is not None:
+            arrays[name] = value
+    for i, texture in enumerate(mesh.textures):
+        arrays[f"texture_{i}"] = texture
+    meta = {"settings": settings.to_dict(), "num_keypoints": k, "selections": [list(f.selection) for f in frames]}
+    arrays["meta"] = np.array(json.dumps(meta))
+    path = folder / "job.npz"
+    np.savez(path, **arrays)
+    return path
+
+
+def _load_job(path: Path) -> tuple[Any, int, Any, list[Frame], ViewSettings]:
+    from kpd.io import Mesh
+
+    with np.load(path, allow_pickle=False) as data:
+        arrays = {name: data[name] for name in data.files}
+    meta = json.loads(str(arrays["meta"]))
+    textures = [arrays[n] for n in sorted((n for n in arrays if n.startswith("texture_")), key=lambda s: int(s[8:]))]
+    mesh = Mesh(vertices=arrays["rest"], triangles=arrays["triangles"], vertex_colors=arrays.get("vertex_colors"),
+                triangle_uvs=arrays.get("triangle_uvs"), textures=textures,
+                triangle_material_ids=arrays.get("triangle_material_ids"))
+    frames = []
+    for i, selection in enumerate(meta["selections"]):
+        cage = arrays["cage"][i] if "cage" in arrays else None
+        frames.append(Frame(arrays["vertices"][i], arrays["keypoints"][i], cage, tuple(selection)))
+    return mesh, int(meta["num_keypoints"]), arrays.get("cage_faces"), frames, ViewSettings.from_dict(meta["settings"])
+
+
+def _render_in_child(mesh: Any, k: int, cage_faces: Any, frames: list[Frame], settings: ViewSettings, backend: str,
+                     timeout: float) -> list[np.ndarray]:
+    with tempfile.TemporaryDirectory(prefix="kpd-render-") as tmp:
+        folder = Path(tmp)
+        job = _save_job(folder, mesh, k, cage_faces, frames, settings)
+        env = dict(os.environ)
+        with contextlib.ExitStack() as stack:
+            if backend == "xvfb":
+                env["DISPLAY"] = stack.enter_context(private_display(settings.width + 64, settings.height + 64))
+            command = [sys.executable, "-m", "kpd.viewer.render", "--worker", str(job)]
+            log.debug("running %s with DISPLAY=%s", " ".join(command), env.get("DISPLAY"))
+            try:
+                done = subprocess.run(command, env=env, capture_output=True, timeout=timeout)
+            except subprocess.TimeoutExpired as exc:
+                raise KpdError(f"rendering took longer than {timeout:g} s and was stopped") from exc
+        images = []
+        for i in range(len(frames)):
+            out = folder / f"frame_{i}.npy"
+            if not out.is_file():
+                tail = done.stderr.decode("utf-8", "replace").strip().splitlines()[-5:]
+                raise KpdError(f"the Open3D window renderer failed (exit {done.returncode}): {' | '.join(tail)}")
+            images.append(np.load(out, allow_pickle=False))
+        return images
+
+
+@contextlib.contextmanager
+def private_display(width: int = 1280, height: int = 1024, *, timeout: float = 20.0) -> Iterator[str]:
+    """Run a private ``Xvfb`` server for the duration of the block; yields its ``DISPLAY`` string (``":N"``).
+
+    The server picks a free display number itself (``-displayfd``) and is stopped (its process only) on exit.
+    """
+    program = shutil.which("Xvfb")
+    if program is None:
+        raise KpdError("Xvfb is not installed (Debian/Ubuntu: apt-get install xvfb)")
+    read_fd, write_fd = os.pipe()
+    process = subprocess.Popen(
+        [program, "-displayfd", str(write_fd), "-screen", "0", f"{int(width)}x{int(height)}x24", "-nolisten", "tcp",
+         "-noreset"],
+        pass_fds=(write_fd,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )
+    os.close(write_fd)
+    try:
+        number = b""
+        deadline = time.monotonic() + timeout
+        while not number.endswith(b"\n"):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or process.poll() is not None:
+                raise KpdError("the private Xvfb server did not start")
+            ready, _, _ = select.select([read_fd], [], [], remaining)
+            if ready:
+                chunk = os.read(read_fd, 16)
+                if not chunk:
+                    raise KpdError("the private Xvfb server did not start")
+                number += chunk
+        display = ":" + number.decode().strip()
+        log.debug("private Xvfb on %s (pid %d)", display, process.pid)
+        yield display
+    finally:
+        os.close(read_fd)
+        if process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+            try:
+                process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+
+def _worker(job: Path) -> int:
+    """Child-process entry: draw every frame of ``job`` in an Open3D window and save the images beside it."""
+    import open3d.visualization.gui as gui
+    import open3d.visualization.rendering as rendering
+
+    mesh, k, cage_faces, frames, settings = _load_job(job)
+    app = gui.Application.instance
+    app.initialize()
+    window = app.create_window("kpd render", settings.width, settings.height)
+    widget = gui.SceneWidget()
+    widget.scene = rendering.Open3DScene(window.renderer)
+    window.add_child(widget)
+
+    def on_layout(context: Any) -> None:
+        widget.frame = window.content_rect
+
+    window.set_on_layout(on_layout)
+    scene = RigScene(mesh, k, cage_faces, settings=settings)
+    scene.attach(widget.scene, frames[0])
+    _configure_view(widget.scene, settings)
+    camera = camera_pose(mesh.vertices, settings)
+    state = {"next": 0, "status": 1}
+
+    def set_camera() -> None:
+        frame = window.content_rect
+        widget.scene.camera.look_at(camera.center, camera.eye, camera.up)
+        widget.scene.camera.set_projection(camera.fov, frame.width / max(frame.height, 1), camera.near, camera.far,
+                                           rendering.Camera.FovType.Vertical)
+
+    def request() -> None:
+        i = state["next"]
+        if i:
+            scene.update(frames[i])
+        set_camera()
+        widget.scene.scene.render_to_image(on_image)
+        window.post_redraw()
+
+    def on_image(image: Any) -> None:
+        array = np.asarray(image)[:, :, :3].copy()
+        i = state["next"]
+        if array.shape[:2] != (settings.height, settings.width):
+            log.warning("window image is %s, expected %dx%d", array.shape[:2], settings.height, settings.width)
+        np.save(job.parent / f"frame_{i}.npy", label_image(array, scene, frames[i], camera))
+        state["next"] = i + 1
+        if state["next"] < len(frames):
+            app.post_to_main_thread(window, request)
+        else:
+            state["status"] = 0
+            app.post_to_main_thread(window, app.quit)
+
+    set_camera()
+    app.post_to_main_thread(window, request)
+    app.run()
+    return state["status"]
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(description="kpd.viewer.render child process (internal)")
+    parser.add_argument("--worker", required=True, type=Path)
+    args = parser.parse_args(argv)
+    status = _worker(args.worker)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)  # skip Open3D's GUI teardown, which may crash after the work is saved
+
+
+if __name__ == "__main__":
+    _main()
