@@ -181,16 +181,16 @@ class EditorApp:
             count = min(len(self.prior.components_), _MAX_SLIDERS)
             pca = gui.CollapsableVert("Category (PCA, std. dev.)", 0.25 * em, gui.Margins(em, 0, 0, 0))
             self._sigmas = np.zeros(len(self.prior.components_))
+            grid = gui.VGrid(2, 0.25 * em)
             for m in range(count):
-                row = gui.Horiz(0.25 * em)
-                row.add_child(gui.Label(f"{m + 1}"))
+                grid.add_child(gui.Label(f"{m + 1}"))
                 slider = gui.Slider(gui.Slider.DOUBLE)
                 slider.set_limits(-3.0, 3.0)
                 slider.double_value = 0.0
                 slider.set_on_value_changed(lambda value, m=m: self._on_slider(m, value))
-                row.add_child(slider)
-                pca.add_child(row)
+                grid.add_child(slider)
                 self.sliders.append(slider)
+            pca.add_child(grid)
             panel.add_child(pca)
 
         panel.add_child(gui.Label("click: select   shift+click: add\n"
@@ -247,10 +247,18 @@ class EditorApp:
         """Show the session's current keypoints: deform, upload, move the markers and numbers."""
         frame = self._frame()
         self.scene.update(frame, mesh=mesh)
-        for label, position in zip(self._labels, self.scene.label_positions(frame.keypoints)):
+        for label, position in zip(self._labels, self._label_positions(frame.keypoints)):
             label.position = position.astype(np.float32)
         self._update_status()
         self.window.post_redraw()
+
+    def _label_positions(self, keypoints: np.ndarray) -> np.ndarray:
+        """(K, 3): beside each marker, up and to the right as the start camera sees it (clear of the marker)."""
+        c = self._camera
+        forward = (c.center - c.eye) / np.linalg.norm(c.center - c.eye)
+        right = np.cross(forward, c.up)
+        right /= max(np.linalg.norm(right), 1e-12)
+        return np.asarray(keypoints) + self.scene.marker_radius * (1.3 * right + 1.0 * c.up)
 
     def _make_labels(self) -> None:
         import open3d.visualization.gui as gui
@@ -260,12 +268,12 @@ class EditorApp:
         self._labels = []
         if not (self.settings.show_labels and self.settings.show_keypoints):
             return
-        positions = self.scene.label_positions(self.session.keypoints)
+        positions = self._label_positions(self.session.keypoints)
         for i, position in enumerate(positions):
             label = self.widget.add_3d_label(position.astype(np.float32), str(i))
             r, g, b = (0.75 * self.scene.colors[i]).tolist()
             label.color = gui.Color(r, g, b, 1.0)
-            label.scale = 1.2
+            label.scale = 1.4
             self._labels.append(label)
 
     def _apply_settings(self) -> None:

@@ -47,7 +47,7 @@ from kpd.errors import InputError, KpdError
 
 __all__ = [
     "ViewSettings", "RigScene", "Frame", "render_rig", "render_frames", "write_png", "read_png", "keypoint_palette",
-    "camera_pose", "project", "pixel_ray", "overlay_labels", "BACKENDS", "private_display",
+    "camera_pose", "project", "pixel_ray", "overlay_labels", "BACKENDS", "private_display", "grab_screen",
 ]
 
 log = logging.getLogger(__name__)
@@ -876,10 +876,13 @@ def _render_in_child(mesh: Any, k: int, cage_faces: Any, frames: list[Frame], se
 
 
 @contextlib.contextmanager
-def private_display(width: int = 1280, height: int = 1024, *, timeout: float = 20.0) -> Iterator[str]:
+def private_display(width: int = 1280, height: int = 1024, *, timeout: float = 20.0,
+                    fbdir: str | os.PathLike | None = None) -> Iterator[str]:
     """Run a private ``Xvfb`` server for the duration of the block; yields its ``DISPLAY`` string (``":N"``).
 
     The server picks a free display number itself (``-displayfd``) and is stopped (its process only) on exit.
+    With ``fbdir`` the server keeps its screen in ``fbdir/Xvfb_screen0`` (XWD format), which :func:`grab_screen`
+    reads: a screenshot of every window on it, the editor's panel included.
     """
     program = shutil.which("Xvfb")
     if program is None:
@@ -887,7 +890,7 @@ def private_display(width: int = 1280, height: int = 1024, *, timeout: float = 2
     read_fd, write_fd = os.pipe()
     process = subprocess.Popen(
         [program, "-displayfd", str(write_fd), "-screen", "0", f"{int(width)}x{int(height)}x24", "-nolisten", "tcp",
-         "-noreset"],
+         "-noreset", *(["-fbdir", str(fbdir)] if fbdir is not None else [])],
         pass_fds=(write_fd,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
     )
     os.close(write_fd)
@@ -916,6 +919,19 @@ def private_display(width: int = 1280, height: int = 1024, *, timeout: float = 2
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.wait()
+
+
+def grab_screen(fbdir: str | os.PathLike) -> np.ndarray:
+    """(H, W, 3) uint8: the screen of an Xvfb server started with ``-fbdir`` (see :func:`private_display`)."""
+    path = Path(fbdir) / "Xvfb_screen0"
+    data = path.read_bytes()
+    header = struct.unpack(">25I", data[:100])
+    size, width, height, bits, line, colours = header[0], header[4], header[5], header[11], header[12], header[19]
+    if header[1] != 7 or bits != 32:
+        raise KpdError(f"{path}: not a 32-bit XWD screen (version {header[1]}, {bits} bits per pixel)")
+    pixels = np.frombuffer(data, np.uint8, count=line * height, offset=size + 12 * colours)
+    bgrx = pixels.reshape(height, line)[:, :width * 4].reshape(height, width, 4)
+    return np.ascontiguousarray(bgrx[:, :, [2, 1, 0]])
 
 
 def _worker(job: Path) -> int:
