@@ -744,7 +744,7 @@ def _configure_view(scene: Any, settings: ViewSettings) -> None:
     # Post-processing (tone mapping, bloom, ambient occlusion) would tint the background and the unlit keypoint
     # colours; without it they come out exactly as given, and software rendering is faster.
     scene.view.set_post_processing(False)
-    scene.set_lighting(rendering.Open3DScene.LightingProfile.SOFT_SHADOWS, _sun_direction(settings))
+    scene.set_lighting(rendering.Open3DScene.LightingProfile.NO_SHADOWS, _sun_direction(settings))
 
 
 def _sun_direction(settings: ViewSettings) -> np.ndarray:

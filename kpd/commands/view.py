@@ -229,10 +229,10 @@ def run(args: argparse.Namespace) -> int:
     if not (args.step > 0 and np.isfinite(args.step)):
         raise InputError(f"--step must be a positive number; got {args.step}")
     settings = view_settings(args, prior=bool(args.prior), nudge_step=float(args.step))
+    source = load_source(args, need_prior=args.prior)
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise InputError("kpd view needs a display ($DISPLAY is not set); for images without one use kpd render, "
                          "or run it under xvfb-run")
-    source = load_source(args, need_prior=args.prior)
     from kpd.viewer.app import EditorApp
 
     app = EditorApp(source.rig, prior=source.prior, settings=settings, out=args.out, session_path=args.session,

@@ -1,0 +1,350 @@
+"""kpd.viewer: edit sessions, camera maths, images, `kpd render`, `kpd view` errors, and the real editor window driven
+under Xvfb with xdotool."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kpd.errors import InputError
+from kpd.viewer.render import (
+    ViewSettings, camera_pose, keypoint_palette, look_at_matrix, overlay_labels, perspective_matrix, pixel_ray,
+    plane_hit, project, read_png, write_png,
+)
+from kpd.viewer.session import EditSession, component_offsets, propose
+
+REPO = Path(__file__).resolve().parents[1]
+HAS_XVFB = shutil.which("Xvfb") is not None and shutil.which("xdotool") is not None
+
+
+def kpd(*argv: str, env: dict | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "kpd.cli", *map(str, argv)], capture_output=True, text=True,
+                          env=env, timeout=timeout, cwd=REPO)
+
+
+# --- edit sessions ------------------------------------------------------------------------------------------------
+
+
+def test_session_undo_redo_and_gesture_merge():
+    rest = np.arange(12.0).reshape(4, 3)
+    session = EditSession(rest)
+    assert not session.can_undo
+    assert session.move([1], [0.5, 0, 0], merge="drag")
+    assert session.move([1], [0.5, 0, 0], merge="drag")  # same gesture: one undo step
+    assert session.depth == 1
+    np.testing.assert_allclose(session.keypoints[1], rest[1] + [1.0, 0, 0])
+    session.end_gesture()
+    session.move([0, 2], [0, 0, -1])
+    assert session.depth == 2 and set(session.moved) == {0, 1, 2}
+    assert session.undo() and session.undo() and not session.undo()
+    np.testing.assert_array_equal(session.keypoints, rest)
+    assert session.redo()
+    np.testing.assert_allclose(session.keypoints[1], rest[1] + [1.0, 0, 0])
+    session.reset()
+    np.testing.assert_array_equal(session.keypoints, rest)
+    assert session.undo()  # reset is undoable
+    np.testing.assert_allclose(session.keypoints[1], rest[1] + [1.0, 0, 0])
+
+
+def test_session_json_round_trip_applies_offsets(tmp_path):
+    rest = np.random.default_rng(0).normal(size=(5, 3))
+    session = EditSession(rest)
+    session.move([3], [0.1, 0.2, 0.3])
+    path = session.save(tmp_path / "s.json", model="chair")
+    data = json.loads(path.read_text())
+    assert data["format"] == "kpd-edit/1" and data["model"] == "chair" and list(data["moves"]) == ["3"]
+    other = EditSession(rest + 1e-12)
+    other.load(path)
+    np.testing.assert_allclose(other.keypoints, rest + 1e-12 + session.offsets, atol=1e-12)
+    assert other.undo()
+    np.testing.assert_array_equal(other.keypoints, rest + 1e-12)
+
+
+@pytest.mark.parametrize("text, match", [
+    ("{not json", "not a JSON edit session"),
+    ('{"format": "other"}', "session format must be"),
+    ('{"format": "kpd-edit/1", "rest_keypoints": [[0, 0, 0]], "keypoints": [[0, 0, 0]]}', "has 1 keypoints"),
+])
+def test_session_bad_files(tmp_path, text, match):
+    path = tmp_path / "bad.json"
+    path.write_text(text)
+    with pytest.raises(InputError, match=match):
+        EditSession(np.zeros((5, 3))).load(path)
+
+
+def test_session_rejects_bad_input():
+    with pytest.raises(InputError, match="shape"):
+        EditSession(np.zeros((4, 2)))
+    session = EditSession(np.zeros((4, 3)))
+    with pytest.raises(InputError, match="finite"):
+        session.apply(np.full((4, 3), np.nan))
+    with pytest.raises(InputError, match=r"\[0, 4\)"):
+        session.move([7], [0, 0, 1])
+
+
+class _ToyPrior:
+    """A one-component prior: keypoints 0 and 1 move together (mirror in x)."""
+
+    num_keypoints = 3
+    components_ = np.array([[[1.0, 0, 0], [-1.0, 0, 0], [0, 0, 0]]]) / math.sqrt(2)
+    explained_variance_ = np.array([4.0])
+
+    def sync(self, keypoints, edits):
+        from kpd.prior import KeypointPrior
+
+        return KeypointPrior.sync(self, keypoints, edits)
+
+    def _as_keypoints(self, keypoints, name="keypoints"):
+        return np.asarray(keypoints, dtype=np.float64)
+
+    def _check_params(self):
+        return 1
+
+    ridge_ = 1e-9
+
+
+def test_propose_with_and_without_prior():
+    from kpd.geometry import Normalizer
+
+    base = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0]])
+    normalizer = Normalizer.from_dict({"center": [0.0, 0.0, 0.0], "scale": 2.0})
+    alone = propose(base, {0: [1.5, 0, 0]})
+    np.testing.assert_allclose(alone, [[1.5, 0, 0], [-1.0, 0, 0], [0, 1.0, 0]])
+    synced = propose(base, {0: [1.5, 0, 0]}, prior=_ToyPrior(), normalizer=normalizer)
+    np.testing.assert_array_equal(synced[0], [1.5, 0, 0])  # exactly where asked
+    np.testing.assert_allclose(synced[1], [-1.5, 0, 0], atol=1e-6)  # the mirror partner follows
+    np.testing.assert_allclose(synced[2], base[2], atol=1e-9)
+    offsets = component_offsets(_ToyPrior(), normalizer, [1.0])  # one standard deviation: 2 model units
+    np.testing.assert_allclose(offsets[0], [2 * 2 / math.sqrt(2), 0, 0])
+    with pytest.raises(InputError, match="normalizer"):
+        propose(base, {0: [0, 0, 0]}, prior=_ToyPrior())
+
+
+# --- camera maths and images --------------------------------------------------------------------------------------
+
+
+def _infinite_projection(fov: float, aspect: float, near: float) -> np.ndarray:
+    """A perspective with the far plane at infinity, as Open3D's window camera reports it."""
+    t = 1 / math.tan(math.radians(fov) / 2)
+    return np.array([[t / aspect, 0, 0, 0], [0, t, 0, 0], [0, 0, -1, -2 * near], [0, 0, -1, 0]])
+
+
+@pytest.mark.parametrize("infinite", [False, True])
+def test_pixel_ray_goes_through_the_projected_point(infinite):
+    rng = np.random.default_rng(3)
+    vertices = rng.normal(size=(50, 3)) * [1, 2, 3] + [5, -1, 2]
+    settings = ViewSettings(width=400, height=300, azimuth=40, elevation=25)
+    camera = camera_pose(vertices, settings)
+    view = look_at_matrix(camera)
+    projection = (_infinite_projection(camera.fov, 4 / 3, camera.near) if infinite
+                  else perspective_matrix(camera.fov, 4 / 3, camera.near, camera.far))
+    pixels, depth = project(vertices, view, projection, 400, 300)
+    assert (depth > 0).all()
+    assert (pixels >= 0).all() and (pixels[:, 0] <= 400).all() and (pixels[:, 1] <= 300).all()  # the shape fits
+    for point, (x, y) in zip(vertices[:5], pixels[:5]):
+        origin, direction = pixel_ray(x, y, view, projection, 400, 300)
+        np.testing.assert_allclose(origin, camera.eye, atol=1e-9)
+        closest = origin + direction * ((point - origin) @ direction)
+        np.testing.assert_allclose(closest, point, atol=1e-6)
+
+
+def test_drag_in_the_camera_plane_keeps_depth():
+    camera = camera_pose(np.array([[-1.0, -1, -1], [1, 1, 1]]), ViewSettings())
+    view = look_at_matrix(camera)
+    projection = perspective_matrix(camera.fov, 4 / 3, camera.near, camera.far)
+    anchor = np.array([0.2, 0.1, 0.3])
+    forward = -view[2, :3]
+    x, y = project(anchor[None], view, projection, 640, 480)[0][0]
+    hit = plane_hit(*pixel_ray(x + 40, y - 30, view, projection, 640, 480), anchor, forward)
+    assert abs((hit - anchor) @ forward) < 1e-9  # moved within the plane facing the camera
+    moved, _ = project(hit[None], view, projection, 640, 480)
+    np.testing.assert_allclose(moved[0], [x + 40, y - 30], atol=1e-6)  # and lands under the cursor
+    assert plane_hit(np.zeros(3), np.array([1.0, 0, 0]), anchor, np.array([0, 0, 1.0])) is None
+
+
+def test_palette_labels_and_png_round_trip(tmp_path):
+    colors = keypoint_palette(20)
+    assert colors.shape == (20, 3) and len(np.unique(np.round(colors, 3), axis=0)) == 20
+    image = np.full((60, 80, 3), 255, np.uint8)
+    out = overlay_labels(image, [[10, 30], [50, 50]], ["3", "12"], colors[:2], scale=2)
+    assert (out != 255).any(axis=2).sum() > 50 and (image == 255).all()
+    path = write_png(tmp_path / "a.png", out)
+    np.testing.assert_array_equal(read_png(path), out)
+    with pytest.raises(InputError, match="uint8"):
+        write_png(tmp_path / "b.png", out.astype(float))
+
+
+def test_view_settings_checks():
+    with pytest.raises(InputError, match="up must be"):
+        ViewSettings(up="w")
+    with pytest.raises(InputError, match="width"):
+        ViewSettings(width=3)
+    assert ViewSettings.from_dict(ViewSettings(zoom=2.0).to_dict()).zoom == 2.0
+
+
+# --- commands on a real chair -------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def chair_rig(data_dir, tmp_path_factory):
+    from kpd.runtime import Model
+
+    mesh = sorted((data_dir / "modelnet10" / "chair" / "test").glob("chair_*"))[0]
+    rig = Model.load("chair").rig(mesh)
+    path = tmp_path_factory.mktemp("rig") / "chair_rig.npz"
+    rig.save(path)
+    return path
+
+
+def _one_line_error(done: subprocess.CompletedProcess, match: str) -> None:
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and match in lines[0], done.stderr
+
+
+def test_bad_input_ends_with_one_line(chair_rig, tmp_path):
+    _one_line_error(kpd("render", "--rig", tmp_path / "missing.npz", "--out", tmp_path / "a.png"), "no such rig")
+    _one_line_error(kpd("render", "chair", tmp_path / "missing.obj", "--out", tmp_path / "a.png"), "no such file")
+    _one_line_error(kpd("render", "--rig", chair_rig, "--model", "table", "--out", tmp_path / "a.png"),
+                    "has 8 keypoints")
+    _one_line_error(kpd("view", "--rig", chair_rig, "--model", "table"), "has 8 keypoints")
+    _one_line_error(kpd("render", "--rig", chair_rig, "--out", tmp_path / "a.jpg"), "PNG")
+    _one_line_error(kpd("render", "--rig", chair_rig, "--move", "40:0,0,1", "--out", tmp_path / "a.png"),
+                    "[0, 12)")
+    (tmp_path / "exists.png").write_bytes(b"x")
+    _one_line_error(kpd("render", "--rig", chair_rig, "--out", tmp_path / "exists.png"), "--force")
+    assert (tmp_path / "exists.png").read_bytes() == b"x"
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    _one_line_error(kpd("view", "--rig", chair_rig, env=env), "needs a display")
+    help_text = kpd("render", "--help").stdout
+    assert "example:" in help_text and "kpd render" in help_text
+    assert "example:" in kpd("view", "--help").stdout
+
+
+def _check_render(path: Path, k: int) -> None:
+    image = read_png(path)
+    assert image.shape == (240, 320, 3)
+    background = image[0, 0]
+    shape = np.abs(image.astype(int) - background).sum(axis=2) > 30
+    assert 0.03 < shape.mean() < 0.8  # the shape is there and not everything
+    colors = (keypoint_palette(k) * 255).astype(int)
+    found = sum(bool((np.abs(image.astype(int) - c).max(axis=2) < 40).sum() >= 3) for c in colors)
+    assert found >= k // 2, f"only {found} of {k} keypoint colours visible"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["offscreen", "xvfb"])
+def test_render_writes_a_png_of_the_shape(chair_rig, tmp_path, backend):
+    if backend == "xvfb" and not HAS_XVFB:
+        pytest.skip("Xvfb/xdotool not installed (make system)")
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}  # no display needed
+    out = tmp_path / "view.png"
+    done = kpd("render", "--rig", chair_rig, "--move", "0:0,0,-3", "--size", "320x240", "--backend", backend,
+               "--out", out, env=env)
+    assert done.returncode == 0, done.stderr
+    _check_render(out, 12)
+
+
+# --- the real window -------------------------------------------------------------------------------------------------
+
+
+def _wait(condition, timeout: float, what: str):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+
+
+def _events(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    lines = path.read_text().splitlines()
+    return [json.loads(line) for line in lines if line.endswith("}")]
+
+
+def _last(path: Path, name: str, after: int = 0):
+    found = [e for e in _events(path)[after:] if e["event"] == name]
+    return found[-1] if found else None
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
+def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
+    from kpd.io import read_mesh
+    from kpd.rig import Rig
+    from kpd.viewer.render import private_display
+
+    rig = Rig.load(chair_rig)
+    events, out = tmp_path / "events.jsonl", tmp_path / "edited.ply"
+    with private_display(1000, 600) as display:
+        env = dict(os.environ, DISPLAY=display)
+        window = subprocess.Popen(
+            [sys.executable, "-m", "kpd.cli", "view", "--rig", str(chair_rig), "--size", "480x400", "--out", str(out),
+             "--events", str(events)], env=env, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+        def xdo(*args: object) -> str:
+            return subprocess.run(["xdotool", *map(str, args)], env=env, check=True, capture_output=True,
+                                  text=True).stdout
+
+        try:
+            ready = _wait(lambda: _last(events, "ready"), 90, "the editor window")
+            np.testing.assert_allclose(ready["keypoints"], rig.keypoints)
+            wid = _wait(lambda: subprocess.run(["xdotool", "search", "--pid", str(window.pid)], env=env,
+                                               capture_output=True, text=True).stdout.split(), 30, "the X window")[-1]
+            geometry = dict(line.split("=") for line in xdo("getwindowgeometry", "--shell", wid).split())
+            vx, vy, w, h = ready["viewport"]
+            pixels, depth = project(np.array(ready["keypoints"]), np.array(ready["view"]),
+                                    np.array(ready["projection"]), w, h)
+            # a keypoint well inside the view and far from the others' markers on screen
+            gaps = np.linalg.norm(pixels[:, None] - pixels[None], axis=2) + np.eye(len(pixels)) * 1e9
+            inside = (pixels[:, 0] > 40) & (pixels[:, 0] < w - 40) & (pixels[:, 1] > 80) & (pixels[:, 1] < h - 20)
+            index = int(np.argmax(np.where(inside, gaps.min(axis=1), -1)))
+            x = int(geometry["X"]) + vx + round(pixels[index, 0])
+            y = int(geometry["Y"]) + vy + round(pixels[index, 1])
+            xdo("mousemove", x, y)
+            xdo("mousedown", 1)
+            selected = _wait(lambda: _last(events, "select"), 60, "the selection")
+            assert selected["selection"] == [index] and selected["picked"] == index
+            for step in range(1, 6):
+                xdo("mousemove", x + 4 * step, y - 10 * step)
+            xdo("mouseup", 1)
+            released = _wait(lambda: _last(events, "release"), 120, "the end of the drag")
+            assert released["moved"]
+            xdo("key", "s")
+            saved = _wait(lambda: _last(events, "save"), 60, "the saved mesh")
+            keypoints = np.array(saved["keypoints"])
+            moved = np.flatnonzero(np.abs(keypoints - rig.keypoints).max(axis=1) > 0)
+            assert moved.tolist() == [index]  # the prior is off: only the selection moved
+            mesh = read_mesh(out)
+            assert len(mesh.triangles) == len(rig.mesh.triangles)
+            expected = rig.deform(keypoints)
+            scale = np.abs(expected).max()
+            np.testing.assert_allclose(mesh.vertices, expected, atol=1e-5 * scale)
+            assert np.abs(mesh.vertices - rig.mesh.vertices).max() > 1e-3 * scale  # the mesh did change
+            count = len(_events(events))
+            xdo("key", "u")
+            undone = _wait(lambda: _last(events, "undo", count), 60, "undo")
+            np.testing.assert_allclose(undone["keypoints"], rig.keypoints)
+            count = len(_events(events))
+            xdo("key", "s")
+            _wait(lambda: _last(events, "save", count), 60, "the second save")
+            np.testing.assert_allclose(read_mesh(out).vertices, rig.mesh.vertices, atol=1e-5 * scale)
+        finally:
+            window.terminate()
+            try:
+                window.wait(10)
+            except subprocess.TimeoutExpired:
+                window.kill()
+                window.wait()
