@@ -34,7 +34,7 @@ import numpy as np
 
 from kpd.errors import InputError, KpdError
 from kpd.viewer.render import (
-    Frame, RigScene, ViewSettings, camera_pose, label_image, pixel_ray, plane_hit, project, write_png,
+    Frame, RigScene, ViewSettings, add_fill_light, camera_pose, label_image, pixel_ray, plane_hit, project, write_png,
 )
 from kpd.viewer.session import EditSession, component_offsets, propose
 
@@ -122,6 +122,7 @@ class EditorApp:
         self.scene.attach(self.widget.scene, self._frame())
         self.widget.scene.view.set_post_processing(False)
         self.widget.scene.set_lighting(rendering.Open3DScene.LightingProfile.NO_SHADOWS, _sun(s))
+        add_fill_light(self.widget.scene, _sun(s))
         self._camera = camera_pose(self.rig.mesh.vertices, s)
         self._reset_camera()
         self._make_labels()

@@ -387,7 +387,7 @@ class RigScene:
         material.base_roughness = 0.7
         material.base_reflectance = 0.3
         if part.texture is not None:
-            image = np.ascontiguousarray(part.texture[::-1])  # Open3D's texture rows run bottom-up
+            image = np.ascontiguousarray(part.texture)  # top row first, as the UVs (origin bottom left) expect
             if image.ndim == 3 and image.shape[2] == 1:
                 image = np.ascontiguousarray(image[:, :, 0])
             material.albedo_img = o3d.geometry.Image(image)
@@ -744,7 +744,19 @@ def _configure_view(scene: Any, settings: ViewSettings) -> None:
     # Post-processing (tone mapping, bloom, ambient occlusion) would tint the background and the unlit keypoint
     # colours; without it they come out exactly as given, and software rendering is faster.
     scene.view.set_post_processing(False)
-    scene.set_lighting(rendering.Open3DScene.LightingProfile.NO_SHADOWS, _sun_direction(settings))
+    sun = _sun_direction(settings)
+    scene.set_lighting(rendering.Open3DScene.LightingProfile.NO_SHADOWS, sun)
+    add_fill_light(scene, sun)
+
+
+def add_fill_light(scene: Any, sun: np.ndarray) -> None:
+    """A weaker light from the opposite side, so faces turned away from the sun keep their colour (software
+    renderers may have no image-based ambient light, which leaves those faces black)."""
+    scene.scene.set_sun_light(sun.astype(np.float32), np.array([1.0, 1.0, 1.0], np.float32), 100000.0)
+    scene.scene.enable_indirect_light(True)
+    scene.scene.set_indirect_light_intensity(60000.0)
+    scene.scene.add_directional_light("fill", np.array([1.0, 1.0, 1.0], np.float32), (-sun).astype(np.float32),
+                                      60000.0, False)
 
 
 def _sun_direction(settings: ViewSettings) -> np.ndarray:
