@@ -348,3 +348,31 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
             except subprocess.TimeoutExpired:
                 window.kill()
                 window.wait()
+
+
+@pytest.mark.slow
+def test_render_draws_textures_the_right_way_up():
+    """A square whose texture is red in its top half (as the image file shows it) and blue below, with UVs whose v
+    grows upward (OBJ): the rendered square must be red above and blue below."""
+    from kpd.geometry import Normalizer
+    from kpd.io import Mesh
+    from kpd.rig import Rig
+    from kpd.viewer.render import render_rig
+
+    vertices = np.array([[0.0, -1, -1], [0, 1, -1], [0, 1, 1], [0, -1, 1]])  # facing the front view (-x)
+    uv = {0: (0.0, 0.0), 1: (1.0, 0.0), 2: (1.0, 1.0), 3: (0.0, 1.0)}
+    triangles = np.array([[0, 1, 2], [0, 2, 3], [0, 2, 1], [0, 3, 2]])  # both windings: seen from either side
+    texture = np.zeros((64, 64, 3), np.uint8)
+    texture[:32] = (230, 20, 20)
+    texture[32:] = (20, 20, 230)
+    mesh = Mesh(vertices=vertices, triangles=triangles, triangle_uvs=np.array([uv[i] for i in triangles.ravel()]),
+                textures=[texture], triangle_material_ids=np.zeros(len(triangles), np.int64))
+    rig = Rig.bind(mesh, np.array([[0.0, 0, 0.5], [0, 0, -0.5]]), normalizer=Normalizer().fit(vertices))
+    settings = ViewSettings(width=240, height=240, show_keypoints=False, show_labels=False, azimuth=0.0,
+                            elevation=0.0)
+    image = render_rig(rig, settings=settings, backend="offscreen").astype(int)
+    red = (image[..., 0] > image[..., 2] + 40) & (image[..., 0] > 60)
+    blue = (image[..., 2] > image[..., 0] + 40) & (image[..., 2] > 60)
+    assert red.sum() > 500 and blue.sum() > 500, (red.sum(), blue.sum())
+    rows = np.arange(image.shape[0])[:, None]
+    assert (rows * red).sum() / red.sum() < (rows * blue).sum() / blue.sum()  # red above blue
