@@ -536,7 +536,8 @@ def _shape_points_raw(shape: Any) -> np.ndarray:
 class Hypothesis(NamedTuple):
     """One refined rotation hypothesis; ``source`` names its start: ``pca:i`` (principal axes under signed
     permutation i), ``grid:i`` (icosahedral rotation i), ``fpfh:i`` (RANSAC run i), ``yaw:i`` / ``pca-yaw:i`` (with
-    an up axis); ``+support`` when the hypothesis was stood on its support plane (see :func:`support_plane`)."""
+    an up axis); ``+turnk`` for the best turned by k quarter turns about the reference's up axis; ``+support`` when
+    the hypothesis was stood on its support plane (see :func:`support_plane`)."""
 
     rotation: np.ndarray
     score: float
@@ -988,6 +989,20 @@ class ScanAligner:
             return score, a, r, t, source, ups
 
         refined = sorted((refine(r0, source) for _, r0, source in chosen), key=lambda c: c[0])
+        if standing is not None:
+            # With the up axis settled by the support, the quarter turns of the best about it are searched too:
+            # many objects (tables, boxes) look alike after such a turn, and a runner-up found there is a genuine
+            # alternative that the starts may have missed (it may also win: then it is the better fit)
+            _, _, r_best, _, source_best, ups_best = refined[0]
+            for k in (1, 2, 3):
+                turned = _about(self.reference_up_, k * np.pi / 2) @ r_best
+                source = f"{source_best.split('+')[0]}+turn{k}"
+                if ups_best is None:
+                    refined.append(refine(turned, source))
+                else:  # already standing on its support: only the turn about the up axis is refined
+                    a, r, t, score = self._icp(scan, turned, self.iterations, normals=search_normals, ups=ups_best)
+                    refined.append((score, a, r, t, source + "+support", ups_best))
+            refined.sort(key=lambda c: c[0])
         unit = self.reference_.radius / self.reference_box_scale_  # working units -> reference box units
         best_score, s, r, t, _, best_ups = refined[0]
         runner = next((c for c in refined[1:] if rotation_angle(c[2], r) > self.distinct_angle), None)
