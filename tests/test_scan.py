@@ -180,6 +180,7 @@ def test_reference_up_turns_on_the_support_prior(chair):
     o = aligner.orient(scan @ true.T)  # the scan's up is unknown: all rotations are searched
     assert rotation_angle(o.rotation @ true) < 5.0
     assert o.hypotheses[0].source.endswith("+support")
+    assert sum("+turn" in h.source for h in o.hypotheses) == 3  # the best's quarter turns about the up axis
     assert ScanAligner().fit(reference).reference_support_ is None  # no reference_up: no prior
     with pytest.raises(InputError, match="snap_angle"):
         ScanAligner(snap_angle=95.0).fit(reference)
