@@ -15,9 +15,10 @@ import argparse
 import json
 import os
 import platform
-import time
 
 import numpy as np
+
+from kpd.commands.bench import median_ms
 
 
 def _sphere_rig(target_vertices: int, k: int = 12):
@@ -36,16 +37,6 @@ def _sphere_rig(target_vertices: int, k: int = 12):
     return Rig.bind(mesh, keypoints, None, normalizer=Normalizer().fit(mesh.vertices))
 
 
-def _time(fn, repeat: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1000 * float(np.median(times))
-
-
 def bench(vertices: int, repeat: int, renderer) -> dict:
     import open3d as o3d
     from open3d.visualization import rendering
@@ -62,14 +53,14 @@ def bench(vertices: int, repeat: int, renderer) -> dict:
         moved = keypoints + 0.01 * rng.normal(size=keypoints.shape)
         rig.deform(moved, out=buffer)
 
-    deform_ms = _time(deform, repeat)
+    deform_ms = median_ms(deform, repeat, warmup=1)
 
     scene = renderer.scene
     scene.clear_geometry()
     rig_scene = RigScene(rig.mesh, rig.num_keypoints, None, settings=ViewSettings())
     frame = Frame(rig.deform(keypoints), keypoints, None, ())
     rig_scene.attach(scene, frame)
-    mesh_upload_ms = _time(lambda: rig_scene.update(frame, normals=True), repeat)
+    mesh_upload_ms = median_ms(lambda: rig_scene.update(frame, normals=True), repeat, warmup=1)
 
     # the fast path: a tensor point cloud whose positions and normals are replaced in place
     cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(buffer.astype(np.float32)))
@@ -83,7 +74,7 @@ def bench(vertices: int, repeat: int, renderer) -> dict:
         cloud.point.positions = o3d.core.Tensor(buffer.astype(np.float32))
         scene.scene.update_geometry("fast", cloud, flags)
 
-    points_upload_ms = _time(upload_points, repeat)
+    points_upload_ms = median_ms(upload_points, repeat, warmup=1)
     return {
         "vertices": v,
         "triangles": int(len(rig.mesh.triangles)),
