@@ -34,7 +34,7 @@ from scipy.spatial import ConvexHull, cKDTree
 from scipy.spatial.transform import Rotation
 
 from kpd.errors import InputError, NotFittedError
-from kpd.geometry import Normalizer, as_points, as_rng
+from kpd.geometry import Normalizer, as_points, as_rng, sample_surface
 
 __all__ = [
     "AXES",
@@ -64,6 +64,9 @@ AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 # *train* chairs oriented to another train chair: at 0.1 every clean case more than 20 degrees off was flagged, while
 # 2/3 of them were decided (benchmarks/bench_scan.py measures on the test split).
 DEFAULT_AMBIGUITY_MARGIN = 0.1
+
+# Surface points a mesh scan is oriented by (area-weighted, so independent of how the mesh spends its vertices).
+MESH_ORIENT_SAMPLES = 20000
 
 
 # --------------------------------------------------------------------------------------------------------------------
@@ -1141,10 +1144,14 @@ def preprocess(
     _shape_points(shape)  # checks the input before any work
     cleaned, report = clean(shape, **clean_params)
     points = _shape_points(cleaned)
+    if aligner is None and reference is not None:
+        aligner = ScanAligner(**orient_params).fit(reference)
     if aligner is not None:
-        orientation = aligner.orient(points)
-    elif reference is not None:
-        orientation = ScanAligner(**orient_params).fit(reference).orient(points)
+        # a mesh is oriented by its surface, not its vertices (CAD meshes crowd vertices on curved details)
+        triangles = np.asarray(getattr(cleaned, "triangles", np.zeros((0, 3))))
+        seen = (sample_surface(points, triangles, MESH_ORIENT_SAMPLES, aligner.seed).points
+                if _is_mesh(cleaned) and len(triangles) else points)
+        orientation = aligner.orient(seen)
     else:
         orientation = None
     rotation = np.eye(3) if orientation is None else orientation.rotation

@@ -344,6 +344,22 @@ def test_preprocess_mesh_keeps_topology_and_turns_normals(sneaker):
     np.testing.assert_allclose(result.to_original(result.shape.vertices), sneaker.vertices, atol=1e-9)
 
 
+def test_mesh_scan_is_oriented_by_its_surface_not_its_vertices():
+    # a box with a finely tessellated ball on one corner: 7000 of the vertices are on the ball, most of the area on
+    # the box; oriented by its vertices the scan looks round (wrong and ambiguous), by its surface it is not
+    import open3d as o3d
+
+    shape = o3d.geometry.TriangleMesh.create_box(3.0, 1.5, 0.6)
+    shape += o3d.geometry.TriangleMesh.create_sphere(0.35, resolution=60).translate((2.6, 1.2, 0.9))
+    vertices, triangles = np.asarray(shape.vertices), np.asarray(shape.triangles)
+    reference = sample_surface(vertices, triangles, 5000, seed=1).points
+    for seed in range(2):
+        true = rotation(seed)
+        result = preprocess(Mesh(vertices=vertices @ true.T, triangles=triangles), reference)
+        assert rotation_angle(result.rotation @ true) < 3.0 and not result.orientation.ambiguous
+        assert isinstance(result.shape, Mesh) and len(result.shape.vertices) == len(vertices)
+
+
 # --- command line -------------------------------------------------------------------------------------------------
 
 
