@@ -7,6 +7,11 @@ scan itself; for the sneaker it is the unrotated scan sampled independently. Bot
 
     .venv/bin/python benchmarks/bench_scan.py                 # the full run (about 35 minutes on one core)
     .venv/bin/python benchmarks/bench_scan.py --cases 5       # a quick check
+    .venv/bin/python benchmarks/bench_scan.py --split train --categories chair,table --cases 60 --no-baseline \
+        --out benchmarks/results/scan_calibration.json         # how kpd.scan's ambiguity margin was chosen
+
+The JSON also sweeps the ambiguity margin (``margin_sweep``): the flag is ``margin < threshold`` on the recorded
+margins, so every threshold's decided share and flagged share follow exactly from one run.
 
 Rules (also written into the JSON): see ``RULES`` below.
 """
@@ -30,6 +35,9 @@ _parser.add_argument("--medoid-pool", type=int, default=40, help="training shape
 _parser.add_argument("--no-baseline", action="store_true", help="skip Open3D's FPFH + RANSAC + ICP")
 _parser.add_argument("--progress", action="store_true", help="one line per case on stderr")
 _parser.add_argument("--no-up-given", action="store_true", help="skip the run with the true up axis (quick checks)")
+_parser.add_argument("--split", choices=("test", "train"), default="test",
+                     help="ModelNet10 shapes scanned: test (the benchmark) or train outside the reference's pool "
+                          "(calibration of the ambiguity margin; the sneaker is skipped)")
 _parser.add_argument("--out", default=None, help="also write the JSON to this file (e.g. benchmarks/results/scan.json)")
 ARGS = _parser.parse_args() if __name__ == "__main__" else _parser.parse_args([])
 os.environ.setdefault("OMP_NUM_THREADS", str(ARGS.threads))
@@ -106,9 +114,13 @@ def box(points: np.ndarray) -> np.ndarray:
     return Normalizer().fit(points).apply(points)
 
 
-def medoid(files: list[str], pool: int, seed: int) -> str:
+def medoid_pool(files: list[str], pool: int, seed: int) -> list[str]:
     rng = np.random.default_rng(seed)
-    chosen = [files[i] for i in sorted(rng.choice(len(files), min(pool, len(files)), replace=False))]
+    return [files[i] for i in sorted(rng.choice(len(files), min(pool, len(files)), replace=False))]
+
+
+def medoid(files: list[str], pool: int, seed: int) -> str:
+    chosen = medoid_pool(files, pool, seed)
     clouds = [box(surface(f, 1024, 0)) for f in chosen]
     cost = np.zeros(len(clouds))
     for i in range(len(clouds)):
@@ -221,7 +233,7 @@ def summarise(rows: list[dict], with_baseline: bool) -> dict:
     return out
 
 
-def run_category(name: str, root: Path, args) -> tuple[dict, list[float], list[float]]:
+def run_category(name: str, root: Path, args) -> tuple[dict, list[float], list[float], dict]:
     rng = np.random.default_rng([args.seed, sum(map(ord, name))])
     if name == "sneaker":
         mesh_path = root / "scans" / "sneaker.ply"
@@ -229,8 +241,13 @@ def run_category(name: str, root: Path, args) -> tuple[dict, list[float], list[f
         reference_name = "scans/sneaker.ply (unrotated, independent sample)"
         reference = surface(mesh_path, args.reference_points, 10_000 + args.seed)
     else:
-        shapes = sorted(glob.glob(str(root / "modelnet10" / name / "test" / "*.ply")))
         train = sorted(glob.glob(str(root / "modelnet10" / name / "train" / "*.ply")))
+        if args.split == "test":
+            shapes = sorted(glob.glob(str(root / "modelnet10" / name / "test" / "*.ply")))
+        else:  # calibration: training shapes that were not candidates for the reference
+            pool = set(medoid_pool(train, args.medoid_pool, args.seed))
+            shapes = [f for f in train if f not in pool]
+            np.random.default_rng([args.seed, 7]).shuffle(shapes)
         if not shapes or not train:
             raise SystemExit(f"no ModelNet10 {name} data under {root}")
         reference_path = medoid(train, args.medoid_pool, args.seed)
@@ -304,13 +321,37 @@ def run_category(name: str, root: Path, args) -> tuple[dict, list[float], list[f
                       f"{up_error:6.1f} {'AMB' if with_up.ambiguous else '   '} | "
                       f"o3d {row.get('baseline_error', float('nan')):6.1f} | t {elapsed:.2f}", file=sys.stderr,
                       flush=True)
-    summary = {"reference": reference_name, "test_shapes": min(len(shapes), args.cases)}
+    summary = {"reference": reference_name, "split": "test" if name == "sneaker" else args.split,
+               "shapes": min(len(shapes), args.cases)}
     for condition, rows in conditions.items():
         summary[condition] = summarise(rows, not args.no_baseline)
         summary[condition]["kpd_scan"]["ground_removed_cases"] = sum(r["ground_removed"] > 0 for r in rows)
         summary[condition]["kpd_scan_up_given"]["ground_removed_cases"] = sum(
             r["up_given"]["ground_removed"] > 0 for r in rows)
-    return summary, times_clean, times_all
+    return summary, times_clean, times_all, conditions
+
+
+SWEEP = (0.05, 0.075, 0.1, 0.125, 0.15, 0.175, 0.2, 0.25, 0.3)
+
+
+def margin_sweep(all_rows: dict[str, list[dict]]) -> dict:
+    """Pooled decided share and flagged share for each ambiguity threshold (flag = margin < threshold)."""
+    out: dict = {}
+    for variant in ("kpd_scan", "kpd_scan_up_given"):
+        out[variant] = {}
+        for condition, rows in all_rows.items():
+            rows = [r if variant == "kpd_scan" else r["up_given"] for r in rows]
+            err = np.array([r["error"] for r in rows])
+            margin = np.array([r["margin"] for r in rows])
+            table = []
+            for t in SWEEP:
+                flagged = margin < t
+                decided = int((~flagged).sum())
+                right = int(((~flagged) & (err <= RECOVERED_DEG)).sum())
+                table.append({"threshold": t, "recovered_share": round(right / decided, 4) if decided else None,
+                              "flagged_share": round(float(flagged.mean()), 4), "wrong": decided - right})
+            out[variant][condition] = table
+    return out
 
 
 def main() -> int:
@@ -320,11 +361,17 @@ def main() -> int:
         raise SystemExit(f"data not found at {root} (set KPD_DATA or --data)")
     t_start = time.perf_counter()
     results, clean_times, all_times = {}, [], []
-    for name in [c.strip() for c in args.categories.split(",") if c.strip()]:
-        summary, t_clean, t_all = run_category(name, root, args)
+    all_rows: dict[str, list[dict]] = {"clean": [], "corrupted": []}
+    names = [c.strip() for c in args.categories.split(",") if c.strip()]
+    if args.split == "train":
+        names = [n for n in names if n != "sneaker"]  # one scan only: it is the test
+    for name in names:
+        summary, t_clean, t_all, rows = run_category(name, root, args)
         results[name] = summary
         clean_times += t_clean
         all_times += t_all
+        for condition in all_rows:
+            all_rows[condition] += rows[condition]
 
     def pooled(condition: str, variant: str) -> float | None:
         """Recovered share of the decided cases over all categories."""
@@ -337,6 +384,7 @@ def main() -> int:
     out = {
         "benchmark": "kpd.scan orientation recovery",
         "command": "benchmarks/bench_scan.py " + " ".join(sys.argv[1:]),
+        "split": args.split,
         "cases_per_category": args.cases,
         "points_per_scan": args.points,
         "reference_points": args.reference_points,
@@ -354,6 +402,7 @@ def main() -> int:
                     "met": {variant: {"clean": (pooled("clean", variant) or 0) >= 0.95,
                                       "corrupted": (pooled("corrupted", variant) or 0) >= 0.90}
                             for variant in ("kpd_scan", "kpd_scan_up_given")}},
+        "margin_sweep": margin_sweep(all_rows),
         "time_per_scan_s": {
             "what": f"kpd.scan.preprocess (clean + orient + normalise) of a {args.points}-point clean scan",
             "median": round(float(np.median(clean_times)), 3),
