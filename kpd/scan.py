@@ -48,6 +48,7 @@ __all__ = [
     "orient",
     "normalize",
     "preprocess",
+    "alignment_picture",
     "parse_axis",
     "rotation_angle",
     "proper_signed_permutations",
@@ -1160,3 +1161,71 @@ def preprocess(
     aligned = points @ forward[:3, :3].T + forward[:3, 3]
     return ScanResult(_with_points(cleaned, aligned, forward[:3, :3]), aligned, forward, inverse, rotation,
                       normalizer, orientation, report)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# a picture to check an orientation by eye
+
+
+def alignment_picture(result: ScanResult, reference: Any, path: Any, *, up: Any = "z",
+                      max_points: int = 4000, seed: int = 0) -> None:
+    """Draw the scan as given, then over the reference (grey) as the best and as the runner-up rotation, to a PNG.
+
+    Both rotated scans are shown in the reference's [-1, 1] box with the reference's ``up`` axis vertical, so a wrong
+    or ambiguous orientation is seen at a glance (a chair upside down, a shoe back to front).
+
+    Parameters
+    ----------
+    result : :func:`preprocess`'s result (with an orientation); the scan is drawn as cleaned, in its own units.
+    reference : (M, 3) points in the model's frame.
+    path : the PNG to write (written as given; use :func:`kpd.io.atomic_output` around it).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if result.orientation is None:
+        raise InputError("no orientation to draw: preprocess was given no reference")
+    rng = as_rng(seed)
+
+    def thin(points: np.ndarray) -> np.ndarray:
+        return points if len(points) <= max_points else points[rng.choice(len(points), max_points, replace=False)]
+
+    points = result.to_original(result.points)
+    if _is_mesh(result.shape) and len(result.shape.triangles):  # a mesh's surface, not its vertices
+        points = sample_surface(points, result.shape.triangles, max_points, rng).points
+    points = thin(points)
+    ref = thin(Normalizer().fit(as_points(reference, "reference")).apply(as_points(reference, "reference")))
+    up_axis = parse_axis(up, "up")
+    vertical = "xyz"[int(np.argmax(np.abs(up_axis)))]
+    o = result.orientation
+    panels = [("the scan as given", points, None)]
+    panels.append((f"best: score {o.score:.4f}", Normalizer().fit(points @ o.rotation.T).apply(points @ o.rotation.T),
+                   ref))
+    if o.runner_up_rotation is not None:
+        turned = points @ o.runner_up_rotation.T
+        flag = "  AMBIGUOUS" if o.ambiguous else ""
+        panels.append((f"runner-up, {o.runner_up_angle:.0f} deg away: score {o.runner_up_score:.4f}\n"
+                       f"margin {o.margin:.3f}{flag}", Normalizer().fit(turned).apply(turned), ref))
+    figure = plt.figure(figsize=(5.0 * len(panels), 5.4), dpi=100)
+    for i, (title, shown, behind) in enumerate(panels):
+        axes = figure.add_subplot(1, len(panels), i + 1, projection="3d")
+        if behind is not None:
+            axes.scatter(*behind.T, s=1.0, c="0.7", alpha=0.5, depthshade=False, label="reference")
+        axes.scatter(*shown.T, s=1.5, c=shown @ up_axis, cmap="viridis", depthshade=False, label="scan")
+        centre = (shown.max(axis=0) + shown.min(axis=0)) / 2
+        half = float((shown.max(axis=0) - shown.min(axis=0)).max()) / 2 * 1.05
+        for set_lim, c in zip((axes.set_xlim, axes.set_ylim, axes.set_zlim), centre):
+            set_lim(c - half, c + half)
+        axes.set_box_aspect((1, 1, 1))
+        axes.view_init(elev=20, azim=-60, vertical_axis=vertical)
+        axes.set_title(title, fontsize=10, color="red" if "AMBIGUOUS" in title else "black")
+        axes.set_xlabel("x")
+        axes.set_ylabel("y")
+        axes.set_zlabel("z")
+    figure.suptitle("kpd scan: the scan turned into the reference's frame (grey: the reference; colour: height)",
+                    y=0.98)
+    figure.tight_layout(rect=(0.0, 0.0, 1.0, 0.93))
+    figure.savefig(str(path))
+    plt.close(figure)

@@ -417,8 +417,7 @@ def test_cli_refuses_mesh_output_for_points_and_bad_axis(tmp_path, capsys):
 def test_cli_model_template(tmp_path, capsys, chair):
     from kpd.bundle import shipped_bundles
 
-    if "chair" not in shipped_bundles():
-        pytest.skip("no shipped chair bundle")
+    assert "chair" in shipped_bundles()
     path = tmp_path / "chair.ply"
     write_points(path, sample_surface(chair.vertices, chair.triangles, 4000, seed=0).points @ rotation(1).T)
     code = main(["scan", str(path), "--model", "chair", "--out", str(tmp_path / "a.ply"),
@@ -426,3 +425,31 @@ def test_cli_model_template(tmp_path, capsys, chair):
     assert code == 0
     record = json.loads((tmp_path / "r.json").read_text())
     assert "template" in record["reference"] and record["orientation"]["score"] > 0
+
+
+def test_cli_picture_shows_the_scan_best_and_runner_up(tmp_path, capsys, chair):
+    import matplotlib.image
+
+    path = tmp_path / "chair.ply"
+    write_points(path, sample_surface(chair.vertices, chair.triangles, 4000, seed=0).points @ rotation(2).T)
+    picture = tmp_path / "check.png"
+    code = main(["scan", str(path), "--model", "chair", "--out", str(tmp_path / "a.ply"),
+                 "--report", str(tmp_path / "r.json"), "--picture", str(picture)])
+    assert code == 0 and "check.png" in capsys.readouterr().out
+    image = matplotlib.image.imread(picture)[..., :3]  # (H, W, 3) floats in [0, 1]
+    assert image.shape[1] > 2 * image.shape[0]  # three panels side by side
+    saturation = image.max(axis=2) - image.min(axis=2)
+    grey = (saturation < 0.05) & (np.abs(image.mean(axis=2) - 0.7) < 0.12)  # the reference's points (and grid panes)
+    for third in np.array_split(np.arange(image.shape[1]), 3):
+        assert (saturation[:, third] > 0.3).mean() > 0.01  # the scan's coloured points in every panel
+    assert grey[:, image.shape[1] // 3:].mean() > grey[:, : image.shape[1] // 3].mean()  # reference behind 2 and 3
+
+
+def test_cli_picture_errors(tmp_path, capsys):
+    write_points(tmp_path / "scan.ply", lumpy(500, 0))
+    base = ["scan", str(tmp_path / "scan.ply"), "--out", str(tmp_path / "a.ply"), "--report", str(tmp_path / "r.json")]
+    assert main(base + ["--reference", str(tmp_path / "scan.ply"), "--picture", str(tmp_path / "p.jpg")]) == 2
+    assert ".png" in capsys.readouterr().err
+    assert main(base + ["--picture", str(tmp_path / "p.png")]) == 2
+    assert "--reference or --model" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scan.ply"]

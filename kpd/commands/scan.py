@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 
 HELP = "clean a real scan, turn it into a reference's or a model's frame and normalise it to [-1, 1] (with a report)"
-EXAMPLE = "kpd scan my_sneaker.ply --reference sneaker_template.ply --out aligned.ply --report report.json --up z"
+EXAMPLE = ("kpd scan my_sneaker.ply --reference sneaker_template.ply --out aligned.ply --report report.json --up z "
+           "--picture check.png")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,11 +34,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-pieces", action="store_true", help="keep small disconnected pieces (mesh scans)")
     parser.add_argument("--reference-points", type=int, default=5000,
                         help="points sampled on a mesh reference (default 5000)")
+    parser.add_argument("--picture", metavar="PNG", default=None,
+                        help="also draw the scan as given, and over the reference as the best and the runner-up "
+                             "rotation, to check by eye")
     parser.add_argument("--seed", type=int, default=0, help="seed of sampling, RANSAC and subsets (default 0)")
     parser.add_argument("--force", action="store_true", help="replace --out and --report if they exist")
 
 
 def run(args: argparse.Namespace) -> int:
+    import contextlib
     import json
     import sys
     from pathlib import Path
@@ -63,6 +68,15 @@ def run(args: argparse.Namespace) -> int:
     report_path = check_output(args.report, force=args.force, inputs=inputs)
     if out.resolve() == report_path.resolve():
         raise InputError("--out and --report name the same file")
+    picture = None
+    if args.picture is not None:
+        if Path(args.picture).suffix.lower() != ".png":
+            raise InputError(f"--picture {args.picture}: the picture is a PNG and must end in .png")
+        if args.reference is None and args.model is None:
+            raise InputError("--picture shows the orientation: give --reference or --model")
+        picture = check_output(args.picture, force=args.force, inputs=inputs)
+        if picture.resolve() in (out.resolve(), report_path.resolve()):
+            raise InputError("--picture names the same file as --out or --report")
 
     scan = read_shape(args.scan)
     is_mesh = isinstance(scan, Mesh)
@@ -111,7 +125,14 @@ def run(args: argparse.Namespace) -> int:
         "frame": "aligned = transform @ [x, y, z, 1] of the cleaned scan; inverse maps back (original units)",
         **result.to_dict(),
     }
-    with atomic_output(out) as tmp_out, atomic_output(report_path) as tmp_report:
+    with contextlib.ExitStack() as stack:
+        tmp_out = stack.enter_context(atomic_output(out))
+        tmp_report = stack.enter_context(atomic_output(report_path))
+        if picture is not None:
+            from kpd.scan import alignment_picture
+
+            alignment_picture(result, reference, stack.enter_context(atomic_output(picture)),
+                              up=reference_up or args.up or "z", seed=args.seed)
         if is_mesh:
             write_mesh(tmp_out, result.shape)
         else:
@@ -132,6 +153,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"oriented: score {o.score:.4f}, runner-up {runner}, margin {o.margin:.3f}")
         if o.ambiguous:
             print("warning: the orientation is ambiguous (a rotation far from the chosen one fits almost as well; "
-                  "symmetric or round object?): check the result, or pass --up", file=sys.stderr)
-    print(f"wrote {out} and {report_path}")
+                  "symmetric or round object?): check the result (--picture draws both), or pass --up", file=sys.stderr)
+    print(f"wrote {out} and {report_path}" + (f" and {picture}" if picture is not None else ""))
     return 0
