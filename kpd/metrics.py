@@ -6,6 +6,7 @@ and the alignment chamfer of the paper's Fig. 7 (REFERENCE §6, on [-1, 1]-norma
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -364,6 +365,21 @@ class PartCorrespondence(NamedTuple):
     associated: np.ndarray
 
 
+def _per_shape_keypoints(function: str, keypoints: Sequence[Any], **per_shape: Sequence[Any]) -> list[np.ndarray]:
+    """Checked (K, 3) keypoint arrays, one per shape, with the same K, and as many shapes as each ``per_shape``."""
+    keypoint_list = [as_points(k, "keypoints") for k in keypoints]
+    if not keypoint_list:
+        raise InputError(f"{function} needs at least one shape; got none")
+    if any(len(v) != len(keypoint_list) for v in per_shape.values()):
+        names = " and ".join(per_shape)
+        sizes = " and ".join(str(len(v)) for v in per_shape.values())
+        raise InputError(f"keypoints, {names} must cover the same shapes; got {len(keypoint_list)}, {sizes}")
+    counts = {len(k) for k in keypoint_list}
+    if len(counts) != 1:
+        raise InputError(f"every shape must have the same number of keypoints; got {sorted(counts)}")
+    return keypoint_list
+
+
 def part_correspondence(keypoints: Any, points: Any, labels: Any, *, radius: float = 0.05,
                         parts: Any = None) -> PartCorrespondence:
     """Semantic part correspondence of keypoints (KeypointDeformer, Jakab et al. CVPR 2021, Table 1, supp. Fig. 12).
@@ -390,15 +406,7 @@ def part_correspondence(keypoints: Any, points: Any, labels: Any, *, radius: flo
     radius : association distance.
     parts : (P,) int, the part labels to consider; default: every label that occurs.
     """
-    keypoint_list = [as_points(k, "keypoints") for k in keypoints]
-    if not keypoint_list:
-        raise InputError("part_correspondence needs at least one shape; got none")
-    if len(points) != len(keypoint_list) or len(labels) != len(keypoint_list):
-        raise InputError(f"keypoints, points and labels must cover the same shapes; got {len(keypoint_list)}, "
-                         f"{len(points)} and {len(labels)}")
-    counts = {len(k) for k in keypoint_list}
-    if len(counts) != 1:
-        raise InputError(f"every shape must have the same number of keypoints; got {sorted(counts)}")
+    keypoint_list = _per_shape_keypoints("part_correspondence", keypoints, points=points, labels=labels)
     if not np.isfinite(radius) or radius < 0:
         raise InputError(f"radius must be a finite number >= 0; got {radius}")
     pairs = [_labelled_points(p, lab, f"shape {s}") for s, (p, lab) in enumerate(zip(points, labels))]
@@ -407,7 +415,7 @@ def part_correspondence(keypoints: Any, points: Any, labels: Any, *, radius: flo
     parts = np.asarray(parts, dtype=np.int64).reshape(-1)
     if len(parts) == 0:
         raise InputError("part_correspondence needs at least one part label; got none")
-    hits = np.zeros((counts.pop(), len(parts)))
+    hits = np.zeros((len(keypoint_list[0]), len(parts)))
     associated = np.zeros(len(hits))
     present = np.zeros(len(parts), dtype=bool)
     for kp, (pts, lab) in zip(keypoint_list, pairs):
@@ -459,16 +467,9 @@ def dual_alignment_score(keypoints: Any, annotated: Any, semantic_ids: Any) -> D
     annotated : sequence of S (J_s, 3) arrays, every annotated keypoint of each shape.
     semantic_ids : sequence of S (J_s,) int arrays.
     """
-    keypoint_list = [as_points(k, "keypoints") for k in keypoints]
-    if not keypoint_list:
-        raise InputError("dual_alignment_score needs at least one shape; got none")
-    if len(annotated) != len(keypoint_list) or len(semantic_ids) != len(keypoint_list):
-        raise InputError(f"keypoints, annotated and semantic_ids must cover the same shapes; got "
-                         f"{len(keypoint_list)}, {len(annotated)} and {len(semantic_ids)}")
-    counts = {len(k) for k in keypoint_list}
-    if len(counts) != 1:
-        raise InputError(f"every shape must have the same number of keypoints; got {sorted(counts)}")
-    K = counts.pop()
+    keypoint_list = _per_shape_keypoints("dual_alignment_score", keypoints, annotated=annotated,
+                                         semantic_ids=semantic_ids)
+    K = len(keypoint_list[0])
     forward_labels = np.empty((len(keypoint_list), K), dtype=np.int64)
     backward: dict[int, list[np.ndarray]] = {}
     for s, (kp, ann, ids) in enumerate(zip(keypoint_list, annotated, semantic_ids)):
