@@ -418,9 +418,22 @@ def _triangle_pieces(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.nd
     return labels[t[:, 0]], count
 
 
-def _small_pieces(vertices: np.ndarray, triangles: np.ndarray, min_piece: float) -> tuple[np.ndarray, int]:
-    """(T,) bool mask of the triangles of pieces whose area is below ``min_piece`` times the largest piece's, and
-    how many such pieces there are."""
+def _distance_to_triangles(vertices: np.ndarray, triangles: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """(Q,) exact distance from each query point to the surface of the given triangles (Open3D raycasting scene)."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32)))
+    return scene.compute_distance(o3d.core.Tensor(queries.astype(np.float32))).numpy().astype(np.float64)
+
+
+def _small_pieces(
+    vertices: np.ndarray, triangles: np.ndarray, min_piece: float, max_gap: float,
+) -> tuple[np.ndarray, int]:
+    """(T,) bool mask of the triangles of stray pieces, and how many there are.
+
+    A piece is stray when its area is below ``min_piece`` times the largest piece's and it does not come within
+    ``max_gap`` (a fraction of the bounding-box diagonal) of the kept surface, which grows from the large pieces by
+    every small piece that touches it. Scan debris floats apart from the object; the parts of a CAD model (a chair's
+    feet, bolts, stretchers), modelled as separate pieces, touch the rest and are kept."""
     labels, count = _triangle_pieces(vertices, triangles)
     if count == 0:
         return np.zeros(0, dtype=bool), 0
@@ -428,6 +441,19 @@ def _small_pieces(vertices: np.ndarray, triangles: np.ndarray, min_piece: float)
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)  # (T,)
     piece_area = np.bincount(labels, weights=area, minlength=count)  # (pieces,)
     small = piece_area < min_piece * piece_area.max()
+    if small.any() and max_gap > 0:
+        gap = max_gap * float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+        used = np.unique(triangles)  # vertices of some triangle, and the piece each belongs to
+        used_piece = np.empty(len(vertices), dtype=np.int64)
+        used_piece[triangles.reshape(-1)] = np.repeat(labels, 3)
+        used_piece = used_piece[used]
+        while small.any():
+            query = small[used_piece]  # vertices of the small pieces not yet kept
+            near = _distance_to_triangles(vertices, triangles[~small[labels]], vertices[used[query]])
+            touching = np.unique(used_piece[query][near <= gap])
+            if len(touching) == 0:
+                break
+            small[touching] = False
     return small[labels], int(small.sum())
 
 
@@ -444,6 +470,7 @@ def clean(
     up: Any = None,
     pieces: bool = True,
     min_piece: float = 0.05,
+    piece_gap: float = 0.05,
     min_points: int = 10,
     seed: int = 0,
 ) -> CleanResult:
@@ -460,7 +487,9 @@ def clean(
     ground_distance : RANSAC inlier distance as a fraction of the scan's bounding-box diagonal.
     ground_min_share, ground_area_ratio : thresholds of the ground test.
     up : the scan's up axis if known (``'z'``, ``'-y'``, three numbers): the ground must then face up.
-    pieces : drop connected pieces of a mesh whose area is below ``min_piece`` times the largest piece's.
+    pieces : drop stray pieces of a mesh: connected pieces whose area is below ``min_piece`` times the largest
+        piece's and that stay more than ``piece_gap`` (a fraction of the bounding-box diagonal) away from the rest.
+        Pieces that touch the object, like the separately modelled parts of a CAD chair, are kept.
     min_points : fewer points (mesh vertices) left than this is an error.
     seed : seeds the RANSAC plane search.
 
@@ -481,7 +510,8 @@ def clean(
     mesh = _is_mesh(shape)
 
     if mesh and pieces:
-        small, pieces_removed = _small_pieces(points, np.asarray(shape.triangles, dtype=np.int64), min_piece)
+        small, pieces_removed = _small_pieces(points, np.asarray(shape.triangles, dtype=np.int64), min_piece,
+                                              piece_gap)
         pieces_vertices = 0
         if pieces_removed:
             shape = _take_triangles(shape, ~small)

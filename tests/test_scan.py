@@ -308,6 +308,28 @@ def test_small_mesh_pieces_are_dropped_but_seams_do_not_split():
     assert report.pieces_removed == 0
 
 
+def test_small_pieces_touching_the_object_are_kept():
+    body_v, body_t = _icosphere_mesh()
+    near_v, near_t = _icosphere_mesh(offset=(1.02, 0.0, 0.0), scale=0.05)  # a knob resting on the body
+    far_v, far_t = _icosphere_mesh(offset=(1.6, 0.0, 0.0), scale=0.05)  # debris well apart from it
+    vertices = np.concatenate([body_v, near_v, far_v])
+    triangles = np.concatenate([body_t, near_t + len(body_v), far_t + len(body_v) + len(near_v)])
+    cleaned, report = clean(Mesh(vertices, triangles))
+    assert report.pieces_removed == 1 and report.pieces_vertices_removed == len(far_v)
+    assert np.allclose(cleaned.vertices, np.concatenate([body_v, near_v]))
+
+
+def test_a_cad_chair_built_of_parts_keeps_every_part(data_dir):
+    # ModelNet10 chair_0891 is 24 separate pieces (seat, back, legs, feet, stretchers); 16 of them are under 5% of
+    # the seat's area, and a rule by area alone took them all away
+    mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0891.ply")
+    cleaned, report = clean(mesh)
+    assert report.pieces_removed == 0
+    assert len(cleaned.vertices) == len(mesh.vertices) and len(cleaned.triangles) == len(mesh.triangles)
+    _, by_area = clean(mesh, piece_gap=0.0)
+    assert by_area.pieces_removed == 16
+
+
 def test_point_set_keeps_its_type_and_colours():
     points = np.concatenate([sphere(500, 0), [[9.0, 9.0, 9.0]]])
     colors = np.random.default_rng(0).uniform(0, 1, points.shape)
