@@ -5,7 +5,7 @@ clean and corrupted (noise, outliers, a cut-away cap). For chairs and tables the
 category: the medoid (by chamfer distance in the [-1, 1] frame) of a seeded sample of *training* shapes, so never the
 scan itself; for the sneaker it is the unrotated scan sampled independently. Both methods see the same scans.
 
-    .venv/bin/python benchmarks/bench_scan.py                 # the full run (about 35 minutes on one core)
+    .venv/bin/python benchmarks/bench_scan.py                 # the full run (about 25 minutes on one core; --jobs 2 halves it)
     .venv/bin/python benchmarks/bench_scan.py --cases 5       # a quick check
     .venv/bin/python benchmarks/bench_scan.py --split train --categories chair,table --cases 60 --no-baseline \
         --out benchmarks/results/scan_calibration.json         # how kpd.scan's ambiguity margin was chosen
@@ -38,6 +38,8 @@ _parser.add_argument("--no-up-given", action="store_true", help="skip the run wi
 _parser.add_argument("--split", choices=("test", "train"), default="test",
                      help="ModelNet10 shapes scanned: test (the benchmark) or train outside the reference's pool "
                           "(calibration of the ambiguity margin; the sneaker is skipped)")
+_parser.add_argument("--jobs", type=int, default=1,
+                     help="processes the cases are spread over (default 1; each uses --threads threads)")
 _parser.add_argument("--out", default=None, help="also write the JSON to this file (e.g. benchmarks/results/scan.json)")
 ARGS = _parser.parse_args() if __name__ == "__main__" else _parser.parse_args([])
 os.environ.setdefault("OMP_NUM_THREADS", str(ARGS.threads))
@@ -45,6 +47,7 @@ os.environ.setdefault("OMP_NUM_THREADS", str(ARGS.threads))
 import glob  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
+import multiprocessing  # noqa: E402
 import platform  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -233,8 +236,13 @@ def summarise(rows: list[dict], with_baseline: bool) -> dict:
     return out
 
 
-def run_category(name: str, root: Path, args) -> tuple[dict, list[float], list[float], dict]:
-    rng = np.random.default_rng([args.seed, sum(map(ord, name))])
+_SETUP: dict[str, dict] = {}  # per process: category -> shapes, reference, aligner
+
+
+def setup_category(name: str, root: Path, args) -> dict:
+    """The scanned shapes, the reference and its fitted aligner of a category (once per process)."""
+    if name in _SETUP:
+        return _SETUP[name]
     if name == "sneaker":
         mesh_path = root / "scans" / "sneaker.ply"
         shapes = [str(mesh_path)]
@@ -253,82 +261,99 @@ def run_category(name: str, root: Path, args) -> tuple[dict, list[float], list[f
         reference_path = medoid(train, args.medoid_pool, args.seed)
         reference_name = "modelnet10/" + name + "/train/" + Path(reference_path).name
         reference = surface(reference_path, args.reference_points, 10_000 + args.seed)
-    up = UP_AXIS[name]
     # the reference's up axis is a property of the model's frame (ModelNet10 z, the sneaker y), known to the user;
     # the scan's up axis is NOT given: the search is over all rotations
-    aligner = ScanAligner(seed=args.seed, reference_up=up).fit(reference)
-    conditions: dict[str, list[dict]] = {"clean": [], "corrupted": []}
-    times_clean: list[float] = []
-    times_all: list[float] = []
-    for i in range(args.cases):
-        shape = shapes[i % len(shapes)]
-        x = surface(shape, args.points, 1000 * args.seed + i)
-        small = box(surface(shape, 2048, 7 + i))
-        small2 = box(surface(shape, 2048, 99_991 + i))
-        true = Rotation.random(random_state=rng.integers(2**31)).as_matrix()
-        corrupted = corrupt(x, np.random.default_rng([args.seed, i, 1]))
-        for condition, points in (("clean", x), ("corrupted", corrupted)):
-            scan = points @ true.T
-            t0 = time.perf_counter()
-            result = preprocess(scan, aligner=aligner)
-            elapsed = time.perf_counter() - t0
-            times_all.append(elapsed)
-            if condition == "clean":
-                times_clean.append(elapsed)
-            o = result.orientation
-            e = o.rotation @ true
-            error = rotation_angle(e)
-            runner_error = rotation_angle(o.runner_up_rotation @ true) if o.runner_up_rotation is not None else 180.0
-            # the same scan with its up axis known (gravity from the scanner): only turns about it are searched
-            t0 = time.perf_counter()
-            if args.no_up_given:
-                with_up_result, with_up = result, o
-            else:
-                with_up_result = preprocess(scan, reference, up=true @ up, reference_up=up, seed=args.seed)
-                with_up = with_up_result.orientation
-            elapsed_up = time.perf_counter() - t0
-            up_error = rotation_angle(with_up.rotation @ true)
-            up_runner = (rotation_angle(with_up.runner_up_rotation @ true)
-                         if with_up.runner_up_rotation is not None else 180.0)
-            tilt = float(np.degrees(np.arccos(np.clip((e @ up) @ up, -1.0, 1.0))))
-            row = {
-                "shape": Path(shape).name,
-                "tilt": tilt,
-                "up_given": {
-                    "error": up_error,
-                    "ambiguous": bool(with_up.ambiguous),
-                    "margin": float(with_up.margin) if math.isfinite(with_up.margin) else 1e9,
-                    "symmetric_equivalent": bool(up_error > RECOVERED_DEG
-                                                 and self_symmetric(small, small2, with_up.rotation @ true)),
-                    "truth_in_top2": bool(min(up_error, up_runner) <= RECOVERED_DEG),
-                    "time_s": elapsed_up,
-                    "ground_removed": int(with_up_result.clean.ground_removed or 0),
-                },
-                "error": error,
-                "ambiguous": bool(o.ambiguous),
-                "margin": float(o.margin) if math.isfinite(o.margin) else 1e9,
-                "symmetric_equivalent": bool(error > RECOVERED_DEG and self_symmetric(small, small2, e)),
-                "truth_in_top2": bool(min(error, runner_error) <= RECOVERED_DEG),
-                "ground_removed": int(result.clean.ground_removed or 0),
-                "time_s": elapsed,
-            }
-            if not args.no_baseline:
-                row["baseline_error"] = rotation_angle(open3d_baseline(scan, reference, args.seed) @ true)
-            conditions[condition].append(row)
-            if args.progress:
-                print(f"{name} {i:3d} {condition:9s} {row['shape']:16s} err {error:6.1f} "
-                      f"{'AMB' if row['ambiguous'] else '   '} margin {row['margin']:.3f} | up given: err "
-                      f"{up_error:6.1f} {'AMB' if with_up.ambiguous else '   '} | "
-                      f"o3d {row.get('baseline_error', float('nan')):6.1f} | t {elapsed:.2f}", file=sys.stderr,
-                      flush=True)
-    summary = {"reference": reference_name, "split": "test" if name == "sneaker" else args.split,
-               "shapes": min(len(shapes), args.cases)}
+    aligner = ScanAligner(seed=args.seed, reference_up=UP_AXIS[name]).fit(reference)
+    _SETUP[name] = {"shapes": shapes, "reference": reference, "reference_name": reference_name, "aligner": aligner}
+    return _SETUP[name]
+
+
+def case_seeds(name: str, args) -> list[int]:
+    """The seed of each case's random rotation, drawn in case order from the category's generator."""
+    rng = np.random.default_rng([args.seed, sum(map(ord, name))])
+    return [int(rng.integers(2**31)) for _ in range(args.cases)]
+
+
+def run_case(task: tuple) -> tuple[str, int, dict[str, dict]]:
+    """One shape under one random rotation, clean and corrupted: kpd.scan without and with the up axis, and the
+    Open3D baseline. Independent of every other case, so cases run in any process and order."""
+    name, i, rotation_seed, root, args = task
+    setup = setup_category(name, root, args)
+    shapes, reference, aligner = setup["shapes"], setup["reference"], setup["aligner"]
+    up = UP_AXIS[name]
+    shape = shapes[i % len(shapes)]
+    x = surface(shape, args.points, 1000 * args.seed + i)
+    small = box(surface(shape, 2048, 7 + i))
+    small2 = box(surface(shape, 2048, 99_991 + i))
+    true = Rotation.random(random_state=rotation_seed).as_matrix()
+    corrupted = corrupt(x, np.random.default_rng([args.seed, i, 1]))
+    rows: dict[str, dict] = {}
+    for condition, points in (("clean", x), ("corrupted", corrupted)):
+        scan = points @ true.T
+        t0 = time.perf_counter()
+        result = preprocess(scan, aligner=aligner)
+        elapsed = time.perf_counter() - t0
+        o = result.orientation
+        e = o.rotation @ true
+        error = rotation_angle(e)
+        runner_error = rotation_angle(o.runner_up_rotation @ true) if o.runner_up_rotation is not None else 180.0
+        # the same scan with its up axis known (gravity from the scanner): only turns about it are searched
+        t0 = time.perf_counter()
+        if args.no_up_given:
+            with_up_result, with_up = result, o
+        else:
+            with_up_result = preprocess(scan, reference, up=true @ up, reference_up=up, seed=args.seed)
+            with_up = with_up_result.orientation
+        elapsed_up = time.perf_counter() - t0
+        up_error = rotation_angle(with_up.rotation @ true)
+        up_runner = (rotation_angle(with_up.runner_up_rotation @ true)
+                     if with_up.runner_up_rotation is not None else 180.0)
+        tilt = float(np.degrees(np.arccos(np.clip((e @ up) @ up, -1.0, 1.0))))
+        row = {
+            "shape": Path(shape).name,
+            "tilt": tilt,
+            "up_given": {
+                "error": up_error,
+                "ambiguous": bool(with_up.ambiguous),
+                "margin": float(with_up.margin) if math.isfinite(with_up.margin) else 1e9,
+                "symmetric_equivalent": bool(up_error > RECOVERED_DEG
+                                             and self_symmetric(small, small2, with_up.rotation @ true)),
+                "truth_in_top2": bool(min(up_error, up_runner) <= RECOVERED_DEG),
+                "time_s": elapsed_up,
+                "ground_removed": int(with_up_result.clean.ground_removed or 0),
+            },
+            "error": error,
+            "ambiguous": bool(o.ambiguous),
+            "margin": float(o.margin) if math.isfinite(o.margin) else 1e9,
+            "symmetric_equivalent": bool(error > RECOVERED_DEG and self_symmetric(small, small2, e)),
+            "truth_in_top2": bool(min(error, runner_error) <= RECOVERED_DEG),
+            "ground_removed": int(result.clean.ground_removed or 0),
+            "time_s": elapsed,
+        }
+        if not args.no_baseline:
+            row["baseline_error"] = rotation_angle(open3d_baseline(scan, reference, args.seed) @ true)
+        rows[condition] = row
+    return name, i, rows
+
+
+def progress_line(name: str, i: int, condition: str, row: dict) -> str:
+    up = row["up_given"]
+    return (f"{name} {i:3d} {condition:9s} {row['shape']:16s} err {row['error']:6.1f} "
+            f"{'AMB' if row['ambiguous'] else '   '} margin {row['margin']:.3f} | up given: err "
+            f"{up['error']:6.1f} {'AMB' if up['ambiguous'] else '   '} | "
+            f"o3d {row.get('baseline_error', float('nan')):6.1f} | t {row['time_s']:.2f}")
+
+
+def summarise_category(name: str, root: Path, args, conditions: dict[str, list[dict]]) -> dict:
+    setup = setup_category(name, root, args)
+    summary = {"reference": setup["reference_name"], "split": "test" if name == "sneaker" else args.split,
+               "shapes": min(len(setup["shapes"]), args.cases)}
     for condition, rows in conditions.items():
         summary[condition] = summarise(rows, not args.no_baseline)
         summary[condition]["kpd_scan"]["ground_removed_cases"] = sum(r["ground_removed"] > 0 for r in rows)
         summary[condition]["kpd_scan_up_given"]["ground_removed_cases"] = sum(
             r["up_given"]["ground_removed"] > 0 for r in rows)
-    return summary, times_clean, times_all, conditions
+    return summary
 
 
 SWEEP = (0.05, 0.075, 0.1, 0.125, 0.15, 0.175, 0.2, 0.25, 0.3)
@@ -365,13 +390,28 @@ def main() -> int:
     names = [c.strip() for c in args.categories.split(",") if c.strip()]
     if args.split == "train":
         names = [n for n in names if n != "sneaker"]  # one scan only: it is the test
+    tasks = [(name, i, seed, root, args) for name in names for i, seed in enumerate(case_seeds(name, args))]
+    per_category: dict[str, dict[str, list[dict]]] = {name: {"clean": [], "corrupted": []} for name in names}
+    if args.jobs > 1:  # cases are independent: spread them over processes (each with its own OpenMP threads)
+        pool = multiprocessing.get_context("spawn").Pool(args.jobs)
+        outcomes = pool.imap(run_case, tasks)
+    else:
+        pool, outcomes = None, map(run_case, tasks)
+    for name, i, rows in outcomes:  # in task order
+        for condition, row in rows.items():
+            per_category[name][condition].append(row)
+            if args.progress:
+                print(progress_line(name, i, condition, row), file=sys.stderr, flush=True)
+    if pool is not None:
+        pool.close()
+        pool.join()
     for name in names:
-        summary, t_clean, t_all, rows = run_category(name, root, args)
-        results[name] = summary
-        clean_times += t_clean
-        all_times += t_all
-        for condition in all_rows:
-            all_rows[condition] += rows[condition]
+        results[name] = summarise_category(name, root, args, per_category[name])
+        for condition, rows in per_category[name].items():
+            all_rows[condition] += rows
+            all_times += [r["time_s"] for r in rows]
+            if condition == "clean":
+                clean_times += [r["time_s"] for r in rows]
 
     def pooled(condition: str, variant: str) -> float | None:
         """Recovered share of the decided cases over all categories."""
@@ -390,6 +430,7 @@ def main() -> int:
         "reference_points": args.reference_points,
         "seed": args.seed,
         "threads": int(os.environ.get("OMP_NUM_THREADS", "0") or 0),
+        "jobs": args.jobs,
         "machine": {"python": platform.python_version(), "open3d": o3d.__version__, "cpus": os.cpu_count(),
                     "load_average_at_end": [round(v, 2) for v in os.getloadavg()]},
         "settings": {k: v for k, v in vars(defaults).items() if not k.startswith("_")},
