@@ -178,9 +178,13 @@ class EditorApp:
         panel.add_child(edit)
 
         self.sliders = []
+        self.pca_panel = None
         if self.prior is not None:
+            # a plain Vert pinned under the scrolling panel: inside a ScrollableVert, Open3D draws a slider's track in
+            # the panel's own colour, and only the thumb would show
             count = min(len(self.prior.components_), _MAX_SLIDERS)
-            pca = gui.CollapsableVert("Category (PCA, std. dev.)", 0.25 * em, gui.Margins(em, 0, 0, 0))
+            self.pca_panel = gui.Vert(0.25 * em, margin)
+            self.pca_panel.add_child(gui.Label("Category (PCA, std. dev.)"))
             self._sigmas = np.zeros(len(self.prior.components_))
             grid = gui.VGrid(2, 0.25 * em)
             for m in range(count):
@@ -191,8 +195,7 @@ class EditorApp:
                 slider.set_on_value_changed(lambda value, m=m: self._on_slider(m, value))
                 grid.add_child(slider)
                 self.sliders.append(slider)
-            pca.add_child(grid)
-            panel.add_child(pca)
+            self.pca_panel.add_child(grid)
 
         panel.add_child(gui.Label("click: select   shift+click: add\n"
                                   "drag a keypoint: move it\n"
@@ -203,6 +206,8 @@ class EditorApp:
         self.status = gui.Label("")
         panel.add_child(self.status)
         self.window.add_child(panel)
+        if self.pca_panel is not None:
+            self.window.add_child(self.pca_panel)
 
     def _on_layout(self, context: Any) -> None:
         import open3d.visualization.gui as gui
@@ -210,7 +215,11 @@ class EditorApp:
         r = self.window.content_rect
         width = int(round(PANEL_WIDTH * self.window.scaling))
         self.widget.frame = gui.Rect(r.x, r.y, max(r.width - width, 1), r.height)
-        self.panel.frame = gui.Rect(r.get_right() - width, r.y, width, r.height)
+        below = 0
+        if self.pca_panel is not None:
+            below = min(self.pca_panel.calc_preferred_size(context, gui.Widget.Constraints()).height, r.height // 2)
+            self.pca_panel.frame = gui.Rect(r.get_right() - width, r.get_bottom() - below, width, below)
+        self.panel.frame = gui.Rect(r.get_right() - width, r.y, width, r.height - below)
         self._set_projection()
 
     def _reset_camera(self) -> None:
