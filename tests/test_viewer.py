@@ -351,6 +351,61 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
+def test_editor_window_pca_slider_explores_the_category(chair_rig, tmp_path):
+    """Drag the first PCA slider in the real window: the keypoints become the rig's plus that many standard
+    deviations of the chair prior's first component, and the slider is wide enough to be dragged."""
+    from kpd.rig import Rig
+    from kpd.runtime import Model
+    from kpd.viewer.render import private_display
+
+    rig = Rig.load(chair_rig)
+    prior = Model.load("chair").prior
+    events = tmp_path / "events.jsonl"
+    with private_display(1000, 600) as display:
+        env = dict(os.environ, DISPLAY=display)
+        window = subprocess.Popen(
+            [sys.executable, "-m", "kpd.cli", "view", "--rig", str(chair_rig), "--model", "chair", "--size", "480x400",
+             "--events", str(events)], env=env, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+        def xdo(*args: object) -> str:
+            return subprocess.run(["xdotool", *map(str, args)], env=env, check=True, capture_output=True,
+                                  text=True).stdout
+
+        try:
+            ready = _wait(lambda: _last(events, "ready"), 90, "the editor window")
+            assert len(ready["sliders"]) == min(len(prior.components_), 8)
+            wid = _wait(lambda: subprocess.run(["xdotool", "search", "--pid", str(window.pid)], env=env,
+                                               capture_output=True, text=True).stdout.split(), 30, "the X window")[-1]
+            geometry = dict(line.split("=") for line in xdo("getwindowgeometry", "--shell", wid).split())
+            sx, sy, sw, sh = ready["sliders"][0]
+            assert sw > 150  # drawn across the panel, not a thumb's width
+            x, y = int(geometry["X"]) + sx + sw // 2, int(geometry["Y"]) + sy + sh // 2  # the thumb: value 0
+            xdo("mousemove", x, y)
+            time.sleep(0.3)
+            xdo("mousedown", 1)
+            for step in range(1, 7):
+                time.sleep(0.2)
+                xdo("mousemove", x + step * sw // 20, y)  # to 0.3 of the width right of the middle
+            xdo("mouseup", 1)
+            moved = _wait(lambda: [e for e in _events(events) if e["event"] == "component"
+                                   and e["value"] > 1.0], 120, "the slider at more than one standard deviation")[-1]
+            assert moved["component"] == 0
+            sigmas = np.zeros(len(prior.components_))
+            sigmas[0] = moved["value"]
+            expected = rig.keypoints + component_offsets(prior, rig.normalizer, sigmas)
+            np.testing.assert_allclose(moved["keypoints"], expected, atol=1e-6 * np.abs(expected).max())
+            assert np.abs(expected - rig.keypoints).max() > 1e-3 * np.abs(rig.keypoints).max()  # a visible change
+        finally:
+            window.terminate()
+            try:
+                window.wait(10)
+            except subprocess.TimeoutExpired:
+                window.kill()
+                window.wait()
+
+
+@pytest.mark.slow
 def test_render_draws_textures_the_right_way_up():
     """A square whose texture is red in its top half (as the image file shows it) and blue below, with UVs whose v
     grows upward (OBJ): the rendered square must be red above and blue below."""

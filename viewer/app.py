@@ -580,7 +580,8 @@ class EditorApp:
             view, projection, w, h = self._matrices()
             frame = self.widget.frame
             record.update(view=view.tolist(), projection=projection.tolist(), viewport=[frame.x, frame.y, w, h],
-                          scaling=float(self.window.scaling), title=self.title)
+                          scaling=float(self.window.scaling), title=self.title,
+                          sliders=[[f.x, f.y, f.width, f.height] for f in (s.frame for s in self.sliders)])
         with open(self._events, "a", encoding="utf-8") as fh:
             fh.write(json.dumps(record) + "\n")
 
