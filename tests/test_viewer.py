@@ -3,6 +3,7 @@ under Xvfb with xdotool."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -10,7 +11,9 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -279,68 +282,37 @@ def _last(path: Path, name: str, after: int = 0):
     return found[-1] if found else None
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
-def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
-    from kpd.io import read_mesh
-    from kpd.rig import Rig
+class _Window(NamedTuple):
+    """A running editor on a private Xvfb: its events file, xdotool, its ready event and its top-left corner."""
+
+    events: Path
+    xdo: Callable[..., str]
+    ready: dict
+    origin: tuple[int, int]
+
+
+@contextlib.contextmanager
+def _editor_window(tmp_path: Path, *args: object) -> Iterator[_Window]:
+    """``kpd view ARGS --size 480x400 --events ...`` in a real window on a private Xvfb, stopped on exit."""
     from kpd.viewer.render import private_display
 
-    rig = Rig.load(chair_rig)
-    events, out = tmp_path / "events.jsonl", tmp_path / "edited.ply"
+    events = tmp_path / "events.jsonl"
     with private_display(1000, 600) as display:
         env = dict(os.environ, DISPLAY=display)
         window = subprocess.Popen(
-            [sys.executable, "-m", "kpd.cli", "view", "--rig", str(chair_rig), "--size", "480x400", "--out", str(out),
-             "--events", str(events)], env=env, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+            [sys.executable, "-m", "kpd.cli", "view", *map(str, args), "--size", "480x400", "--events", str(events)],
+            env=env, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
-        def xdo(*args: object) -> str:
-            return subprocess.run(["xdotool", *map(str, args)], env=env, check=True, capture_output=True,
+        def xdo(*xargs: object) -> str:
+            return subprocess.run(["xdotool", *map(str, xargs)], env=env, check=True, capture_output=True,
                                   text=True).stdout
 
         try:
             ready = _wait(lambda: _last(events, "ready"), 90, "the editor window")
-            np.testing.assert_allclose(ready["keypoints"], rig.keypoints)
             wid = _wait(lambda: subprocess.run(["xdotool", "search", "--pid", str(window.pid)], env=env,
                                                capture_output=True, text=True).stdout.split(), 30, "the X window")[-1]
             geometry = dict(line.split("=") for line in xdo("getwindowgeometry", "--shell", wid).split())
-            vx, vy, w, h = ready["viewport"]
-            pixels, depth = project(np.array(ready["keypoints"]), np.array(ready["view"]),
-                                    np.array(ready["projection"]), w, h)
-            # a keypoint well inside the view and far from the others' markers on screen
-            gaps = np.linalg.norm(pixels[:, None] - pixels[None], axis=2) + np.eye(len(pixels)) * 1e9
-            inside = (pixels[:, 0] > 40) & (pixels[:, 0] < w - 40) & (pixels[:, 1] > 80) & (pixels[:, 1] < h - 20)
-            index = int(np.argmax(np.where(inside, gaps.min(axis=1), -1)))
-            x = int(geometry["X"]) + vx + round(pixels[index, 0])
-            y = int(geometry["Y"]) + vy + round(pixels[index, 1])
-            xdo("mousemove", x, y)
-            xdo("mousedown", 1)
-            selected = _wait(lambda: _last(events, "select"), 60, "the selection")
-            assert selected["selection"] == [index] and selected["picked"] == index
-            for step in range(1, 6):
-                xdo("mousemove", x + 4 * step, y - 10 * step)
-            xdo("mouseup", 1)
-            released = _wait(lambda: _last(events, "release"), 120, "the end of the drag")
-            assert released["moved"]
-            xdo("key", "s")
-            saved = _wait(lambda: _last(events, "save"), 60, "the saved mesh")
-            keypoints = np.array(saved["keypoints"])
-            moved = np.flatnonzero(np.abs(keypoints - rig.keypoints).max(axis=1) > 0)
-            assert moved.tolist() == [index]  # the prior is off: only the selection moved
-            mesh = read_mesh(out)
-            assert len(mesh.triangles) == len(rig.mesh.triangles)
-            expected = rig.deform(keypoints)
-            scale = np.abs(expected).max()
-            np.testing.assert_allclose(mesh.vertices, expected, atol=1e-5 * scale)
-            assert np.abs(mesh.vertices - rig.mesh.vertices).max() > 1e-3 * scale  # the mesh did change
-            count = len(_events(events))
-            xdo("key", "u")
-            undone = _wait(lambda: _last(events, "undo", count), 60, "undo")
-            np.testing.assert_allclose(undone["keypoints"], rig.keypoints)
-            count = len(_events(events))
-            xdo("key", "s")
-            _wait(lambda: _last(events, "save", count), 60, "the second save")
-            np.testing.assert_allclose(read_mesh(out).vertices, rig.mesh.vertices, atol=1e-5 * scale)
+            yield _Window(events, xdo, ready, (int(geometry["X"]), int(geometry["Y"])))
         finally:
             window.terminate()
             try:
@@ -348,61 +320,88 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
             except subprocess.TimeoutExpired:
                 window.kill()
                 window.wait()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
+def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
+    from kpd.io import read_mesh
+    from kpd.rig import Rig
+
+    rig = Rig.load(chair_rig)
+    out = tmp_path / "edited.ply"
+    with _editor_window(tmp_path, "--rig", chair_rig, "--out", out) as win:
+        events, xdo, ready = win.events, win.xdo, win.ready
+        np.testing.assert_allclose(ready["keypoints"], rig.keypoints)
+        vx, vy, w, h = ready["viewport"]
+        pixels, depth = project(np.array(ready["keypoints"]), np.array(ready["view"]),
+                                np.array(ready["projection"]), w, h)
+        # a keypoint well inside the view and far from the others' markers on screen
+        gaps = np.linalg.norm(pixels[:, None] - pixels[None], axis=2) + np.eye(len(pixels)) * 1e9
+        inside = (pixels[:, 0] > 40) & (pixels[:, 0] < w - 40) & (pixels[:, 1] > 80) & (pixels[:, 1] < h - 20)
+        index = int(np.argmax(np.where(inside, gaps.min(axis=1), -1)))
+        x = win.origin[0] + vx + round(pixels[index, 0])
+        y = win.origin[1] + vy + round(pixels[index, 1])
+        xdo("mousemove", x, y)
+        xdo("mousedown", 1)
+        selected = _wait(lambda: _last(events, "select"), 60, "the selection")
+        assert selected["selection"] == [index] and selected["picked"] == index
+        for step in range(1, 6):
+            xdo("mousemove", x + 4 * step, y - 10 * step)
+        xdo("mouseup", 1)
+        released = _wait(lambda: _last(events, "release"), 120, "the end of the drag")
+        assert released["moved"]
+        xdo("key", "s")
+        saved = _wait(lambda: _last(events, "save"), 60, "the saved mesh")
+        keypoints = np.array(saved["keypoints"])
+        moved = np.flatnonzero(np.abs(keypoints - rig.keypoints).max(axis=1) > 0)
+        assert moved.tolist() == [index]  # the prior is off: only the selection moved
+        mesh = read_mesh(out)
+        assert len(mesh.triangles) == len(rig.mesh.triangles)
+        expected = rig.deform(keypoints)
+        scale = np.abs(expected).max()
+        np.testing.assert_allclose(mesh.vertices, expected, atol=1e-5 * scale)
+        assert np.abs(mesh.vertices - rig.mesh.vertices).max() > 1e-3 * scale  # the mesh did change
+        count = len(_events(events))
+        xdo("key", "u")
+        undone = _wait(lambda: _last(events, "undo", count), 60, "undo")
+        np.testing.assert_allclose(undone["keypoints"], rig.keypoints)
+        count = len(_events(events))
+        xdo("key", "s")
+        _wait(lambda: _last(events, "save", count), 60, "the second save")
+        np.testing.assert_allclose(read_mesh(out).vertices, rig.mesh.vertices, atol=1e-5 * scale)
 
 
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
 def test_editor_window_pca_slider_explores_the_category(chair_rig, tmp_path):
     """Drag the first PCA slider in the real window: the keypoints become the rig's plus that many standard
-    deviations of the chair prior's first component, and the slider is wide enough to be dragged."""
+    deviations of the chair prior's first component."""
     from kpd.rig import Rig
     from kpd.runtime import Model
-    from kpd.viewer.render import private_display
 
     rig = Rig.load(chair_rig)
     prior = Model.load("chair").prior
-    events = tmp_path / "events.jsonl"
-    with private_display(1000, 600) as display:
-        env = dict(os.environ, DISPLAY=display)
-        window = subprocess.Popen(
-            [sys.executable, "-m", "kpd.cli", "view", "--rig", str(chair_rig), "--model", "chair", "--size", "480x400",
-             "--events", str(events)], env=env, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-
-        def xdo(*args: object) -> str:
-            return subprocess.run(["xdotool", *map(str, args)], env=env, check=True, capture_output=True,
-                                  text=True).stdout
-
-        try:
-            ready = _wait(lambda: _last(events, "ready"), 90, "the editor window")
-            assert len(ready["sliders"]) == min(len(prior.components_), 8)
-            wid = _wait(lambda: subprocess.run(["xdotool", "search", "--pid", str(window.pid)], env=env,
-                                               capture_output=True, text=True).stdout.split(), 30, "the X window")[-1]
-            geometry = dict(line.split("=") for line in xdo("getwindowgeometry", "--shell", wid).split())
-            sx, sy, sw, sh = ready["sliders"][0]
-            assert sw > 150  # drawn across the panel, not a thumb's width
-            x, y = int(geometry["X"]) + sx + sw // 2, int(geometry["Y"]) + sy + sh // 2  # the thumb: value 0
-            xdo("mousemove", x, y)
-            time.sleep(0.3)
-            xdo("mousedown", 1)
-            for step in range(1, 7):
-                time.sleep(0.2)
-                xdo("mousemove", x + step * sw // 20, y)  # to 0.3 of the width right of the middle
-            xdo("mouseup", 1)
-            moved = _wait(lambda: [e for e in _events(events) if e["event"] == "component"
-                                   and e["value"] > 1.0], 120, "the slider at more than one standard deviation")[-1]
-            assert moved["component"] == 0
-            sigmas = np.zeros(len(prior.components_))
-            sigmas[0] = moved["value"]
-            expected = rig.keypoints + component_offsets(prior, rig.normalizer, sigmas)
-            np.testing.assert_allclose(moved["keypoints"], expected, atol=1e-6 * np.abs(expected).max())
-            assert np.abs(expected - rig.keypoints).max() > 1e-3 * np.abs(rig.keypoints).max()  # a visible change
-        finally:
-            window.terminate()
-            try:
-                window.wait(10)
-            except subprocess.TimeoutExpired:
-                window.kill()
-                window.wait()
+    with _editor_window(tmp_path, "--rig", chair_rig, "--model", "chair") as win:
+        assert len(win.ready["sliders"]) == min(len(prior.components_), 8)
+        sx, sy, sw, sh = win.ready["sliders"][0]
+        assert sw > 150  # drawn across the panel, not a thumb's width
+        x, y = win.origin[0] + sx + sw // 2, win.origin[1] + sy + sh // 2  # the thumb: value 0
+        win.xdo("mousemove", x, y)
+        time.sleep(0.3)
+        win.xdo("mousedown", 1)
+        for step in range(1, 7):
+            time.sleep(0.2)
+            win.xdo("mousemove", x + step * sw // 20, y)  # to 0.3 of the width right of the middle
+        win.xdo("mouseup", 1)
+        moved = _wait(lambda: [e for e in _events(win.events) if e["event"] == "component" and e["value"] > 1.0],
+                      120, "the slider at more than one standard deviation")[-1]
+    assert moved["component"] == 0
+    sigmas = np.zeros(len(prior.components_))
+    sigmas[0] = moved["value"]
+    expected = rig.keypoints + component_offsets(prior, rig.normalizer, sigmas)
+    np.testing.assert_allclose(moved["keypoints"], expected, atol=1e-6 * np.abs(expected).max())
+    assert np.abs(expected - rig.keypoints).max() > 1e-3 * np.abs(rig.keypoints).max()  # a visible change
 
 
 @pytest.mark.slow
