@@ -5,7 +5,7 @@ clean and corrupted (noise, outliers, a cut-away cap). For chairs and tables the
 category: the medoid (by chamfer distance in the [-1, 1] frame) of a seeded sample of *training* shapes, so never the
 scan itself; for the sneaker it is the unrotated scan sampled independently. Both methods see the same scans.
 
-    .venv/bin/python benchmarks/bench_scan.py                 # the full run (about 25 minutes on one core; --jobs 2 halves it)
+    .venv/bin/python benchmarks/bench_scan.py --jobs 2        # the full run (about 18 minutes on two cores)
     .venv/bin/python benchmarks/bench_scan.py --cases 5       # a quick check
     .venv/bin/python benchmarks/bench_scan.py --split train --categories chair,table --cases 60 --no-baseline \
         --out benchmarks/results/scan_calibration.json         # how kpd.scan's ambiguity margin was chosen

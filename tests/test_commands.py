@@ -77,6 +77,30 @@ def test_scan_option(toy, chair_file, tmp_path):
     np.testing.assert_array_equal(read_mesh(tmp_path / "same.ply").vertices, read_mesh(scan).vertices)
 
 
+def test_keypoints_of_a_turned_scan_follow_the_scan(chair_file, tmp_path, capsys):
+    """The shipped chair model on a real chair and on the same chair lying on its side, turned, scaled and moved:
+    with --scan (and the scan's up axis) the keypoints come back on the scan, where the chair's keypoints went."""
+    from scipy.spatial.transform import Rotation
+
+    mesh = read_mesh(chair_file)
+    assert kpd("keypoints", "chair", chair_file) == 0
+    upright = np.array(json.loads(capsys.readouterr().out)["keypoints"])
+    # z (the chair's up) -> x, then a turn of 50 degrees about the new up axis
+    rotation = Rotation.from_euler("yx", [90, 50], degrees=True).as_matrix()  # extrinsic: y by 90, then x by 50
+    assert np.allclose(rotation @ [0, 0, 1], [1, 0, 0])
+    scan = tmp_path / "scan.ply"
+    write_mesh(scan, mesh.with_vertices(mesh.vertices @ rotation.T * 3 + 5))
+    assert kpd("keypoints", "chair", scan, "--scan", "--up", "x") == 0
+    found = np.array(json.loads(capsys.readouterr().out)["keypoints"])
+    expected = upright @ rotation.T * 3 + 5
+    size = np.linalg.norm(np.ptp(mesh.vertices, axis=0)) * 3
+    assert np.abs(found - expected).max() < 0.02 * size  # measured: 0.009
+    # without --scan the model sees a chair on its side: its keypoints are elsewhere
+    assert kpd("keypoints", "chair", scan) == 0
+    unaligned = np.array(json.loads(capsys.readouterr().out)["keypoints"])
+    assert np.abs(unaligned - expected).max() > 0.1 * size
+
+
 def textured_chair(path: Path) -> Mesh:
     """The procedural demo chair with per-corner UVs, a texture and vertex colours, written to ``path``."""
     from kpd.commands.demo import procedural_chair
