@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -287,9 +286,8 @@ def test_point_cloud_shapes(kpn_root, part_root, tmp_path):
 
 
 def test_alignment_pairs_match_training_evaluation():
-    if os.environ.get("KPD_SKIP_TORCH"):
-        pytest.skip("torch tests disabled")
-    evaluate = pytest.importorskip("kpd.train.evaluate")
+    from kpd.train import evaluate  # torch: the [train] extra, which make test installs
+
     for n, count, seed in ((2, 5, 0), (99, 200, 0), (17, 30, 4)):
         np.testing.assert_array_equal(ann.alignment_pairs(n, count, seed), evaluate.fixed_pairs(n, count, seed))
     with pytest.raises(DataError, match="at least 2"):

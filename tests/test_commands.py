@@ -221,11 +221,7 @@ def test_procedural_chair_is_closed_and_outward():
     np.testing.assert_allclose(v.max(axis=0), [10, 10, 18])
 
 
-def test_demo_with_shipped_chair(tmp_path):
-    from kpd.bundle import shipped_bundles
-
-    if "chair" not in shipped_bundles():
-        pytest.skip("no shipped chair bundle yet")
+def test_demo_with_shipped_chair(tmp_path, capsys, monkeypatch):
     out = tmp_path / "demo"
     assert kpd("demo", "--out", out) == 0
     before, alone, synced = (read_mesh(out / f"{name}.ply") for name in ("input", "deformed_alone", "deformed"))
@@ -237,6 +233,15 @@ def test_demo_with_shipped_chair(tmp_path):
 
     image = np.asarray(Image.open(out / "demo.png").convert("RGB"))
     assert (image < 200).any(axis=2).mean() > 0.02
+    # the suggested next command works and does what its output name says: the backrest rises, the feet stay put
+    suggestion = [line for line in capsys.readouterr().out.splitlines() if line.startswith("next: kpd deform ")]
+    assert len(suggestion) == 1
+    monkeypatch.chdir(tmp_path)
+    assert kpd(*suggestion[0].split()[2:]) == 0
+    taller = read_mesh(tmp_path / "taller_back.ply").vertices
+    height = np.ptp(before.vertices[:, 2])
+    assert taller[:, 2].max() > before.vertices[:, 2].max() + 0.1 * height
+    assert abs(taller[:, 2].min() - before.vertices[:, 2].min()) < 0.02 * height
 
 
 def test_bench_times_the_deployment_path(toy, chair_file, tmp_path):

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-torch = pytest.importorskip("torch")
-onnx = pytest.importorskip("onnx")
+import onnx  # noqa: E402 - the [train] extra, which make test installs
+import torch  # noqa: E402
 
 from kpd import onnx_contract as contract  # noqa: E402
 from kpd.bundle import read_bundle  # noqa: E402

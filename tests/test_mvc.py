@@ -230,7 +230,8 @@ def test_bad_input_is_rejected(points, vertices, faces, kwargs, match):
 # --- a real chair --------------------------------------------------------------------------------------------------
 
 def test_real_chair_enclosed_cage_reproduces_every_point(data_dir):
-    o3d = pytest.importorskip("open3d")
+    import open3d as o3d
+
     mesh = o3d.io.read_triangle_mesh(str(data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply"))
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     triangles = np.asarray(mesh.triangles, dtype=np.int64)

@@ -196,16 +196,14 @@ def test_shipped_chair_prior_mirrors_edits(data_dir):
     from kpd.io import read_mesh
     from kpd.runtime import Model
 
-    if "chair" not in shipped_bundles():
-        pytest.skip("no shipped chair bundle yet")
+    assert "chair" in shipped_bundles()
     model = Model.load("chair")
     prior = model.prior
     mean = prior.mean_
     mirrored = mean * [-1, 1, 1]
     partner = ((mirrored[:, None] - mean[None]) ** 2).sum(-1).argmin(axis=1)  # (K,)
     pairs = [(i, int(j)) for i, j in enumerate(partner) if j != i and partner[j] == i and abs(mean[i, 0]) > 0.2]
-    if not pairs:
-        pytest.skip("the shipped chair model has no clear mirror pair of keypoints")
+    assert pairs, "the shipped chair model has no clear mirror pair of keypoints"
     mesh = read_mesh(sorted((data_dir / "modelnet10" / "chair" / "test").glob("*.ply"))[0])
     keypoints = model.predict(mesh).keypoints
     moved_out = 0

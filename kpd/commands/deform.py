@@ -10,8 +10,9 @@ import numpy as np
 from kpd.errors import InputError
 
 HELP = "move keypoints of a shape and write the deformed mesh (same topology, UVs and colours)"
-EXAMPLE = ("kpd deform chair my_chair.obj --move 3:0,0,5 --prior --out taller.obj    "
-           "(or: kpd deform --rig chair_rig.npz --move 3:0,0.05,0 --out tall_chair.obj)")
+EXAMPLE = ("kpd deform chair my_chair.obj --move 8:0,0,5 --move 9:0,0,5 --out taller_back.obj    "
+           "(8 and 9: the top corners of the backrest; with --prior, moving one leg moves its partner: "
+           "kpd deform chair my_chair.obj --move 1:-3,0,0 --prior --out wider.obj)")
 
 _MOVE = re.compile(r"^\s*(\d+)\s*:\s*([^,]+),([^,]+),([^,]+)\s*$")
 

@@ -74,7 +74,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {out}/: {files}, rig.npz, keypoints.json, demo.png (keypoint {leg}, a leg, pulled outward by "
           f"{args.amount:g} of the height" + (", and again with the category prior moving the others)" if synced
                                                is not None else ")"))
-    print(f"next: kpd deform {args.model} {out}/input.ply --move {leg}:0,0,2 --prior --out taller.ply")
+    up = _axis(model.up)
+    tops = np.argsort(rest @ up, kind="stable")[-2:]  # the two highest keypoints (a chair's backrest corners)
+    lift = ",".join(f"{v:g}" for v in np.round(up * 0.15 * float(np.ptp(mesh.vertices @ up)), 2) + 0.0)
+    moves = " ".join(f"--move {int(i)}:{lift}" for i in sorted(tops))
+    print(f"next: kpd deform {args.model} {out}/input.ply {moves} --out taller_back.ply")
     return 0
 
 
