@@ -35,6 +35,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
 
 
+def ambiguity_advice(up_given: bool) -> str:
+    """The warning for an ambiguous orientation: what it means and what to do."""
+    if up_given:
+        return ("the orientation is ambiguous: a turn about the up axis far from the chosen one fits almost as well "
+                "(a symmetric object, such as a table turned 180 degrees, gives the same shape either way); check "
+                "the result (kpd scan --picture draws both)")
+    return ("the orientation is ambiguous: a rotation far from the chosen one fits almost as well (symmetric or "
+            "round object?); check the result (kpd scan --picture draws both), or pass --up")
+
+
 def load_model(args: argparse.Namespace):
     from kpd.runtime import Model
 
@@ -64,13 +74,12 @@ class ScanFrame:
         params = {}
         if up is not None:
             params["up"] = up
-            if model.up is not None:
-                params["reference_up"] = model.up
+        if model.up is not None:  # as kpd scan --model: the model's up axis turns on the support prior
+            params["reference_up"] = model.up
         self.result = preprocess(shape, reference, **params)
         orientation = self.result.orientation
         if orientation is not None and orientation.ambiguous:
-            print("warning: the scan's orientation is ambiguous (the runner-up rotation scores almost as well); "
-                  "check the result or pass --up", file=sys.stderr)
+            print(f"warning: {ambiguity_advice(up is not None)}", file=sys.stderr)
 
     def to_aligned(self, points):
         return self.result.to_aligned(points)

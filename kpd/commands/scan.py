@@ -48,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from kpd.commands import check_output
+    from kpd.commands.keypoints import ambiguity_advice
     from kpd.errors import InputError
     from kpd.geometry import sample_surface
     from kpd.io import MESH_FORMATS, POINT_FORMATS, Mesh, atomic_output, read_shape, write_mesh, write_points
@@ -152,7 +153,6 @@ def run(args: argparse.Namespace) -> int:
         runner = "none" if o.runner_up_rotation is None else f"{o.runner_up_score:.4f} at {o.runner_up_angle:.0f} deg"
         print(f"oriented: score {o.score:.4f}, runner-up {runner}, margin {o.margin:.3f}")
         if o.ambiguous:
-            print("warning: the orientation is ambiguous (a rotation far from the chosen one fits almost as well; "
-                  "symmetric or round object?): check the result (--picture draws both), or pass --up", file=sys.stderr)
+            print(f"warning: {ambiguity_advice(args.up is not None)}", file=sys.stderr)
     print(f"wrote {out} and {report_path}" + (f" and {picture}" if picture is not None else ""))
     return 0
