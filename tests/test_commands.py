@@ -82,26 +82,26 @@ def test_keypoints_of_a_turned_scan_follow_the_scan(chair_file, tmp_path, capsys
     with --scan (and the scan's up axis) the keypoints come back on the scan, where the chair's keypoints went."""
     from scipy.spatial.transform import Rotation
 
+    def keypoints(*argv) -> np.ndarray:
+        assert kpd("keypoints", "chair", *argv) == 0
+        return np.array(json.loads(capsys.readouterr().out)["keypoints"])
+
     mesh = read_mesh(chair_file)
-    assert kpd("keypoints", "chair", chair_file) == 0
-    upright = np.array(json.loads(capsys.readouterr().out)["keypoints"])
+    upright = keypoints(chair_file)
     # z (the chair's up) -> x, then a turn of 50 degrees about the new up axis
     rotation = Rotation.from_euler("yx", [90, 50], degrees=True).as_matrix()  # extrinsic: y by 90, then x by 50
     assert np.allclose(rotation @ [0, 0, 1], [1, 0, 0])
     scan = tmp_path / "scan.ply"
     write_mesh(scan, mesh.with_vertices(mesh.vertices @ rotation.T * 3 + 5))
-    assert kpd("keypoints", "chair", scan, "--scan", "--up", "x") == 0
-    found = np.array(json.loads(capsys.readouterr().out)["keypoints"])
+    found = keypoints(scan, "--scan", "--up", "x")
     expected = upright @ rotation.T * 3 + 5
     size = np.linalg.norm(np.ptp(mesh.vertices, axis=0)) * 3
     assert np.abs(found - expected).max() < 0.02 * size  # measured: 0.009
     # without --up the search is over all rotations, with the model's up axis as the support prior (as kpd scan)
-    assert kpd("keypoints", "chair", scan, "--scan") == 0
-    found = np.array(json.loads(capsys.readouterr().out)["keypoints"])
+    found = keypoints(scan, "--scan")
     assert np.abs(found - expected).max() < 0.04 * size  # measured: 0.027 (0.037 without the support prior)
     # without --scan the model sees a chair on its side: its keypoints are elsewhere
-    assert kpd("keypoints", "chair", scan) == 0
-    unaligned = np.array(json.loads(capsys.readouterr().out)["keypoints"])
+    unaligned = keypoints(scan)
     assert np.abs(unaligned - expected).max() > 0.1 * size
 
 

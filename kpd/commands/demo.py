@@ -42,7 +42,9 @@ def run(args: argparse.Namespace) -> int:
     mesh = read_mesh(args.mesh) if args.mesh is not None else procedural_chair()
     rig = model.rig(mesh)
     rest = rig.keypoints  # (K, 3) in the mesh's units
-    leg, target = pick_edit(rest, _axis(model.up), float(np.ptp(mesh.vertices @ _axis(model.up))), args.amount)
+    up = _axis(model.up)
+    height = float(np.ptp(mesh.vertices @ up))
+    leg, target = pick_edit(rest, up, height, args.amount)
     alone = rig.moved({leg: target - rest[leg]})
     synced = model.sync(rig, {leg: target}) if model.prior is not None else None
 
@@ -74,9 +76,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {out}/: {files}, rig.npz, keypoints.json, demo.png (keypoint {leg}, a leg, pulled outward by "
           f"{args.amount:g} of the height" + (", and again with the category prior moving the others)" if synced
                                                is not None else ")"))
-    up = _axis(model.up)
     tops = np.argsort(rest @ up, kind="stable")[-2:]  # the two highest keypoints (a chair's backrest corners)
-    lift = ",".join(f"{v:g}" for v in np.round(up * 0.15 * float(np.ptp(mesh.vertices @ up)), 2) + 0.0)
+    lift = ",".join(f"{v:g}" for v in np.round(up * 0.15 * height, 2) + 0.0)
     moves = " ".join(f"--move {int(i)}:{lift}" for i in sorted(tops))
     print(f"next: kpd deform {args.model} {out}/input.ply {moves} --out taller_back.ply")
     return 0
