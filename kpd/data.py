@@ -262,6 +262,8 @@ class SampleSettings:
     cage_level / cage_radius : the icosphere template (level 1 = 42 vertices).
     cage_distance / cage_iterations / cage_step / enclose : :func:`kpd.cage.fit_cage` settings (REFERENCE §4).
     weights : also store the MVC weights of the sample points (else training computes them once with torch).
+    outer : sample the outer surface only (:func:`kpd.geometry.sample_surface` with ``outer=True``): drop points on
+        faces inside the shape, where overlapping or touching pieces meet (convex decompositions, CAD parts).
     """
 
     points: int = 1024
@@ -273,6 +275,7 @@ class SampleSettings:
     cage_step: float = 0.01
     enclose: bool = False
     weights: bool = True
+    outer: bool = False
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -282,7 +285,10 @@ class SampleSettings:
         return cls(**{k: data[k] for k in cls.__dataclass_fields__ if k in data})
 
     def key(self) -> str:
-        text = json.dumps({"version": CACHE_VERSION, **self.to_dict()}, sort_keys=True)
+        values = self.to_dict()
+        if not values["outer"]:  # the key of every setting that predates the option stays the same
+            del values["outer"]
+        text = json.dumps({"version": CACHE_VERSION, **values}, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -336,7 +342,7 @@ def sample_mesh(path: str | os.PathLike, settings: SampleSettings, digest: str, 
     rng = np.random.default_rng([int(digest[:15], 16), CACHE_VERSION])
     points, normals, cages, weights = [], [], [], []
     for _ in range(settings.samples):
-        sample = sample_surface(vertices, triangles, settings.points, seed=rng)
+        sample = sample_surface(vertices, triangles, settings.points, seed=rng, outer=settings.outer)
         cage = fit_cage(sample.points, template=template, distance=settings.cage_distance,
                         iterations=settings.cage_iterations, step=settings.cage_step, enclose=settings.enclose)
         points.append(sample.points)

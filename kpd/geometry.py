@@ -18,6 +18,8 @@ __all__ = [
     "Normalizer",
     "SurfaceSample",
     "sample_surface",
+    "mesh_pieces",
+    "interior_mask",
     "farthest_point_sampling",
     "farthest_point_sampling_naive",
     "chamfer",
@@ -148,8 +150,30 @@ class SurfaceSample(NamedTuple):
     faces: np.ndarray
 
 
+def _check_mesh(vertices: Any, triangles: Any) -> tuple[np.ndarray, np.ndarray]:
+    vertices = as_points(vertices, "vertices")
+    triangles = np.asarray(triangles)
+    if triangles.ndim != 2 or triangles.shape[1] != 3 or len(triangles) == 0:
+        raise InputError(f"triangles must have shape (T, 3) with T >= 1; got {triangles.shape}")
+    if triangles.min() < 0 or triangles.max() >= len(vertices):
+        raise InputError(f"triangle indices must lie in [0, {len(vertices)}); got [{triangles.min()}, {triangles.max()}]")
+    return vertices, triangles.astype(np.int64, copy=False)
+
+
+def _draw(vertices: np.ndarray, triangles: np.ndarray, cross: np.ndarray, area2: np.ndarray, n: int,
+          rng: np.random.Generator) -> SurfaceSample:
+    a, b, c = (vertices[triangles[:, i]] for i in range(3))  # (T, 3) each
+    faces = rng.choice(len(triangles), size=n, p=area2 / area2.sum()).astype(np.int64)
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    u, v = 1.0 - s, s * (1.0 - r2)  # barycentric weights of a and b
+    points = u[:, None] * a[faces] + v[:, None] * b[faces] + (1.0 - u - v)[:, None] * c[faces]
+    normals = cross[faces] / area2[faces, None]
+    return SurfaceSample(points, normals, faces)
+
+
 def sample_surface(
-    vertices: Any, triangles: Any, n: int, seed: None | int | np.random.Generator = None
+    vertices: Any, triangles: Any, n: int, seed: None | int | np.random.Generator = None, *, outer: bool = False
 ) -> SurfaceSample:
     """Draw ``n`` points uniformly by area on a triangle mesh.
 
@@ -159,29 +183,176 @@ def sample_surface(
     triangles : (T, 3) int
     n : number of points.
     seed : seed or Generator; the same seed gives the same sample.
+    outer : draw from the outer surface only: points that lie inside another closed piece of the same mesh (the
+        interior faces of overlapping parts, as in convex decompositions or CAD models built from intersecting solids;
+        see :func:`interior_mask`) are rejected and drawn again, so the result stays uniform on what is left.
     """
-    vertices = as_points(vertices, "vertices")
-    triangles = np.asarray(triangles)
-    if triangles.ndim != 2 or triangles.shape[1] != 3 or len(triangles) == 0:
-        raise InputError(f"triangles must have shape (T, 3) with T >= 1; got {triangles.shape}")
-    if triangles.min() < 0 or triangles.max() >= len(vertices):
-        raise InputError(f"triangle indices must lie in [0, {len(vertices)}); got [{triangles.min()}, {triangles.max()}]")
+    vertices, triangles = _check_mesh(vertices, triangles)
     if n < 1:
         raise InputError(f"the number of samples must be at least 1; got {n}")
     rng = as_rng(seed)
     a, b, c = (vertices[triangles[:, i]] for i in range(3))  # (T, 3) each
     cross = np.cross(b - a, c - a)  # (T, 3)
     area2 = np.linalg.norm(cross, axis=1)  # (T,)
-    total = area2.sum()
-    if not total > 0:
+    if not area2.sum() > 0:
         raise InputError("cannot sample a mesh whose triangles all have zero area")
-    faces = rng.choice(len(triangles), size=n, p=area2 / total).astype(np.int64)
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    u, v = 1.0 - s, s * (1.0 - r2)  # barycentric weights of a and b
-    points = u[:, None] * a[faces] + v[:, None] * b[faces] + (1.0 - u - v)[:, None] * c[faces]
-    normals = cross[faces] / area2[faces, None]
-    return SurfaceSample(points, normals, faces)
+    if not outer:
+        return _draw(vertices, triangles, cross, area2, n, rng)
+    inside = _InteriorTest(vertices, triangles)
+    if not inside.containers:
+        return _draw(vertices, triangles, cross, area2, n, rng)
+    kept: list[SurfaceSample] = []
+    count, drawn, accepted = 0, 0, 0
+    for _ in range(_OUTER_ROUNDS):
+        share = max(accepted / drawn, 0.05) if drawn else 1.0
+        batch = _draw(vertices, triangles, cross, area2, int(np.ceil(1.1 * (n - count) / share)) + 16, rng)
+        keep = ~inside(batch.points, batch.normals, batch.faces)
+        drawn, accepted = drawn + len(keep), accepted + int(keep.sum())
+        kept.append(SurfaceSample(batch.points[keep], batch.normals[keep], batch.faces[keep]))
+        count += int(keep.sum())
+        if count >= n:
+            break
+    if count < n:
+        raise InputError(f"the outer surface of this mesh is too small to sample: {accepted} of {drawn} points drawn "
+                         f"lie outside the other pieces")
+    return SurfaceSample(*(np.concatenate(parts)[:n] for parts in zip(*kept)))
+
+
+# Rejection rounds of an outer-surface sample before giving up (each round draws what the accepted share asks for).
+_OUTER_ROUNDS = 20
+
+
+def mesh_pieces(triangles: Any) -> np.ndarray:
+    """Label each triangle with its connected piece (triangles sharing a vertex index are connected).
+
+    Parameters
+    ----------
+    triangles : (T, 3) int
+
+    Returns
+    -------
+    labels : (T,) int64 in [0, number of pieces), pieces numbered by their first triangle.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    triangles = np.asarray(triangles, dtype=np.int64)
+    if triangles.ndim != 2 or triangles.shape[1] != 3:
+        raise InputError(f"triangles must have shape (T, 3); got {triangles.shape}")
+    if len(triangles) == 0:
+        return np.zeros(0, dtype=np.int64)
+    t = len(triangles)
+    nodes = t + int(triangles.max()) + 1  # triangles, then vertices
+    rows = np.repeat(np.arange(t), 3)
+    graph = coo_matrix((np.ones(3 * t), (rows, t + triangles.ravel())), shape=(nodes, nodes))
+    _, labels = connected_components(graph, directed=False)
+    labels = labels[:t]
+    _, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
+    order = np.argsort(np.argsort(first))  # renumber by first appearance
+    return order[inverse].astype(np.int64)
+
+
+def _is_closed(triangles: np.ndarray) -> bool:
+    """Every edge of the piece is shared by exactly two of its triangles (a watertight, edge-manifold surface)."""
+    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return bool(len(triangles) >= 4 and (counts == 2).all())
+
+
+class _InteriorTest:
+    """Which points of a mesh's surface are covered by another closed piece of it (Open3D ray casting, per piece).
+
+    A point of piece i is covered when the point a little off the surface on its outer side (``offset`` times the
+    mesh's diagonal along the outward normal; both sides for an open piece, whose outside is unknown) lies inside a
+    closed piece j != i: then it is inside j, or on a face where i and j touch.
+    """
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, offset: float = 2e-3) -> None:
+        import open3d as o3d
+
+        self.labels = mesh_pieces(triangles)
+        extent = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+        self.offset = offset * extent
+        self.containers = []  # (piece label, scene, box low, box high) of the closed pieces
+        self.outward = np.zeros(len(triangles))  # per triangle: +1 / -1 to turn its normal outward, 0 if unknown
+        pieces = np.unique(self.labels)
+        if len(pieces) < 2:
+            return
+        for label in pieces:
+            mask = self.labels == label
+            tri = triangles[mask]
+            if not _is_closed(tri):
+                continue
+            a, b, c = (vertices[tri[:, i]] for i in range(3))
+            volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum())  # 6x the signed volume
+            if volume == 0.0:
+                continue
+            self.outward[mask] = np.sign(volume)
+            scene = o3d.t.geometry.RaycastingScene()
+            used, local = np.unique(tri, return_inverse=True)
+            scene.add_triangles(o3d.core.Tensor(vertices[used].astype(np.float32)),
+                                o3d.core.Tensor(local.reshape(-1, 3).astype(np.uint32)))
+            lo, hi = vertices[used].min(axis=0), vertices[used].max(axis=0)
+            self.containers.append((int(label), scene, lo - self.offset, hi + self.offset))
+
+    def _inside_others(self, points: np.ndarray, own: np.ndarray) -> np.ndarray:
+        import open3d as o3d
+
+        inside = np.zeros(len(points), dtype=bool)
+        for label, scene, lo, hi in self.containers:
+            candidate = np.flatnonzero((own != label) & ~inside & (points >= lo).all(axis=1)
+                                       & (points <= hi).all(axis=1))
+            if len(candidate):
+                query = o3d.core.Tensor(points[candidate].astype(np.float32))
+                inside[candidate[scene.compute_occupancy(query, nthreads=1, nsamples=3).numpy() > 0.5]] = True
+        return inside
+
+    def __call__(self, points: np.ndarray, normals: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        own = self.labels[faces]  # (n,)
+        sign = self.outward[faces]  # (n,)
+        known = sign != 0
+        step = self.offset * normals * np.where(known, sign, 1.0)[:, None]  # (n, 3)
+        covered = self._inside_others(points + step, own)
+        if (~known).any():  # an open piece: covered only when both sides are
+            covered &= known | self._inside_others(points - step, own)
+        return covered
+
+
+def interior_mask(vertices: Any, triangles: Any, points: Any, faces: Any, *, offset: float = 2e-3) -> np.ndarray:
+    """Which surface points are inside the shape: covered by another piece of the same mesh.
+
+    A mesh made of overlapping or touching parts (a convex decomposition, a CAD chair whose legs go into its seat)
+    has faces inside its volume that no scanner could see. The pieces are the connected components of the mesh
+    (:func:`mesh_pieces`); each closed one (every edge shared by two of its triangles) is a container. A point is
+    interior when the point ``offset`` times the mesh's diagonal off the surface on its piece's outer side (along
+    the outward normal of a closed piece; on both sides for an open piece) lies inside a container other than its
+    own piece (Open3D's ``RaycastingScene.compute_occupancy``, majority of 3 rays): it is then inside that piece or
+    on a face where the two touch. A mesh of open surfaces has no containers and so no interior points.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float64
+    triangles : (T, 3) int
+    points : (n, 3) float64, points on the surface
+    faces : (n,) int, the triangle each point lies on (``SurfaceSample.faces``)
+
+    Returns
+    -------
+    interior : (n,) bool
+    """
+    vertices, triangles = _check_mesh(vertices, triangles)
+    points = as_points(points, min_count=0)
+    faces = np.asarray(faces, dtype=np.int64)
+    if faces.shape != (len(points),) or (len(faces) and (faces.min() < 0 or faces.max() >= len(triangles))):
+        raise InputError(f"faces must be {len(points)} triangle indices in [0, {len(triangles)}); got shape "
+                         f"{faces.shape}")
+    test = _InteriorTest(vertices, triangles, offset)
+    if not test.containers:
+        return np.zeros(len(points), dtype=bool)
+    a, b, c = (vertices[triangles[faces, i]] for i in range(3))
+    cross = np.cross(b - a, c - a)  # (n, 3)
+    length = np.linalg.norm(cross, axis=1, keepdims=True)
+    return test(points, np.divide(cross, length, out=np.zeros_like(cross), where=length > 0), faces)
 
 
 def farthest_point_sampling(

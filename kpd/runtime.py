@@ -159,6 +159,13 @@ class Model:
         return self.bundle.template_points
 
     @property
+    def outer_surface(self) -> bool:
+        """Whether the model was trained on outer-surface samples (``kpd train --outer-surface``); meshes are then
+        sampled the same way (:func:`kpd.geometry.sample_surface` with ``outer=True``)."""
+        checkpoint = (self.bundle.manifest.get("training") or {}).get("checkpoint") or {}
+        return bool((checkpoint.get("sample_settings") or {}).get("outer", False))
+
+    @property
     def up(self) -> str | None:
         """The up axis of the training data's frame (``"+z"`` for ModelNet), if the bundle records it."""
         return self.bundle.manifest["input"].get("up")
@@ -216,7 +223,8 @@ class Model:
         if isinstance(shape, Mesh) and len(shape.triangles):
             used = np.unique(shape.triangles)
             normalizer = Normalizer().fit(shape.vertices[used])
-            points = sample_surface(normalizer.apply(shape.vertices), shape.triangles, n, seed=seed).points
+            points = sample_surface(normalizer.apply(shape.vertices), shape.triangles, n, seed=seed,
+                                    outer=self.outer_surface).points
             return normalizer, points
         raw = shape.vertices if isinstance(shape, Mesh) else shape.points
         normalizer = Normalizer().fit(raw)

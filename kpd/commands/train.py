@@ -44,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--cage-distance", type=float, default=0.4, help="cage stop distance (default 0.4)")
     g.add_argument("--cage-level", type=int, default=1, help="icosphere level of the cage (1: 42 vertices)")
     g.add_argument("--enclose-cage", action="store_true", help="grow the cage until it encloses every point")
+    g.add_argument("--outer-surface", action="store_true",
+                   help="sample the outer surface only: drop points inside the shape where overlapping or touching "
+                        "pieces meet (convex decompositions such as ../shared/data/gso_shoes, CAD parts)")
     g = parser.add_argument_group("recipe (defaults: the authors' code; REFERENCE §11)")
     g.add_argument("--keypoint-source", choices=("learned", "fps"), default="learned",
                    help="fps: farthest-point keypoints of each shape, only the deformer is trained (baseline)")
@@ -105,7 +108,8 @@ def run(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
     settings = SampleSettings(points=args.points, samples=args.samples, cage_level=args.cage_level,
-                              cage_distance=args.cage_distance, enclose=args.enclose_cage)
+                              cage_distance=args.cage_distance, enclose=args.enclose_cage,
+                              outer=args.outer_surface)
     data = prepare(args.data, args.category, settings=settings, cache_dir=args.cache, split_file=args.split_file,
                    val_fraction=args.val_fraction, seed=args.seed, processes=args.processes,
                    progress=not args.quiet)

@@ -1,0 +1,111 @@
+"""Shoes from real scans: outer-surface sampling, collection alignment, the shipped shoe bundle.
+
+Real-data tests read ``../shared/data/gso_shoes`` (convex decompositions of Google Scanned Objects shoes) and
+``../shared/data/scans/sneaker.ply``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kpd.errors import InputError
+from kpd.geometry import interior_mask, mesh_pieces, sample_surface
+
+SHOES = ("ASICS_GEL1140V_WhiteRoyalSilver", "AMBERLIGHT_UP_W", "11pro_SL_TRX_FG", "ASICS_GELAce_Pro_Pearl_WhitePink",
+         "ASICS_GEL1140V_WhiteBlackSilver", "ASICS_GELBlur33_20_GS_BlackWhiteSafety_Orange")
+
+
+def box(lo, hi, offset=0):
+    """A closed, outward-facing box as (vertices (8, 3), triangles (12, 3)) with indices shifted by ``offset``."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    v = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    t = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    return v, t + offset
+
+
+def two_boxes(start):
+    """Box A [0, 2]^3 and box B [start, 4] x [0, 2]^2: overlapping for start < 2, touching for 2, apart beyond."""
+    va, ta = box((0, 0, 0), (2, 2, 2))
+    vb, tb = box((start, 0, 0), (4, 2, 2), offset=8)
+    return np.concatenate([va, vb]), np.concatenate([ta, tb])
+
+
+@pytest.fixture(scope="module")
+def shoes_dir(data_dir):
+    folder = data_dir / "gso_shoes"
+    if not folder.is_dir():
+        pytest.fail(f"{folder} is missing: the shoes are part of the shared data")
+    return folder
+
+
+def read_shoe(shoes_dir, name):
+    from kpd.io import read_mesh
+
+    mesh = read_mesh(shoes_dir / name / "model.obj")
+    return np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+
+
+# --- outer-surface sampling -------------------------------------------------------------------------------------
+
+def test_interior_points_of_overlapping_boxes_are_found_and_outer_sampling_drops_them():
+    vertices, triangles = two_boxes(0.5)  # B starts at x = 0.5, inside A up to x = 2
+    assert sorted(np.unique(mesh_pieces(triangles), return_counts=True)[1]) == [12, 12]
+    plain = sample_surface(vertices, triangles, 20000, seed=0)
+    inside = interior_mask(vertices, triangles, plain.points, plain.faces)
+    x = plain.points[:, 0]
+    own_b = plain.faces >= 12
+    # the truth: A's points with x > 0.5 inside B, B's points with x < 2 inside A (faces on the union's boundary stay)
+    truth = np.where(own_b, (x < 2 - 1e-6) & (plain.points[:, 1:] > 1e-6).all(1) & (plain.points[:, 1:] < 2 - 1e-6)
+                     .all(1), (x > 0.5 + 1e-6) & (plain.points[:, 1:] > 1e-6).all(1) & (plain.points[:, 1:] < 2 - 1e-6)
+                     .all(1))
+    assert truth.mean() > 0.1
+    assert np.mean(inside != truth) < 0.01
+    outer = sample_surface(vertices, triangles, 5000, seed=0, outer=True)
+    assert len(outer.points) == 5000
+    assert not interior_mask(vertices, triangles, outer.points, outer.faces).any()
+    # nothing inside the union: points of A with x in (0.5, 2) lie only on its top, bottom, front and back faces
+    inner = (outer.points[:, 0] > 0.6) & (outer.points[:, 0] < 1.9)
+    on_boundary = np.isclose(outer.points[inner, 1:], 0).any(1) | np.isclose(outer.points[inner, 1:], 2).any(1)
+    assert on_boundary.all()
+
+
+def test_touching_faces_are_interior_and_apart_pieces_keep_everything():
+    vertices, triangles = two_boxes(2.0)  # B starts where A ends: the faces at x = 2 are inside the union
+    plain = sample_surface(vertices, triangles, 20000, seed=1)
+    inside = interior_mask(vertices, triangles, plain.points, plain.faces)
+    on_contact = np.isclose(plain.points[:, 0], 2.0)
+    assert inside[on_contact].mean() > 0.99 and not inside[~on_contact].any()
+    apart_v, apart_t = two_boxes(2.5)
+    plain = sample_surface(apart_v, apart_t, 5000, seed=1)
+    assert not interior_mask(apart_v, apart_t, plain.points, plain.faces).any()
+
+
+def test_outer_sampling_is_seeded_and_a_single_piece_is_unchanged():
+    vertices, triangles = two_boxes(0.5)
+    a = sample_surface(vertices, triangles, 300, seed=3, outer=True)
+    b = sample_surface(vertices, triangles, 300, seed=3, outer=True)
+    assert np.array_equal(a.points, b.points) and np.array_equal(a.faces, b.faces)
+    v, t = box((0, 0, 0), (1, 1, 1))
+    assert np.array_equal(sample_surface(v, t, 100, seed=0, outer=True).points, sample_surface(v, t, 100, seed=0).points)
+    with pytest.raises(InputError, match="faces must be"):
+        interior_mask(v, t, np.zeros((2, 3)), np.array([0, 99]))
+
+
+@pytest.mark.parametrize("name", SHOES[:3])
+def test_shoe_interior_samples_are_gone_where_pieces_overlap(shoes_dir, name):
+    vertices, triangles = read_shoe(shoes_dir, name)
+    assert len(np.unique(mesh_pieces(triangles))) >= 6  # a convex decomposition
+    plain = sample_surface(vertices, triangles, 4000, seed=0)
+    inside = interior_mask(vertices, triangles, plain.points, plain.faces)
+    assert inside.mean() > 0.1  # the cut faces between pieces
+    outer = sample_surface(vertices, triangles, 4000, seed=0, outer=True)
+    assert not interior_mask(vertices, triangles, outer.points, outer.faces).any()
+    # the interior points lie away from the outer surface; the kept ones on it
+    from scipy.spatial import cKDTree
+
+    diagonal = np.linalg.norm(vertices.max(0) - vertices.min(0))
+    dense = cKDTree(sample_surface(vertices, triangles, 40000, seed=1, outer=True).points)
+    assert np.median(dense.query(plain.points[inside])[0]) > 0.01 * diagonal
+    assert np.median(dense.query(plain.points[~inside])[0]) < 0.005 * diagonal
