@@ -311,17 +311,16 @@ class _MeshPart:
         if texture is not None and mesh.triangle_uvs is not None:
             corners = (3 * triangles[:, None] + np.arange(3)).ravel()  # (3 Tp,)
             part.triangle_uvs = o3d.utility.Vector2dVector(mesh.triangle_uvs[corners])
-        part.compute_vertex_normals()
         self.o3d = part
         self.texture = texture
         self.has_colors = mesh.vertex_colors is not None
 
-    def set_vertices(self, vertices: np.ndarray, normals: bool) -> None:
+    def set_vertices(self, vertices: np.ndarray, normals: np.ndarray | None) -> None:
         import open3d as o3d
 
         self.o3d.vertices = o3d.utility.Vector3dVector(vertices if self.all_vertices else vertices[self.used])
-        if normals:
-            self.o3d.compute_vertex_normals()
+        if normals is not None:
+            self.o3d.vertex_normals = o3d.utility.Vector3dVector(normals if self.all_vertices else normals[self.used])
 
 
 class RigScene:
@@ -338,8 +337,12 @@ class RigScene:
     """
 
     def __init__(self, mesh: Any, num_keypoints: int, cage_faces: Any = None, *,
-                 settings: ViewSettings | None = None) -> None:
+                 settings: ViewSettings | None = None, eye: Any = None) -> None:
+        from kpd.viewer.gl import _Welding
+
         self.mesh = mesh
+        self.eye = None if eye is None else np.asarray(eye, dtype=np.float64)  # normals face this camera position
+        self._welding = _Welding(mesh.vertices, np.asarray(mesh.triangles, dtype=np.int64))
         self.settings = settings or ViewSettings()
         self.num_keypoints = int(num_keypoints)
         self.colors = keypoint_palette(self.num_keypoints)
@@ -493,9 +496,12 @@ class RigScene:
         s = self.settings
         keypoints = np.asarray(frame.keypoints, dtype=np.float64)
         if mesh:
+            from kpd.viewer.gl import shading_normals
+
             vertices = np.asarray(frame.vertices, dtype=np.float64)
+            shade = shading_normals(vertices, self.mesh.triangles, self.eye, welding=self._welding) if normals else None
             for part in self.parts:
-                part.set_vertices(vertices, normals)
+                part.set_vertices(vertices, shade)
                 self._replace(scene, part.name, part.o3d, self._mesh_material(part))
         selection = [i for i in frame.selection if 0 <= i < self.num_keypoints]
         self._replace(scene, "keypoints", self._markers(keypoints, range(self.num_keypoints), 1.0),
@@ -621,19 +627,23 @@ def label_image(image: np.ndarray, scene: RigScene, frame: Frame, camera: Camera
     s = scene.settings
     if not (s.show_labels and s.show_keypoints):
         return image
+    return label_image_at(image, frame.keypoints, scene.marker_radius, camera)
+
+
+def label_image_at(image: np.ndarray, keypoints: Any, radius: float, camera: Camera) -> np.ndarray:
+    """Keypoint numbers (in the keypoint palette) drawn beside markers of ``radius`` at ``keypoints`` (K, 3), as
+    ``camera`` sees them: up and to the right of each marker on screen."""
     h, w = image.shape[:2]
+    keypoints = np.asarray(keypoints, dtype=np.float64)
     view = look_at_matrix(camera)
     projection = perspective_matrix(camera.fov, w / h, camera.near, camera.far)
-    pixels, depth = project(scene.label_positions(frame.keypoints), view, projection, w, h)
-    pixels = pixels + np.array([0.6, -0.2]) * _pixel_radius(scene, frame, camera, w, h)[:, None]
-    labels = [str(i) for i in range(scene.num_keypoints)]
-    return overlay_labels(image, pixels, labels, scene.colors, visible=depth > 0)
-
-
-def _pixel_radius(scene: RigScene, frame: Frame, camera: Camera, w: int, h: int) -> np.ndarray:
-    distance = np.linalg.norm(np.asarray(frame.keypoints) - camera.eye, axis=1)
+    pixels, depth = project(keypoints, view, projection, w, h)
+    distance = np.linalg.norm(keypoints - camera.eye, axis=1)
     focal = h / 2 / math.tan(math.radians(camera.fov) / 2)
-    return focal * scene.marker_radius / np.maximum(distance, 1e-12)
+    r = focal * radius / np.maximum(distance, 1e-12)  # (K,) marker radius in pixels
+    pixels = pixels + np.stack([1.1 * r, -0.9 * r], axis=1)
+    labels = [str(i) for i in range(len(keypoints))]
+    return overlay_labels(image, pixels, labels, keypoint_palette(len(keypoints)), visible=depth > 0)
 
 
 # --- PNG ---------------------------------------------------------------------------------------------------------
@@ -710,7 +720,11 @@ def render_rig(rig: Any, keypoints: Any = None, *, settings: ViewSettings | None
 def render_frames(rig: Any, keypoint_sets: Sequence[Any], *, settings: ViewSettings | None = None,
                   selections: Sequence[Sequence[int]] | None = None, backend: str = "auto",
                   timeout: float = 300.0) -> list[np.ndarray]:
-    """:func:`render_rig` of several keypoint sets with one renderer (a gallery of edits): a list of (H, W, 3)."""
+    """:func:`render_rig` of several keypoint sets with one renderer (a gallery of edits): a list of (H, W, 3).
+
+    One camera frames every frame's deformed shape (and its keypoints), so edits that grow the shape stay in view and
+    the frames compare on one scale.
+    """
     settings = settings or ViewSettings()
     if backend not in BACKENDS:
         raise InputError(f"backend must be one of {', '.join(BACKENDS)}; got {backend!r}")
@@ -721,15 +735,60 @@ def render_frames(rig: Any, keypoint_sets: Sequence[Any], *, settings: ViewSetti
             raise InputError(f"keypoints must have shape ({k}, 3) for this rig; got {shape}")
     frames = _rig_frames(rig, keypoint_sets, selections)
     backend = resolve_backend(backend)
+    camera = camera_pose(np.vstack([np.vstack([f.vertices, f.keypoints]) for f in frames]), settings)
     log.info("rendering %d frame(s) of %dx%d with the %s backend", len(frames), settings.width, settings.height, backend)
     if backend == "offscreen":
-        return _render_offscreen(rig.mesh, k, rig.cage.faces, frames, settings)
-    return _render_in_child(rig.mesh, k, rig.cage.faces, frames, settings, backend, timeout)
+        return _render_offscreen(rig.mesh, k, rig.cage.faces, frames, settings, camera)
+    with gl_display(backend, settings.width, settings.height):
+        return _render_gl(rig, frames, settings, camera)
+
+
+@contextlib.contextmanager
+def gl_display(backend: str, width: int, height: int) -> Iterator[None]:
+    """Make ``$DISPLAY`` point at an X server for the OpenGL path for the duration of the block: a private Xvfb
+    (``backend="xvfb"``) or the current display (``"window"``)."""
+    backend = resolve_backend(backend)
+    if backend == "window":
+        yield
+        return
+    if backend != "xvfb":
+        raise InputError(f"the OpenGL path needs the xvfb or window backend; got {backend!r}")
+    saved = os.environ.get("DISPLAY")
+    with private_display(width + 64, height + 64) as display:
+        os.environ["DISPLAY"] = display
+        try:
+            yield
+        finally:
+            if saved is None:
+                os.environ.pop("DISPLAY", None)
+            else:
+                os.environ["DISPLAY"] = saved
+
+
+def _render_gl(rig: Any, frames: list[Frame], settings: ViewSettings, camera: Camera) -> list[np.ndarray]:
+    from kpd.viewer.gl import GLView, RigDrawing
+
+    view = GLView(settings.width, settings.height, background=settings.background)
+    try:
+        drawing = RigDrawing(view, rig.mesh, rig.num_keypoints, rig.cage.faces, settings=settings, digits=False)
+        view.set_box(np.vstack([np.vstack([f.vertices, f.keypoints]) for f in frames]))
+        images = []
+        for frame in frames:
+            drawing.show(frame, camera)
+            image = view.capture()
+            if settings.show_labels and settings.show_keypoints:
+                image = label_image_at(image, frame.keypoints, drawing.marker_radius, camera)
+            images.append(image)
+        return images
+    finally:
+        view.close()
 
 
 def resolve_backend(backend: str) -> str:
     if backend == "auto":
-        return "xvfb" if shutil.which("Xvfb") else "offscreen"
+        if shutil.which("Xvfb"):
+            return "xvfb"
+        return "window" if os.environ.get("DISPLAY") else "offscreen"
     if backend == "xvfb" and not shutil.which("Xvfb"):
         raise KpdError("the xvfb backend needs the Xvfb program (Debian/Ubuntu: apt-get install xvfb); or use "
                        "--backend offscreen")
@@ -769,16 +828,16 @@ def _sun_direction(settings: ViewSettings) -> np.ndarray:
     return (d / np.linalg.norm(d)).astype(np.float32)
 
 
-def _render_offscreen(mesh: Any, k: int, cage_faces: Any, frames: list[Frame], settings: ViewSettings) -> list[np.ndarray]:
+def _render_offscreen(mesh: Any, k: int, cage_faces: Any, frames: list[Frame], settings: ViewSettings,
+                      camera: Camera) -> list[np.ndarray]:
     with _quiet_native_output():
         from open3d.visualization import rendering
 
         renderer = rendering.OffscreenRenderer(settings.width, settings.height)
         try:
-            scene = RigScene(mesh, k, cage_faces, settings=settings)
+            scene = RigScene(mesh, k, cage_faces, settings=settings, eye=camera.eye)
             scene.attach(renderer.scene, frames[0])
             _configure_view(renderer.scene, settings)
-            camera = camera_pose(mesh.vertices, settings)
             renderer.setup_camera(camera.fov, camera.center.astype(np.float32), camera.eye.astype(np.float32),
                                   camera.up.astype(np.float32), camera.near, camera.far)
             images = []
@@ -819,72 +878,7 @@ def _quiet_native_output() -> Iterator[None]:
                 log.debug("Open3D said:\n%s", text)
 
 
-# --- the window backends: a child process with an Open3D window -----------------------------------------------------
-
-
-def _save_job(folder: Path, mesh: Any, k: int, cage_faces: Any, frames: list[Frame], settings: ViewSettings) -> Path:
-    arrays = {
-        "vertices": np.stack([f.vertices for f in frames]),
-        "keypoints": np.stack([f.keypoints for f in frames]),
-        "triangles": mesh.triangles,
-        "rest": mesh.vertices,
-    }
-    if cage_faces is not None and frames[0].cage is not None:
-        arrays["cage"] = np.stack([f.cage for f in frames])
-        arrays["cage_faces"] = np.asarray(cage_faces)
-    for name in ("vertex_colors", "triangle_uvs", "triangle_material_ids"):
-        value = getattr(mesh, name)
-        if value is not None:
-            arrays[name] = value
-    for i, texture in enumerate(mesh.textures):
-        arrays[f"texture_{i}"] = texture
-    meta = {"settings": settings.to_dict(), "num_keypoints": k, "selections": [list(f.selection) for f in frames]}
-    arrays["meta"] = np.array(json.dumps(meta))
-    path = folder / "job.npz"
-    np.savez(path, **arrays)
-    return path
-
-
-def _load_job(path: Path) -> tuple[Any, int, Any, list[Frame], ViewSettings]:
-    from kpd.io import Mesh
-
-    with np.load(path, allow_pickle=False) as data:
-        arrays = {name: data[name] for name in data.files}
-    meta = json.loads(str(arrays["meta"]))
-    textures = [arrays[n] for n in sorted((n for n in arrays if n.startswith("texture_")), key=lambda s: int(s[8:]))]
-    mesh = Mesh(vertices=arrays["rest"], triangles=arrays["triangles"], vertex_colors=arrays.get("vertex_colors"),
-                triangle_uvs=arrays.get("triangle_uvs"), textures=textures,
-                triangle_material_ids=arrays.get("triangle_material_ids"))
-    frames = []
-    for i, selection in enumerate(meta["selections"]):
-        cage = arrays["cage"][i] if "cage" in arrays else None
-        frames.append(Frame(arrays["vertices"][i], arrays["keypoints"][i], cage, tuple(selection)))
-    return mesh, int(meta["num_keypoints"]), arrays.get("cage_faces"), frames, ViewSettings.from_dict(meta["settings"])
-
-
-def _render_in_child(mesh: Any, k: int, cage_faces: Any, frames: list[Frame], settings: ViewSettings, backend: str,
-                     timeout: float) -> list[np.ndarray]:
-    with tempfile.TemporaryDirectory(prefix="kpd-render-") as tmp:
-        folder = Path(tmp)
-        job = _save_job(folder, mesh, k, cage_faces, frames, settings)
-        env = dict(os.environ)
-        with contextlib.ExitStack() as stack:
-            if backend == "xvfb":
-                env["DISPLAY"] = stack.enter_context(private_display(settings.width + 64, settings.height + 64))
-            command = [sys.executable, "-m", "kpd.viewer.render", "--worker", str(job)]
-            log.debug("running %s with DISPLAY=%s", " ".join(command), env.get("DISPLAY"))
-            try:
-                done = subprocess.run(command, env=env, capture_output=True, timeout=timeout)
-            except subprocess.TimeoutExpired as exc:
-                raise KpdError(f"rendering took longer than {timeout:g} s and was stopped") from exc
-        images = []
-        for i in range(len(frames)):
-            out = folder / f"frame_{i}.npy"
-            if not out.is_file():
-                tail = done.stderr.decode("utf-8", "replace").strip().splitlines()[-5:]
-                raise KpdError(f"the Open3D window renderer failed (exit {done.returncode}): {' | '.join(tail)}")
-            images.append(np.load(out, allow_pickle=False))
-        return images
+# --- a private X server ---------------------------------------------------------------------------------------------
 
 
 @contextlib.contextmanager
@@ -944,75 +938,3 @@ def grab_screen(fbdir: str | os.PathLike) -> np.ndarray:
     pixels = np.frombuffer(data, np.uint8, count=line * height, offset=size + 12 * colours)
     bgrx = pixels.reshape(height, line)[:, :width * 4].reshape(height, width, 4)
     return np.ascontiguousarray(bgrx[:, :, [2, 1, 0]])
-
-
-def _worker(job: Path) -> int:
-    """Child-process entry: draw every frame of ``job`` in an Open3D window and save the images beside it."""
-    import open3d.visualization.gui as gui
-    import open3d.visualization.rendering as rendering
-
-    mesh, k, cage_faces, frames, settings = _load_job(job)
-    app = gui.Application.instance
-    app.initialize()
-    window = app.create_window("kpd render", settings.width, settings.height)
-    widget = gui.SceneWidget()
-    widget.scene = rendering.Open3DScene(window.renderer)
-    window.add_child(widget)
-
-    def on_layout(context: Any) -> None:
-        widget.frame = window.content_rect
-
-    window.set_on_layout(on_layout)
-    scene = RigScene(mesh, k, cage_faces, settings=settings)
-    scene.attach(widget.scene, frames[0])
-    _configure_view(widget.scene, settings)
-    camera = camera_pose(mesh.vertices, settings)
-    state = {"next": 0, "status": 1}
-
-    def set_camera() -> None:
-        frame = window.content_rect
-        widget.scene.camera.look_at(camera.center, camera.eye, camera.up)
-        widget.scene.camera.set_projection(camera.fov, frame.width / max(frame.height, 1), camera.near, camera.far,
-                                           rendering.Camera.FovType.Vertical)
-
-    def request() -> None:
-        i = state["next"]
-        if i:
-            scene.update(frames[i])
-        set_camera()
-        widget.scene.scene.render_to_image(on_image)
-        window.post_redraw()
-
-    def on_image(image: Any) -> None:
-        array = np.asarray(image)[:, :, :3].copy()
-        i = state["next"]
-        if array.shape[:2] != (settings.height, settings.width):
-            log.warning("window image is %s, expected %dx%d", array.shape[:2], settings.height, settings.width)
-        np.save(job.parent / f"frame_{i}.npy", label_image(array, scene, frames[i], camera))
-        state["next"] = i + 1
-        if state["next"] < len(frames):
-            app.post_to_main_thread(window, request)
-        else:
-            state["status"] = 0
-            app.post_to_main_thread(window, app.quit)
-
-    set_camera()
-    app.post_to_main_thread(window, request)
-    app.run()
-    return state["status"]
-
-
-def _main(argv: Sequence[str] | None = None) -> int:
-    import argparse
-
-    parser = argparse.ArgumentParser(description="kpd.viewer.render child process (internal)")
-    parser.add_argument("--worker", required=True, type=Path)
-    args = parser.parse_args(argv)
-    status = _worker(args.worker)
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(status)  # skip Open3D's GUI teardown, which may crash after the work is saved
-
-
-if __name__ == "__main__":
-    _main()

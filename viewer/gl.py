@@ -1,0 +1,654 @@
+"""The OpenGL drawing path: Open3D's legacy ``Visualizer`` (GLFW + OpenGL 3.3), used by the editor's 3D view and by
+every picture kpd draws.
+
+Why this path and not Open3D's Filament GUI: without a GPU both draw with Mesa's software rasteriser (llvmpipe), and
+measured on a 2-core machine under Xvfb the legacy renderer draws a 10k-vertex mesh with its keypoints in about 30 ms
+a frame and its first frame about 0.4 s after start, where a Filament frame takes 120-210 ms and its first frame
+24-38 s (shader compilation) when another process holds a core (``benchmarks/bench_viewer.py``).
+
+* :class:`ShadedMesh` -- a mesh ready to draw (one legacy ``TriangleMesh`` per texture). Its normals are recomputed
+  after every edit by :func:`shading_normals`: from welded positions (unwelded copies of a vertex shade alike) and with
+  each triangle turned towards the camera before averaging, i.e. two-sided lighting, so double-sided and flipped
+  triangles of CAD meshes come out cleanly shaded instead of in black and white blotches.
+* :class:`GLView` -- one window (visible for the editor, hidden for pictures) with named geometries that are updated
+  in place, a look-at camera (:class:`kpd.viewer.render.Camera`) and ``capture`` to an (H, W, 3) uint8 image.
+* :class:`RigDrawing` -- the geometries of one rig in a view: mesh, keypoint markers (selected ones larger), cage
+  wireframe, the rest shape as a ghost wireframe, keypoint numbers as camera-facing digits.
+* :func:`render_shots` -- pictures of several :class:`Shot` (meshes, keypoints, lines) with one hidden window.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+
+from kpd.errors import KpdError
+
+__all__ = ["GLView", "ShadedMesh", "RigDrawing", "Shot", "Layer", "render_shots", "shading_normals", "NoWindowError"]
+
+log = logging.getLogger(__name__)
+
+
+class NoWindowError(KpdError):
+    """No OpenGL window could be opened (no display, no GL driver)."""
+
+
+# --- normals ---------------------------------------------------------------------------------------------------------
+
+
+class _Welding:
+    """Vertices grouped by position, and the sparse map from triangles to the groups they touch."""
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
+        import scipy.sparse as sp
+
+        _, inverse = np.unique(np.ascontiguousarray(vertices), axis=0, return_inverse=True)
+        self.inverse = inverse.reshape(-1)  # (V,) group of each vertex
+        groups = int(self.inverse.max()) + 1 if len(vertices) else 0
+        t = len(triangles)
+        rows = self.inverse[triangles].reshape(-1)  # (3T,)
+        cols = np.repeat(np.arange(t), 3)
+        self.incidence = sp.csr_matrix((np.ones(3 * t), (rows, cols)), shape=(groups, t))  # (G, T)
+
+
+def shading_normals(vertices: np.ndarray, triangles: np.ndarray, eye: np.ndarray | None = None, *,
+                    welding: _Welding | None = None) -> np.ndarray:
+    """(V, 3) float64 unit vertex normals for drawing.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float64.
+    triangles : (T, 3) int64.
+    eye : (3,) the camera position: each triangle's normal is turned towards it before averaging (two-sided lighting),
+        so a surface shades the same whichever way its triangles wind. None keeps the winding.
+    welding : the vertex groups of these triangles (computed when not given): vertices at one position share a normal.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    welding = welding or _Welding(vertices, triangles)
+    a, b, c = vertices[triangles[:, 0]], vertices[triangles[:, 1]], vertices[triangles[:, 2]]
+    face = np.cross(b - a, c - a)  # (T, 3), length = twice the area
+    if eye is not None:
+        towards = np.asarray(eye, dtype=np.float64) - (a + b + c) / 3
+        face *= np.where(np.einsum("ij,ij->i", face, towards) < 0, -1.0, 1.0)[:, None]
+    grouped = welding.incidence @ face  # (G, 3)
+    length = np.linalg.norm(grouped, axis=1, keepdims=True)
+    grouped = np.where(length > 0, grouped / np.maximum(length, 1e-300), [[0.0, 0.0, 1.0]])
+    return grouped[welding.inverse]
+
+
+def camera_lights(camera: Any) -> np.ndarray:
+    """(2, 3) unit directions towards a key light (above left, in front) and a fill light (right), fixed to the
+    camera so that every view of a shape is lit alike."""
+    forward = np.asarray(camera.center, dtype=np.float64) - np.asarray(camera.eye, dtype=np.float64)
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, camera.up)
+    right /= max(np.linalg.norm(right), 1e-12)
+    up = np.cross(right, forward)
+    key = -0.55 * forward + 0.65 * up - 0.5 * right
+    fill = -0.6 * forward - 0.2 * up + 0.75 * right
+    return np.stack([key / np.linalg.norm(key), fill / np.linalg.norm(fill)])
+
+
+def shade(albedo: np.ndarray, normals: np.ndarray, camera: Any) -> np.ndarray:
+    """(N, 3) colours in [0, 1]: ``albedo`` (N, 3) lit by :func:`camera_lights` (ambient + Lambert) at ``normals``.
+
+    The renderer draws unlit (Open3D's legacy lights saturate on surfaces facing the camera and cannot be set from
+    Python), so shading is computed here, the same for every picture and the editor."""
+    lights = camera_lights(camera)
+    lambert = np.clip(np.asarray(normals) @ lights.T, 0.0, None)  # (N, 2)
+    light = 0.38 + 0.52 * lambert[:, 0] + 0.22 * lambert[:, 1]
+    return np.clip(np.asarray(albedo) * light[:, None], 0.0, 1.0)
+
+
+class ShadedMesh:
+    """A mesh as legacy Open3D geometries: one ``TriangleMesh`` per texture (or one for the whole mesh).
+
+    Parameters
+    ----------
+    mesh : kpd.io.Mesh (its colours, UVs and textures are drawn).
+    color : (3,) RGB in [0, 1] for a mesh with neither colours nor a texture (or to override them).
+    """
+
+    def __init__(self, mesh: Any, color: Sequence[float] = (0.80, 0.80, 0.82), *, override: bool = False) -> None:
+        import open3d as o3d
+
+        self.mesh = mesh
+        self.triangles = np.asarray(mesh.triangles, dtype=np.int64)
+        self.welding = _Welding(mesh.vertices, self.triangles)
+        self.parts: list[tuple[np.ndarray, Any]] = []  # (used vertex indices or None for all, TriangleMesh)
+        self._albedo: list[np.ndarray | None] = []  # per part: (Vp, 3) base colours to light, None for a texture
+        t = len(self.triangles)
+        textured = bool(mesh.textures) and mesh.triangle_uvs is not None and not override
+        ids = (mesh.triangle_material_ids if mesh.triangle_material_ids is not None else np.zeros(t, np.int64)) \
+            if textured else np.zeros(t, np.int64)
+        for material in np.unique(ids) if t else [0]:
+            chosen = np.flatnonzero(ids == material)
+            used = np.unique(self.triangles[chosen]) if len(chosen) else np.zeros(0, np.int64)
+            whole = len(used) == len(mesh.vertices)
+            part = o3d.geometry.TriangleMesh()
+            part.vertices = o3d.utility.Vector3dVector(mesh.vertices if whole else mesh.vertices[used])
+            local = self.triangles[chosen] if whole else np.searchsorted(used, self.triangles[chosen])
+            part.triangles = o3d.utility.Vector3iVector(local.astype(np.int32))
+            texture = mesh.textures[int(material)] if textured and 0 <= material < len(mesh.textures) else None
+            if texture is not None:
+                corners = (3 * chosen[:, None] + np.arange(3)).ravel()  # (3 Tp,)
+                uvs = np.array(mesh.triangle_uvs[corners], dtype=np.float64)
+                uvs[:, 1] = 1.0 - uvs[:, 1]  # the legacy renderer reads v from the top row down
+                part.triangle_uvs = o3d.utility.Vector2dVector(uvs)
+                image = np.ascontiguousarray(texture[:, :, :3] if texture.ndim == 3 else
+                                             np.repeat(texture[:, :, None], 3, axis=2))
+                part.textures = [o3d.geometry.Image(image)]
+                part.triangle_material_ids = o3d.utility.IntVector(np.zeros(len(chosen), np.int32))
+                albedo = None
+            elif mesh.vertex_colors is not None and not override:
+                albedo = np.asarray(mesh.vertex_colors if whole else mesh.vertex_colors[used], dtype=np.float64)
+            else:
+                albedo = np.tile(np.asarray(color, dtype=np.float64)[:3], (len(used), 1))
+            self.parts.append((None if whole else used, part))
+            self._albedo.append(albedo)
+
+    @property
+    def geometries(self) -> list[Any]:
+        return [part for _, part in self.parts]
+
+    def set_vertices(self, vertices: np.ndarray, camera: Any) -> None:
+        """New vertex positions (V, 3), shaded as ``camera`` sees them (normals turned towards it)."""
+        import open3d as o3d
+
+        vertices = np.asarray(vertices, dtype=np.float64)
+        normals = shading_normals(vertices, self.triangles, camera.eye, welding=self.welding)
+        for (used, part), albedo in zip(self.parts, self._albedo):
+            part.vertices = o3d.utility.Vector3dVector(vertices if used is None else vertices[used])
+            n = normals if used is None else normals[used]
+            part.vertex_normals = o3d.utility.Vector3dVector(n)
+            if albedo is not None:
+                part.vertex_colors = o3d.utility.Vector3dVector(shade(albedo, n, camera))
+
+
+# --- the window ----------------------------------------------------------------------------------------------------
+
+
+def _runtime_dir() -> None:
+    """GLFW and Mesa complain on stderr when $XDG_RUNTIME_DIR is unset; give them a private one."""
+    path = os.environ.get("XDG_RUNTIME_DIR")
+    if path and os.path.isdir(path):
+        return
+    os.environ["XDG_RUNTIME_DIR"] = tempfile.mkdtemp(prefix="kpd-xdg-")
+
+
+class GLView:
+    """One Open3D legacy window with named geometries and a look-at camera.
+
+    Parameters
+    ----------
+    width, height : the drawing area in pixels.
+    title : the window title.
+    visible : False for pictures (a hidden window; still needs an X display, real or a private Xvfb).
+    left, top : where a visible window opens on the screen.
+    background : RGB in [0, 1].
+    """
+
+    def __init__(self, width: int, height: int, *, title: str = "kpd", visible: bool = False, left: int = 40,
+                 top: int = 40, background: Sequence[float] = (1.0, 1.0, 1.0)) -> None:
+        import open3d as o3d
+
+        if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            raise NoWindowError("no display to open an OpenGL window on ($DISPLAY is not set): install Xvfb "
+                                "(apt-get install xvfb) for kpd render, or use --backend offscreen")
+        _runtime_dir()
+        self.width, self.height = int(width), int(height)
+        self.vis = o3d.visualization.VisualizerWithKeyCallback()
+        with _quiet_stderr():
+            ok = self.vis.create_window(title, self.width, self.height, int(left), int(top), bool(visible))
+        if not ok:
+            raise NoWindowError(f"could not open an OpenGL window on display {os.environ.get('DISPLAY')!r} (no GL "
+                                "driver?): install mesa (apt-get install libgl1-mesa-dri), or use --backend offscreen")
+        options = self.vis.get_render_option()
+        options.mesh_show_back_face = True  # flipped triangles of CAD meshes stay visible
+        options.background_color = np.asarray(background, dtype=np.float64)
+        options.light_on = False  # shaded by kpd (see shade): Open3D's legacy lights saturate facing the camera
+        options.point_size = 3.0
+        self._geometries: dict[str, Any] = {}
+        self._shown: dict[str, bool] = {}
+        self._boxed = False
+        self.camera: Any = None
+
+    # geometry
+
+    def put(self, name: str, geometry: Any, *, show: bool = True) -> None:
+        """Show ``geometry`` under ``name``: updated in place when it is the object already there, else replaced."""
+        old = self._geometries.get(name)
+        if old is geometry and self._shown.get(name):
+            if show:
+                self.vis.update_geometry(geometry)
+                return
+        if old is not None and self._shown.get(name):
+            self.vis.remove_geometry(old, reset_bounding_box=False)
+        self._geometries[name] = geometry
+        self._shown[name] = False
+        if show:
+            self._add(name)
+
+    def show(self, name: str, visible: bool) -> None:
+        if name not in self._geometries or self._shown[name] == visible:
+            return
+        if visible:
+            self._add(name)
+        else:
+            self.vis.remove_geometry(self._geometries[name], reset_bounding_box=False)
+            self._shown[name] = False
+
+    def remove(self, name: str) -> None:
+        self.show(name, False)
+        self._geometries.pop(name, None)
+        self._shown.pop(name, None)
+
+    def clear(self) -> None:
+        self.vis.clear_geometries()
+        self._geometries.clear()
+        self._shown.clear()
+        self._boxed = False
+
+    def _add(self, name: str) -> None:
+        # the first geometry sets the view's bounding box, which the renderer's near and far planes come from
+        self.vis.add_geometry(self._geometries[name], reset_bounding_box=not self._boxed)
+        self._boxed = True
+        self._shown[name] = True
+        if self.camera is not None:
+            self.set_camera(self.camera)
+
+    def set_box(self, vertices: np.ndarray) -> None:
+        """Make the view's bounding box (which sets the clipping planes) hold ``vertices`` (N, 3)."""
+        import open3d as o3d
+
+        lo, hi = np.min(vertices, axis=0), np.max(vertices, axis=0)
+        pad = 1.5 * (hi - lo).max()
+        box = o3d.geometry.LineSet()
+        box.points = o3d.utility.Vector3dVector(np.array([lo - pad, hi + pad]))
+        box.lines = o3d.utility.Vector2iVector(np.zeros((0, 2), np.int32))
+        self.vis.add_geometry(box, reset_bounding_box=True)
+        self.vis.remove_geometry(box, reset_bounding_box=False)
+        self._boxed = True
+
+    # camera
+
+    def set_camera(self, camera: Any) -> None:
+        """Look from ``camera.eye`` at ``camera.center`` with ``camera.up`` and vertical ``camera.fov``."""
+        import open3d as o3d
+
+        from kpd.viewer.render import look_at_matrix
+
+        self.camera = camera
+        view = look_at_matrix(camera)  # OpenGL: x right, y up, looking down -z
+        extrinsic = np.diag([1.0, -1.0, -1.0, 1.0]) @ view  # OpenCV: y down, looking down +z
+        focal = self.height / 2 / math.tan(math.radians(camera.fov) / 2)
+        intrinsic = o3d.camera.PinholeCameraIntrinsic(self.width, self.height, focal, focal, self.width / 2 - 0.5,
+                                                      self.height / 2 - 0.5)
+        params = o3d.camera.PinholeCameraParameters()
+        params.intrinsic, params.extrinsic = intrinsic, extrinsic
+        control = self.vis.get_view_control()
+        with _quiet_stderr():
+            control.convert_from_pinhole_camera_parameters(params, allow_arbitrary=True)
+
+    def matrices(self) -> tuple[np.ndarray, np.ndarray]:
+        """(4, 4) view and projection matrices (OpenGL conventions) of the camera as the renderer has it."""
+        from kpd.viewer.render import perspective_matrix
+
+        params = self.vis.get_view_control().convert_to_pinhole_camera_parameters()
+        view = np.diag([1.0, -1.0, -1.0, 1.0]) @ np.asarray(params.extrinsic, dtype=np.float64)
+        fy = float(np.asarray(params.intrinsic.intrinsic_matrix)[1, 1])
+        fov = math.degrees(2 * math.atan(self.height / 2 / fy))
+        near = max(1e-6, self.camera.near if self.camera is not None else 0.01)
+        far = self.camera.far if self.camera is not None else 100.0
+        return view, perspective_matrix(fov, self.width / self.height, near, far)
+
+    # drawing
+
+    def draw(self) -> None:
+        """Draw a frame now and show it (swap buffers)."""
+        self.vis.update_renderer()
+        self.vis.poll_events()
+
+    def capture(self) -> np.ndarray:
+        """(H, W, 3) uint8: the scene as drawn now."""
+        image = np.asarray(self.vis.capture_screen_float_buffer(do_render=True))
+        return np.clip(np.rint(image * 255), 0, 255).astype(np.uint8)[:, :, :3]
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.vis.destroy_window()
+
+
+@contextlib.contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """Send what native code prints on stderr (GLFW, Mesa) to the log instead of the terminal."""
+    if log.isEnabledFor(logging.DEBUG):
+        yield
+        return
+    import sys
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as sink:
+        try:
+            os.dup2(sink.fileno(), 2)
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            text = sink.read().decode("utf-8", "replace").strip()
+            if text:
+                log.debug("native code said: %s", text)
+
+
+# --- markers, lines, digits ----------------------------------------------------------------------------------------
+
+
+def _sphere(resolution: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    import open3d as o3d
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=resolution)
+    return np.asarray(sphere.vertices).copy(), np.asarray(sphere.triangles).copy()
+
+
+class Markers:
+    """Coloured spheres at points: one legacy TriangleMesh, updated in place."""
+
+    def __init__(self, colors: np.ndarray, radius: float) -> None:
+        import open3d as o3d
+
+        self.colors = np.asarray(colors, dtype=np.float64)
+        self.radius = float(radius)
+        self._v, self._t = _sphere()
+        n, k = len(self._v), len(self.colors)
+        self.geometry = o3d.geometry.TriangleMesh()
+        triangles = (self._t[None] + n * np.arange(k)[:, None, None]).reshape(-1, 3)
+        self.geometry.triangles = o3d.utility.Vector3iVector(triangles.astype(np.int32))
+        self.geometry.vertex_colors = o3d.utility.Vector3dVector(np.repeat(self.colors, n, axis=0))
+        self.geometry.vertex_normals = o3d.utility.Vector3dVector(np.tile(self._v, (k, 1)))
+        self._lit_for: np.ndarray | None = None
+
+    def set(self, points: np.ndarray, scales: np.ndarray | None = None, camera: Any = None) -> None:
+        import open3d as o3d
+
+        if camera is not None and (self._lit_for is None or not np.allclose(self._lit_for, camera.eye)):
+            # brighter than the mesh (ambient 0.55): markers must stand out, and keep their palette colour
+            lambert = np.clip(self._v @ camera_lights(camera).T, 0.0, None)
+            light = np.clip(0.6 + 0.45 * lambert[:, 0] + 0.1 * lambert[:, 1], 0.0, 1.15)  # (n,)
+            colors = np.clip(self.colors[:, None, :] * light[None, :, None], 0.0, 1.0).reshape(-1, 3)
+            self.geometry.vertex_colors = o3d.utility.Vector3dVector(colors)
+            self._lit_for = np.asarray(camera.eye, dtype=np.float64).copy()
+
+        points = np.asarray(points, dtype=np.float64)
+        scales = np.ones(len(points)) if scales is None else np.asarray(scales, dtype=np.float64)
+        vertices = points[:, None, :] + (self.radius * scales)[:, None, None] * self._v[None]  # (K, n, 3)
+        self.geometry.vertices = o3d.utility.Vector3dVector(vertices.reshape(-1, 3))
+
+
+def line_set(points: np.ndarray, edges: np.ndarray, color: Sequence[float]) -> Any:
+    import open3d as o3d
+
+    lines = o3d.geometry.LineSet()
+    lines.points = o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64))
+    lines.lines = o3d.utility.Vector2iVector(np.asarray(edges, dtype=np.int32).reshape(-1, 2))
+    lines.colors = o3d.utility.Vector3dVector(np.tile(np.asarray(color, dtype=np.float64), (len(lines.lines), 1)))
+    return lines
+
+
+def mesh_edges(triangles: np.ndarray, limit: int = 60000) -> np.ndarray:
+    """(E, 2) unique undirected edges of triangles (T, 3), thinned to at most ``limit`` (a ghost or x-ray wireframe)."""
+    triangles = np.asarray(triangles, dtype=np.int64)
+    edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    edges = np.unique(np.sort(edges, axis=1), axis=0)
+    if len(edges) > limit:
+        edges = edges[np.linspace(0, len(edges) - 1, limit).astype(np.int64)]
+    return edges
+
+
+class Digits:
+    """Keypoint numbers as flat, camera-facing digit glyphs on a white card (legacy OpenGL draws no text)."""
+
+    def __init__(self, colors: np.ndarray, height: float) -> None:
+        import open3d as o3d
+
+        from kpd.viewer.render import _GLYPHS
+
+        self.colors = np.asarray(colors, dtype=np.float64)
+        self.height = float(height)  # world height of a digit
+        self.geometry = o3d.geometry.TriangleMesh()
+        cells, colors_, cards = [], [], []
+        for i in range(len(self.colors)):
+            text = str(i)
+            columns = 6 * len(text) - 1
+            cards.append((i, columns))
+            for j, ch in enumerate(text):
+                rows, cols = np.nonzero(_GLYPHS[ch])
+                for r, c in zip(rows, cols):
+                    cells.append((i, 6 * j + c, 6 - r))  # (label, column, row from the bottom)
+                    colors_.append(0.75 * self.colors[i])
+        self._cells = np.array(cells, dtype=np.float64).reshape(-1, 3)
+        self._cards = np.array(cards, dtype=np.float64).reshape(-1, 2)
+        n_cells, n_cards = len(self._cells), len(self._cards)
+        quads = np.arange(4 * (n_cells + n_cards)).reshape(-1, 4)
+        triangles = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+        self.geometry.triangles = o3d.utility.Vector3iVector(triangles.astype(np.int32))
+        ink = np.repeat(np.array(colors_).reshape(-1, 3), 4, axis=0)
+        white = np.ones((4 * n_cards, 3))
+        self.geometry.vertex_colors = o3d.utility.Vector3dVector(np.vstack([ink, white]))
+
+    def set(self, anchors: np.ndarray, camera: Any) -> None:
+        """Place label i's lower-left corner at ``anchors[i]`` (K, 3), facing ``camera``."""
+        import open3d as o3d
+
+        forward = camera.center - camera.eye
+        forward = forward / np.linalg.norm(forward)
+        right = np.cross(forward, camera.up)
+        right /= max(np.linalg.norm(right), 1e-12)
+        up = np.cross(right, forward)
+        cell = self.height / 7
+        corners = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float64)  # (4, 2)
+        anchors = np.asarray(anchors, dtype=np.float64)
+        toward = -forward * 0.02 * self.height
+        label, col, row = self._cells.T.astype(np.int64) if len(self._cells) else (np.zeros(0, int),) * 3
+        grid = np.stack([col, row], axis=1)[:, None, :] + corners[None]  # (n, 4, 2)
+        ink = anchors[label][:, None, :] + cell * (grid[..., :1] * right + grid[..., 1:] * up) + toward
+        k, columns = self._cards[:, 0].astype(np.int64), self._cards[:, 1]
+        box = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
+        extent = np.stack([columns + 1, np.full_like(columns, 8.0)], axis=1)[:, None, :]  # (c, 1, 2)
+        low = np.array([[-1.0, -1.0]])
+        card_grid = np.where(box[None] < 0, low[None], extent)  # (c, 4, 2)
+        cards = anchors[k][:, None, :] + cell * (card_grid[..., :1] * right + card_grid[..., 1:] * up)
+        vertices = np.vstack([ink.reshape(-1, 3), cards.reshape(-1, 3)])
+        self.geometry.vertices = o3d.utility.Vector3dVector(vertices)
+        self.geometry.vertex_normals = o3d.utility.Vector3dVector(np.tile(-forward, (len(vertices), 1)))
+
+
+# --- a rig in a view -------------------------------------------------------------------------------------------------
+
+
+class RigDrawing:
+    """The geometries of one rig being edited, in a :class:`GLView`.
+
+    Parameters
+    ----------
+    view : GLView.
+    mesh : kpd.io.Mesh, the rest mesh in user units.
+    num_keypoints : K.
+    cage_faces : (F, 3) or None.
+    settings : kpd.viewer.render.ViewSettings.
+    digits : draw the keypoint numbers as camera-facing glyphs (the editor); pictures draw them into the image.
+    """
+
+    def __init__(self, view: GLView, mesh: Any, num_keypoints: int, cage_faces: Any = None, *, settings: Any,
+                 digits: bool = True) -> None:
+        from kpd.viewer.render import cage_edges, keypoint_palette
+
+        self.view, self.mesh, self.settings = view, mesh, settings
+        self.num_keypoints = int(num_keypoints)
+        self.colors = keypoint_palette(self.num_keypoints)
+        lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+        self.diagonal = float(np.linalg.norm(hi - lo)) or 1.0
+        self.shaded = ShadedMesh(mesh, settings.mesh_color)
+        self.markers = Markers(self.colors, self.marker_radius)
+        self.cage_edges = None if cage_faces is None else cage_edges(cage_faces)
+        self._edges = None
+        self.digits = Digits(self.colors, 1.5 * self.marker_radius) if digits else None
+        self.frame: Any = None
+        self._eye: np.ndarray | None = None
+
+    @property
+    def marker_radius(self) -> float:
+        return self.settings.keypoint_size * self.diagonal
+
+    def label_anchors(self, keypoints: np.ndarray, camera: Any) -> np.ndarray:
+        """(K, 3) lower-left corners of the numbers: up and to the right of each marker as the camera sees it."""
+        forward = camera.center - camera.eye
+        forward = forward / np.linalg.norm(forward)
+        right = np.cross(forward, camera.up)
+        right /= max(np.linalg.norm(right), 1e-12)
+        up = np.cross(right, forward)
+        r = self.marker_radius
+        return np.asarray(keypoints) + 1.1 * r * right + 0.9 * r * up
+
+    def _wire(self) -> np.ndarray:
+        if self._edges is None:
+            self._edges = mesh_edges(self.mesh.triangles)
+        return self._edges
+
+    def show(self, frame: Any, camera: Any, *, mesh: bool = True) -> None:
+        """Put ``frame`` (a kpd.viewer.render.Frame) in the view as ``camera`` sees it."""
+        s, view = self.settings, self.view
+        view.camera = camera
+        eye = np.asarray(camera.eye, dtype=np.float64)
+        moved_eye = self._eye is None or not np.allclose(eye, self._eye)
+        if mesh or moved_eye or self.frame is None:
+            self.shaded.set_vertices(frame.vertices, camera)
+            self._eye = eye.copy()
+            for i, part in enumerate(self.shaded.geometries):
+                view.put(f"mesh:{i}", part, show=not s.xray)
+            if s.xray:
+                view.put("xray", line_set(frame.vertices, self._wire(), (0.45, 0.45, 0.5)))
+            else:
+                view.remove("xray")
+        keypoints = np.asarray(frame.keypoints, dtype=np.float64)
+        selected = np.zeros(self.num_keypoints, bool)
+        selected[[i for i in frame.selection if 0 <= i < self.num_keypoints]] = True
+        self.markers.set(keypoints, np.where(selected, 1.6, 1.0), camera)
+        view.put("keypoints", self.markers.geometry, show=s.show_keypoints)
+        if self.digits is not None:
+            self.digits.set(self.label_anchors(keypoints, camera), camera)
+            view.put("numbers", self.digits.geometry, show=s.show_keypoints and s.show_labels)
+        if self.cage_edges is not None and frame.cage is not None and s.show_cage:
+            view.put("cage", line_set(frame.cage, self.cage_edges, s.cage_color))
+        else:
+            view.remove("cage")
+        if s.show_ghost:
+            if "ghost" not in view._geometries:
+                view.put("ghost", line_set(self.mesh.vertices, self._wire(), s.ghost_color[:3]))
+            view.show("ghost", True)
+        else:
+            view.show("ghost", False)
+        self.frame = frame
+        view.set_camera(camera)
+
+
+# --- pictures ------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Layer:
+    """One mesh of a picture: drawn shaded (``style="solid"``), as a wireframe (``"wire"``) or as points."""
+
+    mesh: Any  # kpd.io.Mesh, or (N, 3) points for style "points"
+    color: tuple | None = None  # None: the mesh's own colours or texture, else plain grey
+    style: str = "solid"
+
+
+@dataclass
+class Shot:
+    """What one picture shows: layers, keypoints (numbered markers), the camera (framing all of it by default)."""
+
+    layers: list = field(default_factory=list)
+    keypoints: np.ndarray | None = None  # (K, 3)
+    selection: tuple = ()
+    lines: list = field(default_factory=list)  # [(points (P, 3), edges (E, 2), color)]
+    camera: Any = None
+
+
+def frame_points(shot: Shot) -> np.ndarray:
+    """(N, 3): everything a shot shows, for framing the camera on it."""
+    parts = []
+    for layer in shot.layers:
+        parts.append(np.asarray(layer.mesh.vertices if hasattr(layer.mesh, "vertices") else layer.mesh))
+    if shot.keypoints is not None:
+        parts.append(np.asarray(shot.keypoints))
+    for points, _, _ in shot.lines:
+        parts.append(np.asarray(points))
+    return np.vstack(parts)
+
+
+def render_shots(shots: Sequence[Shot], settings: Any, *, view: GLView | None = None,
+                 keypoint_radius: float | None = None) -> list[np.ndarray]:
+    """Draw each shot with one hidden window; a list of (H, W, 3) uint8 with the keypoint numbers drawn in.
+
+    The caller provides the display (``private_display`` for no screen); ``view`` reuses an open window.
+    """
+    import open3d as o3d
+
+    from kpd.viewer.render import camera_pose, keypoint_palette, label_image_at
+
+    own = view is None
+    view = view or GLView(settings.width, settings.height, background=settings.background)
+    images = []
+    try:
+        for shot in shots:
+            view.clear()
+            points = frame_points(shot)
+            camera = shot.camera or camera_pose(points, settings)
+            view.set_box(points)
+            view.camera = camera
+            diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) or 1.0
+            for i, layer in enumerate(shot.layers):
+                if layer.style == "points":
+                    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(layer.mesh, np.float64)))
+                    cloud.paint_uniform_color(np.asarray(layer.color or (0.3, 0.3, 0.3), dtype=np.float64))
+                    view.put(f"layer:{i}", cloud)
+                elif layer.style == "wire":
+                    view.put(f"layer:{i}", line_set(layer.mesh.vertices, mesh_edges(layer.mesh.triangles),
+                                                    layer.color or (0.3, 0.3, 0.3)))
+                else:
+                    shaded = ShadedMesh(layer.mesh, layer.color or settings.mesh_color,
+                                        override=layer.color is not None)
+                    shaded.set_vertices(layer.mesh.vertices, camera)
+                    for j, part in enumerate(shaded.geometries):
+                        view.put(f"layer:{i}:{j}", part)
+            for i, (points_, edges, color) in enumerate(shot.lines):
+                view.put(f"lines:{i}", line_set(points_, edges, color))
+            radius = None
+            if shot.keypoints is not None and settings.show_keypoints:
+                k = len(shot.keypoints)
+                radius = keypoint_radius or settings.keypoint_size * diagonal
+                markers = Markers(keypoint_palette(k), radius)
+                scales = np.ones(k)
+                scales[[i for i in shot.selection if 0 <= i < k]] = 1.6
+                markers.set(shot.keypoints, scales, camera)
+                view.put("keypoints", markers.geometry)
+            view.set_camera(camera)
+            image = view.capture()
+            if radius is not None and settings.show_labels:
+                image = label_image_at(image, shot.keypoints, radius, camera)
+            images.append(image)
+    finally:
+        if own:
+            view.close()
+    return images
+
