@@ -1,23 +1,28 @@
-"""The keypoint editor: an Open3D window in which keypoints are picked and dragged and the mesh deforms live.
+"""The keypoint editor: a 3D view in which keypoints are picked and dragged and the mesh deforms live, and a panel.
 
-:class:`EditorApp` owns the window (STYLE.md, "the editor is an app class"): widgets are attributes, callbacks are
-``_on_<event>`` methods, the UI state is one :class:`~kpd.viewer.render.ViewSettings` applied in
-:meth:`EditorApp._apply_settings`. Deformation stays in :class:`kpd.rig.Rig` and the edit history in
-:class:`~kpd.viewer.session.EditSession`; the app only turns gestures into keypoint edits.
+:class:`EditorApp` owns its windows (STYLE.md, "the editor is an app class"): the 3D view is an Open3D legacy OpenGL
+window (:class:`kpd.viewer.gl.GLView`, fast with software rendering), the panel a Tk window beside it (checkboxes,
+buttons, the PCA sliders). Callbacks are ``_on_<event>`` methods, the UI state is one
+:class:`~kpd.viewer.render.ViewSettings` applied in :meth:`EditorApp._apply_settings`. Deformation stays in
+:class:`kpd.rig.Rig` and the edit history in :class:`~kpd.viewer.session.EditSession`.
+
+Input is never blocked behind drawing. The loop takes every pending input first (window system events of both
+windows), then draws at most one frame of the newest state: mouse moves of a drag are coalesced to the latest
+position, keys are applied as they arrive, and nothing is drawn while nothing changed.
 
 Mouse and keys (also listed in the panel):
 
 * left click on a keypoint: select it; shift + click: add it to (or take it out of) the selection;
   left drag from a selected keypoint: move the selection in the plane facing the camera (the mesh follows live);
-  left drag elsewhere: orbit, wheel: zoom, right/middle drag: pan (Open3D's camera controls).
+  left drag elsewhere: orbit; right drag: pan; wheel: zoom.
 * arrow keys: nudge the selection right/left/up/down on screen; page up / page down: towards / away from the camera.
 * U (or Ctrl+Z): undo; Y (or Ctrl+Y): redo; R: reset; S: save the deformed mesh; J: save the session (JSON);
   L: load the session; P: screenshot (PNG); T: the prior on/off; Esc: clear the selection.
 
 With ``events=PATH`` the app appends one JSON object per line for each thing it does (``ready`` with the camera
-matrices and the 3D view's place in the window, ``select``, ``drag``, ``release``, ``nudge``, ``undo``, ``redo``,
-``reset``, ``save``...), each with the selection and the current keypoints, so scripts and tests can follow the
-window without reading pixels.
+matrices, the 3D view's place on the screen and the sliders', ``input`` for each mouse or key event received,
+``frame`` for each frame drawn with the newest input it shows, ``select``, ``drag``, ``release``, ``nudge``, ``undo``,
+``redo``, ``reset``, ``save``...), so scripts, tests and the benchmark can follow the window without reading pixels.
 """
 
 from __future__ import annotations
@@ -33,39 +38,45 @@ from typing import Any
 import numpy as np
 
 from kpd.errors import InputError, KpdError
-from kpd.viewer.render import (
-    Frame, RigScene, ViewSettings, add_fill_light, camera_pose, label_image, pixel_ray, plane_hit, project, write_png,
-)
+from kpd.viewer.render import Camera, Frame, ViewSettings, camera_pose, pixel_ray, plane_hit, project, write_png
 from kpd.viewer.session import EditSession, component_offsets, propose
 
 __all__ = ["EditorApp", "PANEL_WIDTH"]
 
 log = logging.getLogger(__name__)
 
-PANEL_WIDTH = 300  # pixels at scaling 1
+PANEL_WIDTH = 300  # pixels
 _PICK_PIXELS = 14.0  # a click this close to a marker's centre picks it
 _MAX_SLIDERS = 8
+_LEFT, _TOP = 0, 0  # where the 3D view opens on the screen; the panel opens to its right
+
+# GLFW key codes and modifiers (https://www.glfw.org/docs/latest/group__keys.html)
+_KEYS = {"right": 262, "left": 263, "down": 264, "up": 265, "page_up": 266, "page_down": 267, "escape": 256}
+_SHIFT, _CTRL = 0x0001, 0x0002
+_PRESS, _RELEASE, _REPEAT = 1, 0, 2
 
 
 class EditorApp:
-    """The editor window for one rig.
+    """The editor windows for one rig.
 
     Parameters
     ----------
     rig : kpd.rig.Rig, the shape to edit (mesh in its own units).
     prior : kpd.prior.KeypointPrior or None: enables the "prior" toggle and the PCA sliders.
-    settings : ViewSettings (window size of the 3D view, what to show, the prior toggle, the nudge step).
+    settings : ViewSettings (size of the 3D view, what to show, the prior toggle, the nudge step).
     out : where "save mesh" writes the deformed mesh; None disables saving.
     session_path : where "save session" writes and "load session" reads (JSON).
     screenshot_path : screenshots go to this path with a running number before the suffix.
     events : a JSON-lines file to append events to, or None.
-    title : the window title.
+    title : the window title (the panel's is the same with " - panel").
+    force : let "save mesh" and "save session" replace existing files.
     """
 
     def __init__(self, rig: Any, *, prior: Any = None, settings: ViewSettings | None = None,
                  out: str | os.PathLike | None = None, session_path: str | os.PathLike | None = None,
                  screenshot_path: str | os.PathLike | None = None, events: str | os.PathLike | None = None,
-                 title: str = "kpd view", initial_session: str | os.PathLike | None = None) -> None:
+                 title: str = "kpd view", initial_session: str | os.PathLike | None = None,
+                 force: bool = False) -> None:
         if prior is not None and prior.num_keypoints != rig.num_keypoints:
             raise InputError(f"the model's prior has {prior.num_keypoints} keypoints; the rig has {rig.num_keypoints}")
         self.rig = rig
@@ -75,176 +86,189 @@ class EditorApp:
         self.session_path = None if session_path is None else Path(session_path)
         self.screenshot_path = Path(screenshot_path) if screenshot_path is not None else Path("kpd_view.png")
         self.title = title
+        self.force = force
         self.session = EditSession(rig.keypoints)
         if initial_session is not None:
             self.session.load(initial_session)
         self.selection: list[int] = []
         self._events = None if events is None else Path(events)
+        self._event_file: Any = None
         self._drag: dict | None = None
+        self._orbit: dict | None = None
+        self._pending_move: tuple[float, float] | None = None
         self._gesture = 0
         self._shots = 0
         self._sigmas = np.zeros(0)
         self._slider_base = self.session.keypoints
-        self._ctrl = False
+        self._quiet_sliders = False
         self._buffer = np.empty_like(rig.mesh.vertices)
-        self._labels: list[Any] = []
+        self._inputs = 0  # input events received
+        self._dirty_mesh = True
+        self._dirty = True
+        self._frames = 0
+        self._running = False
+        self._mouse = (0.0, 0.0)
+        self._mods = 0
+        self._message_text = ""
 
-    # --- window --------------------------------------------------------------------------------------------------
+    # --- windows ---------------------------------------------------------------------------------------------
 
     def run(self) -> int:
-        """Open the window and run until it is closed; returns 0."""
-        import open3d.visualization.gui as gui
-
-        app = gui.Application.instance
-        app.initialize()
-        self._build(app)
-        app.run()
+        """Open the windows and run until the 3D view or the panel is closed; returns 0."""
+        self._build()
+        try:
+            self._loop()
+        finally:
+            self._close()
         return 0
 
-    def _build(self, app: Any) -> None:
-        import open3d.visualization.gui as gui
-        import open3d.visualization.rendering as rendering
+    def _build(self) -> None:
+        from kpd.viewer.gl import GLView, RigDrawing
 
         s = self.settings
-        self.app = app
-        self.window = app.create_window(self.title, s.width + PANEL_WIDTH, s.height)
-        w = self.window
-        em = w.theme.font_size
-        self.widget = gui.SceneWidget()
-        self.widget.scene = rendering.Open3DScene(w.renderer)
-        self.widget.set_on_mouse(self._on_mouse)
-        w.add_child(self.widget)
-        self._build_panel(gui, em)
-        w.set_on_layout(self._on_layout)
-        w.set_on_key(self._on_key)
-        w.set_on_close(self._on_close)
-        self.scene = RigScene(self.rig.mesh, self.rig.num_keypoints, self.rig.cage.faces, settings=s)
-        self.scene.attach(self.widget.scene, self._frame())
-        self.widget.scene.view.set_post_processing(False)
-        self.widget.scene.set_lighting(rendering.Open3DScene.LightingProfile.NO_SHADOWS, _sun(s))
-        add_fill_light(self.widget.scene, _sun(s))
-        self._camera = camera_pose(self.rig.mesh.vertices, s)
-        self._reset_camera()
-        self._make_labels()
-        self._apply_settings()
-        self._ready_pending = True
-        w.set_on_tick_event(self._on_tick)
+        self._started = time.time()
+        self.view = GLView(s.width, s.height, title=self.title, visible=True, left=_LEFT, top=_TOP,
+                           background=s.background)
+        self.drawing = RigDrawing(self.view, self.rig.mesh, self.rig.num_keypoints, self.rig.cage.faces, settings=s)
+        rest = self.rig.mesh.vertices
+        self.view.set_box(rest)
+        self._home = camera_pose(rest, s)
+        self.camera = self._home
+        vis = self.view.vis
+        vis.register_mouse_button_callback(self._on_mouse_button)
+        vis.register_mouse_move_callback(self._on_mouse_move)
+        vis.register_mouse_scroll_callback(self._on_scroll)
+        for code in self._key_codes():
+            vis.register_key_action_callback(code, lambda _vis, action, mods, code=code:
+                                             self._on_key(code, action, mods))
+        self._build_panel()
+        self._show()
+        self._draw()
+        self._emit("ready")
 
-    def _build_panel(self, gui: Any, em: float) -> None:
-        margin = gui.Margins(0.5 * em, 0.5 * em, 0.5 * em, 0.5 * em)
-        panel = gui.ScrollableVert(0.3 * em, margin)
-        self.panel = panel
-        panel.add_child(gui.Label(f"{self.title}\n{self.rig.num_keypoints} keypoints, "
-                                  f"{len(self.rig.mesh.vertices)} vertices"))
+    def _key_codes(self) -> list[int]:
+        # every letter, digit and the keys used: unregistered keys would reach Open3D's own viewer shortcuts
+        return [*range(ord("A"), ord("Z") + 1), *range(ord("0"), ord("9") + 1), *_KEYS.values(),
+                ord("-"), ord("="), ord("["), ord("]"), ord("."), ord(","), ord("/")]
 
-        show = gui.CollapsableVert("Show", 0.25 * em, gui.Margins(em, 0, 0, 0))
-        self.show_keypoints = gui.Checkbox("keypoints")
-        self.show_labels = gui.Checkbox("numbers")
-        self.show_cage = gui.Checkbox("cage (wireframe)")
-        self.show_ghost = gui.Checkbox("original shape (ghost)")
-        self.xray = gui.Checkbox("see-through mesh")
-        for box, name in ((self.show_keypoints, "show_keypoints"), (self.show_labels, "show_labels"),
-                          (self.show_cage, "show_cage"), (self.show_ghost, "show_ghost"), (self.xray, "xray")):
-            box.checked = getattr(self.settings, name)
-            box.set_on_checked(lambda checked, name=name: self._on_setting(name, checked))
-            show.add_child(box)
-        panel.add_child(show)
+    def _build_panel(self) -> None:
+        import tkinter as tk
 
-        edit = gui.CollapsableVert("Edit", 0.25 * em, gui.Margins(em, 0, 0, 0))
-        self.prior_box = gui.Checkbox("prior (others follow the category)")
-        self.prior_box.checked = self.settings.prior and self.prior is not None
-        self.prior_box.enabled = self.prior is not None
-        self.prior_box.set_on_checked(lambda checked: self._on_setting("prior", checked))
-        edit.add_child(self.prior_box)
-        row = gui.Horiz(0.25 * em)
-        row.add_child(gui.Label("nudge step"))
-        self.step = gui.NumberEdit(gui.NumberEdit.DOUBLE)
-        self.step.double_value = self.settings.nudge_step
-        self.step.set_limits(1e-4, 0.5)
-        self.step.set_on_value_changed(lambda value: self._on_setting("nudge_step", float(value)))
-        row.add_child(self.step)
-        edit.add_child(row)
+        s = self.settings
+        root = tk.Tk()
+        self.root = root
+        root.title(f"{self.title} - panel")
+        root.geometry(f"{PANEL_WIDTH}x{max(s.height, 520)}+{_LEFT + s.width + 8}+{_TOP}")
+        root.protocol("WM_DELETE_WINDOW", self._on_panel_close)
+        pad = {"padx": 6, "pady": 1, "anchor": "w"}
+        tk.Label(root, text=f"{self.title}\n{self.rig.num_keypoints} keypoints, {len(self.rig.mesh.vertices)} vertices",
+                 justify="left").pack(**pad)
+        tk.Label(root, text="Show", font=("TkDefaultFont", 10, "bold")).pack(**pad)
+        self._checks: dict[str, Any] = {}
+        for name, text in (("show_keypoints", "keypoints"), ("show_labels", "numbers"),
+                           ("show_cage", "cage (wireframe)"), ("show_ghost", "original shape (ghost)"),
+                           ("xray", "see-through mesh (wireframe)")):
+            var = tk.BooleanVar(value=getattr(s, name))
+            tk.Checkbutton(root, text=text, variable=var,
+                           command=lambda name=name, var=var: self._on_setting(name, bool(var.get()))).pack(**pad)
+            self._checks[name] = var
+        tk.Label(root, text="Edit", font=("TkDefaultFont", 10, "bold")).pack(**pad)
+        var = tk.BooleanVar(value=bool(s.prior and self.prior is not None))
+        self.prior_box = tk.Checkbutton(root, text="prior (others follow the category)", variable=var,
+                                        command=lambda: self._on_setting("prior", bool(self._checks["prior"].get())),
+                                        state="normal" if self.prior is not None else "disabled")
+        self.prior_box.pack(**pad)
+        self._checks["prior"] = var
+        row = tk.Frame(root)
+        tk.Label(row, text="nudge step").pack(side="left")
+        self.step = tk.Spinbox(row, from_=0.001, to=0.5, increment=0.005, width=7,
+                               command=lambda: self._on_step(self.step.get()))
+        self.step.delete(0, "end")
+        self.step.insert(0, f"{s.nudge_step:g}")
+        self.step.bind("<Return>", lambda _e: self._on_step(self.step.get()))
+        self.step.pack(side="left")
+        row.pack(**pad)
         buttons = [("Undo (U)", self._on_undo), ("Redo (Y)", self._on_redo), ("Reset (R)", self._on_reset),
                    ("Save mesh (S)", self._on_save), ("Save session (J)", self._on_save_session),
                    ("Load session (L)", self._on_load_session), ("Screenshot (P)", self._on_screenshot)]
         for i in range(0, len(buttons), 2):
-            row = gui.Horiz(0.25 * em)
+            row = tk.Frame(root)
             for text, callback in buttons[i:i + 2]:
-                button = gui.Button(text)
-                button.horizontal_padding_em = 0.3
-                button.set_on_clicked(callback)
-                row.add_child(button)
-            edit.add_child(row)
-        panel.add_child(edit)
-
-        self.sliders = []
-        self.pca_panel = None
+                tk.Button(row, text=text, width=14, command=lambda c=callback: self._input_then(c)).pack(side="left")
+            row.pack(**pad)
+        self.sliders: list[Any] = []
         if self.prior is not None:
-            # a plain Vert pinned under the scrolling panel: inside a ScrollableVert, Open3D draws a slider's track in
-            # the panel's own colour, and only the thumb would show
             count = min(len(self.prior.components_), _MAX_SLIDERS)
-            self.pca_panel = gui.Vert(0.25 * em, margin)
-            self.pca_panel.add_child(gui.Label("Category (PCA, std. dev.)"))
             self._sigmas = np.zeros(len(self.prior.components_))
-            grid = gui.VGrid(2, 0.25 * em)
+            tk.Label(root, text="Category (PCA, std. dev.)", font=("TkDefaultFont", 10, "bold")).pack(**pad)
             for m in range(count):
-                grid.add_child(gui.Label(f"{m + 1}"))
-                slider = gui.Slider(gui.Slider.DOUBLE)
-                slider.set_limits(-3.0, 3.0)
-                slider.double_value = 0.0
-                slider.set_on_value_changed(lambda value, m=m: self._on_slider(m, value))
-                grid.add_child(slider)
+                row = tk.Frame(root)
+                tk.Label(row, text=f"{m + 1}", width=2).pack(side="left")
+                slider = tk.Scale(row, from_=-3.0, to=3.0, resolution=0.01, orient="horizontal", length=230,
+                                  showvalue=False, sliderlength=18,
+                                  command=lambda value, m=m: self._on_slider(m, float(value)))
+                slider.pack(side="left")
+                row.pack(**pad)
                 self.sliders.append(slider)
-            self.pca_panel.add_child(grid)
+        tk.Label(root, justify="left", text="click: select   shift+click: add\n"
+                                            "drag a keypoint: move it\n"
+                                            "drag elsewhere: orbit   right drag: pan\n"
+                                            "wheel: zoom   arrows, PgUp/PgDn: nudge\n"
+                                            "U undo  Y redo  R reset  T prior\n"
+                                            "S save mesh  J/L session  P shot").pack(**pad)
+        self.status = tk.Label(root, text="", justify="left", anchor="w")
+        self.status.pack(**pad)
+        keys = {"u": self._on_undo, "y": self._on_redo, "r": self._on_reset, "s": self._on_save,
+                "j": self._on_save_session, "l": self._on_load_session, "p": self._on_screenshot,
+                "t": lambda: self._on_setting("prior", not self.settings.prior), "Escape": self._on_clear}
+        for key, action in keys.items():
+            root.bind(f"<KeyPress-{key}>", lambda _e, a=action: self._input_then(a))
+        root.update()
+        self._update_status()
 
-        panel.add_child(gui.Label("click: select   shift+click: add\n"
-                                  "drag a keypoint: move it\n"
-                                  "drag elsewhere: orbit   wheel: zoom\n"
-                                  "arrows, PgUp/PgDn: nudge\n"
-                                  "U undo  Y redo  R reset  T prior\n"
-                                  "S save mesh  J/L session  P shot"))
-        self.status = gui.Label("")
-        panel.add_child(self.status)
-        self.window.add_child(panel)
-        if self.pca_panel is not None:
-            self.window.add_child(self.pca_panel)
+    def _input_then(self, action: Any) -> None:
+        self._inputs += 1
+        self._emit("input", kind="panel")
+        action()
 
-    def _on_layout(self, context: Any) -> None:
-        import open3d.visualization.gui as gui
+    def _loop(self) -> None:
+        self._running = True
+        vis = self.view.vis
+        while self._running:
+            if not vis.poll_events():  # window-system events of the 3D view: the callbacks only record them
+                break
+            self.root.update()  # the panel's events
+            if not self._running:
+                break
+            self._apply_pending()
+            if self._dirty:
+                self._draw()
+            else:
+                time.sleep(0.004)
 
-        r = self.window.content_rect
-        width = int(round(PANEL_WIDTH * self.window.scaling))
-        self.widget.frame = gui.Rect(r.x, r.y, max(r.width - width, 1), r.height)
-        below = 0
-        if self.pca_panel is not None:
-            below = min(self.pca_panel.calc_preferred_size(context, gui.Widget.Constraints()).height, r.height // 2)
-            self.pca_panel.frame = gui.Rect(r.get_right() - width, r.get_bottom() - below, width, below)
-        self.panel.frame = gui.Rect(r.get_right() - width, r.y, width, r.height - below)
-        self._set_projection()
+    def _draw(self) -> None:
+        """Draw the newest state: one frame, whatever number of inputs it answers."""
+        started = time.perf_counter()
+        serial = self._inputs
+        self._show(mesh=self._dirty_mesh)
+        self._dirty = self._dirty_mesh = False
+        self.view.draw()
+        self._frames += 1
+        self._emit("frame", serial=serial, draw_ms=round(1000 * (time.perf_counter() - started), 3),
+                   frame=self._frames)
 
-    def _reset_camera(self) -> None:
-        c = self._camera
-        self.widget.look_at(c.center.astype(np.float32), c.eye.astype(np.float32), c.up.astype(np.float32))
-        self.widget.center_of_rotation = c.center.astype(np.float32)
-        self._set_projection()
-
-    def _set_projection(self) -> None:
-        import open3d.visualization.rendering as rendering
-
-        frame = self.widget.frame
-        aspect = frame.width / max(frame.height, 1) if frame.width > 1 else self.settings.width / self.settings.height
-        c = self._camera
-        self.widget.scene.camera.set_projection(c.fov, aspect, c.near, c.far, rendering.Camera.FovType.Vertical)
-
-    def _on_tick(self) -> bool:
-        if self._ready_pending and self.widget.frame.width > 1:
-            self._ready_pending = False
-            self._emit("ready")
-        return False
-
-    def _on_close(self) -> bool:
+    def _close(self) -> None:
         self._emit("close")
-        return True
+        try:
+            self.root.destroy()
+        except Exception:  # noqa: BLE001 - the panel may be gone already
+            pass
+        self.view.close()
+        if self._event_file is not None:
+            self._event_file.close()
+
+    def _on_panel_close(self) -> None:
+        self._running = False
 
     # --- the scene --------------------------------------------------------------------------------------------
 
@@ -253,52 +277,23 @@ class EditorApp:
         vertices = self.rig.deform(keypoints, out=self._buffer)
         return Frame(vertices, keypoints, self.rig.deform_cage(keypoints), tuple(self.selection))
 
-    def _refresh(self, *, mesh: bool = True) -> None:
-        """Show the session's current keypoints: deform, upload, move the markers and numbers."""
-        frame = self._frame()
-        self.scene.update(frame, mesh=mesh)
-        for label, position in zip(self._labels, self._label_positions(frame.keypoints)):
-            label.position = position.astype(np.float32)
+    def _show(self, *, mesh: bool = True) -> None:
+        self.drawing.show(self._frame(), self.camera, mesh=mesh)
+
+    def _changed(self, *, mesh: bool = True) -> None:
+        self._dirty = True
+        self._dirty_mesh = self._dirty_mesh or mesh
         self._update_status()
-        self.window.post_redraw()
-
-    def _label_positions(self, keypoints: np.ndarray) -> np.ndarray:
-        """(K, 3): beside each marker, up and to the right as the start camera sees it (clear of the marker)."""
-        c = self._camera
-        forward = (c.center - c.eye) / np.linalg.norm(c.center - c.eye)
-        right = np.cross(forward, c.up)
-        right /= max(np.linalg.norm(right), 1e-12)
-        return np.asarray(keypoints) + self.scene.marker_radius * (1.3 * right + 1.0 * c.up)
-
-    def _make_labels(self) -> None:
-        import open3d.visualization.gui as gui
-
-        for label in self._labels:
-            self.widget.remove_3d_label(label)
-        self._labels = []
-        if not (self.settings.show_labels and self.settings.show_keypoints):
-            return
-        positions = self._label_positions(self.session.keypoints)
-        for i, position in enumerate(positions):
-            label = self.widget.add_3d_label(position.astype(np.float32), str(i))
-            r, g, b = (0.75 * self.scene.colors[i]).tolist()
-            label.color = gui.Color(r, g, b, 1.0)
-            label.scale = 1.4
-            self._labels.append(label)
 
     def _apply_settings(self) -> None:
         """The one place where the settings reach the widgets and the scene."""
         s = self.settings
-        self.scene.apply_settings(s)
-        self.show_keypoints.checked = s.show_keypoints
-        self.show_labels.checked = s.show_labels
-        self.show_cage.checked = s.show_cage
-        self.show_ghost.checked = s.show_ghost
-        self.xray.checked = s.xray
-        self.prior_box.checked = s.prior and self.prior is not None
-        self._make_labels()
-        self._update_status()
-        self.window.post_redraw()
+        self.drawing.settings = s
+        for name, var in self._checks.items():
+            value = bool(s.prior and self.prior is not None) if name == "prior" else bool(getattr(s, name))
+            if bool(var.get()) != value:
+                var.set(value)
+        self._changed(mesh=True)
 
     def _on_setting(self, name: str, value: Any) -> None:
         if name == "prior" and self.prior is None:
@@ -307,72 +302,143 @@ class EditorApp:
         self._apply_settings()
         self._emit("settings", name=name, value=value)
 
+    def _on_step(self, text: str) -> None:
+        try:
+            value = float(text)
+        except ValueError:
+            self._message(f"nudge step must be a number; got {text!r}")
+            return
+        if not (math.isfinite(value) and value > 0):
+            self._message(f"nudge step must be positive; got {text!r}")
+            return
+        self._on_setting("nudge_step", value)
+
     def _update_status(self) -> None:
         moved = len(self.session.moved)
         prior = "on" if self.settings.prior and self.prior is not None else "off"
-        self.status.text = (f"selected: {', '.join(map(str, self.selection)) or '-'}\n"
-                            f"moved: {moved}   undo: {self.session.depth}   prior: {prior}")
+        text = (f"selected: {', '.join(map(str, self.selection)) or '-'}\n"
+                f"moved: {moved}   undo: {self.session.depth}   prior: {prior}")
+        if self._message_text:
+            text += "\n" + self._message_text
+        if hasattr(self, "status"):
+            self.status.configure(text=text)
+
+    # --- camera -----------------------------------------------------------------------------------------------
+
+    def _matrices(self) -> tuple[np.ndarray, np.ndarray, float, float]:
+        from kpd.viewer.render import look_at_matrix, perspective_matrix
+
+        c, s = self.camera, self.settings
+        return (look_at_matrix(c), perspective_matrix(c.fov, s.width / s.height, c.near, c.far), float(s.width),
+                float(s.height))
+
+    def _orbit_to(self, dx: float, dy: float) -> None:
+        base = self._orbit["camera"]
+        offset = base.eye - base.center
+        up = base.up / np.linalg.norm(base.up)
+        yaw = -dx * 0.01
+        pitch = dy * 0.01
+        offset = _rotate(offset, up, yaw)
+        right = np.cross(offset, up)
+        right /= max(np.linalg.norm(right), 1e-12)
+        turned = _rotate(offset, right, pitch)
+        if abs(float(turned @ up)) / np.linalg.norm(turned) < 0.995:  # stop short of looking straight along up
+            offset = turned
+        self.camera = Camera(center=base.center, eye=base.center + offset, up=base.up, fov=base.fov, near=base.near,
+                             far=base.far)
+
+    def _pan_to(self, dx: float, dy: float) -> None:
+        base = self._orbit["camera"]
+        view = self._orbit["view"]
+        distance = float(np.linalg.norm(base.eye - base.center))
+        scale = 2 * distance * math.tan(math.radians(base.fov) / 2) / self.settings.height
+        shift = (-dx * view[0, :3] + dy * view[1, :3]) * scale
+        self.camera = Camera(center=base.center + shift, eye=base.eye + shift, up=base.up, fov=base.fov,
+                             near=base.near, far=base.far)
+
+    def _on_scroll(self, _vis: Any, dx: float, dy: float) -> bool:
+        self._count_input("scroll")
+        c = self.camera
+        factor = 0.9 ** float(dy)
+        offset = (c.eye - c.center) * factor
+        self.camera = Camera(center=c.center, eye=c.center + offset, up=c.up, fov=c.fov, near=c.near, far=c.far)
+        self._changed(mesh=False)
+        return False
 
     # --- gestures ---------------------------------------------------------------------------------------------
 
-    def _matrices(self) -> tuple[np.ndarray, np.ndarray, float, float]:
-        camera = self.widget.scene.camera
-        frame = self.widget.frame
-        return (np.asarray(camera.get_view_matrix(), dtype=np.float64),
-                np.asarray(camera.get_projection_matrix(), dtype=np.float64), float(frame.width), float(frame.height))
+    def _count_input(self, kind: str, **data: Any) -> None:
+        self._inputs += 1
+        self._emit("input", kind=kind, **data)
 
     def pick(self, x: float, y: float) -> int | None:
-        """The keypoint under widget pixel (x, y), or None (the nearest marker centre within the pick radius)."""
+        """The keypoint under view pixel (x, y), or None (the nearest marker centre within the pick radius)."""
         view, projection, w, h = self._matrices()
         keypoints = self.session.keypoints
         pixels, depth = project(keypoints, view, projection, w, h)
         distance = np.linalg.norm(pixels - np.array([x, y]), axis=1)
-        focal = h / 2 / math.tan(math.radians(self._camera.fov) / 2)
-        radius = np.maximum(_PICK_PIXELS, 1.3 * focal * self.scene.marker_radius / np.maximum(depth, 1e-12))
+        focal = h / 2 / math.tan(math.radians(self.camera.fov) / 2)
+        radius = np.maximum(_PICK_PIXELS, 1.3 * focal * self.drawing.marker_radius / np.maximum(depth, 1e-12))
         distance[(depth <= 0) | (distance > radius)] = np.inf
         if not np.isfinite(distance).any():
             return None
         candidates = np.flatnonzero(distance <= distance.min() + 2.0)
         return int(candidates[np.argmin(depth[candidates])])  # the front one of overlapping markers
 
-    def _on_mouse(self, event: Any) -> Any:
-        import open3d.visualization.gui as gui
+    def _on_mouse_button(self, _vis: Any, button: int, action: int, mods: int) -> bool:
+        x, y = self._mouse
+        self._mods = mods
+        self._count_input("button", button=button, action=action, x=x, y=y)
+        if action == _PRESS:
+            if button == 0:
+                index = self.pick(x, y)
+                if index is None:
+                    self._orbit = {"start": (x, y), "camera": self.camera, "view": self._matrices()[0], "pan": False}
+                    return False
+                if mods & _SHIFT:
+                    if index in self.selection:
+                        self.selection.remove(index)
+                    else:
+                        self.selection.append(index)
+                elif index not in self.selection:
+                    self.selection = [index]
+                self._changed(mesh=False)
+                self._emit("select", x=x, y=y, picked=index)
+                if self.selection:
+                    self._start_drag(x, y)
+            elif button in (1, 2):  # right or middle: pan
+                self._orbit = {"start": (x, y), "camera": self.camera, "view": self._matrices()[0], "pan": True}
+        elif action == _RELEASE:
+            self._apply_pending()
+            if self._drag is not None:
+                moved = self._drag["moved"]
+                self._drag = None
+                self.session.end_gesture()
+                self._emit("release", moved=moved)
+            self._orbit = None
+        return False
 
-        ignored = gui.Widget.EventCallbackResult.IGNORED
-        consumed = gui.Widget.EventCallbackResult.CONSUMED
-        frame = self.widget.frame
-        x, y = event.x - frame.x, event.y - frame.y
-        left = event.is_button_down(gui.MouseButton.LEFT)
-        if event.type == gui.MouseEvent.Type.BUTTON_DOWN and left:
-            index = self.pick(x, y)
-            if index is None:
-                return ignored  # orbit
-            shift = event.is_modifier_down(gui.KeyModifier.SHIFT)
-            if shift:
-                if index in self.selection:
-                    self.selection.remove(index)
-                else:
-                    self.selection.append(index)
-            elif index not in self.selection:
-                self.selection = [index]
-            self._refresh(mesh=False)
-            self._emit("select", x=x, y=y, picked=index)
-            if self.selection:
-                self._start_drag(x, y)
-            return consumed
-        if event.type == gui.MouseEvent.Type.DRAG and self._drag is not None:
+    def _on_mouse_move(self, _vis: Any, x: float, y: float) -> bool:
+        self._mouse = (float(x), float(y))
+        if self._drag is not None or self._orbit is not None:
+            self._count_input("move", x=float(x), y=float(y))
+            self._pending_move = self._mouse  # coalesced: only the newest position is applied
+        return False
+
+    def _apply_pending(self) -> None:
+        if self._pending_move is None:
+            return
+        x, y = self._pending_move
+        self._pending_move = None
+        if self._drag is not None:
             try:
                 self._drag_to(x, y)
             except KpdError as exc:  # a degenerate ray; keep the window alive
                 self._message(f"drag ignored: {exc}")
-            return consumed
-        if event.type == gui.MouseEvent.Type.BUTTON_UP and self._drag is not None:
-            moved = self._drag["moved"]
-            self._drag = None
-            self.session.end_gesture()
-            self._emit("release", moved=moved)
-            return consumed
-        return ignored
+        elif self._orbit is not None:
+            sx, sy = self._orbit["start"]
+            (self._pan_to if self._orbit["pan"] else self._orbit_to)(x - sx, y - sy)
+            self._changed(mesh=False)
 
     def _start_drag(self, x: float, y: float) -> None:
         view, projection, w, h = self._matrices()
@@ -400,58 +466,56 @@ class EditorApp:
         self._emit("drag", x=x, y=y, delta=delta.tolist())
 
     def _edit(self, base: np.ndarray, delta: np.ndarray, *, label: str, merge: Any) -> None:
-        """Move the selection by ``delta`` from ``base`` (the others by the prior when it is on) and show it."""
+        """Move the selection by ``delta`` from ``base`` (the others by the prior when it is on)."""
         edits = {i: base[i] + delta for i in self.selection}
         prior = self.prior if self.settings.prior else None
         keypoints = propose(base, edits, prior=prior, normalizer=self.rig.normalizer)
         if self.session.apply(keypoints, label=label, merge=merge):
             self._slider_base = self.session.keypoints
             self._reset_sliders()
-            self._refresh()
+            self._changed()
 
     def _nudge(self, axis: str, sign: float) -> None:
         if not self.selection:
             return
         view = self._matrices()[0]
         direction = {"right": view[0, :3], "up": view[1, :3], "forward": -view[2, :3]}[axis]
-        step = self.settings.nudge_step * self.scene.diagonal
+        step = self.settings.nudge_step * self.drawing.diagonal
         self._gesture += 1
         self._edit(self.session.keypoints, sign * step * direction, label="nudge", merge=None)
         self._emit("nudge", axis=axis, sign=sign)
 
-    def _on_key(self, event: Any) -> Any:
-        import open3d.visualization.gui as gui
+    def _on_key(self, code: int, action: int, mods: int) -> bool:
+        if action == _RELEASE:
+            return False
+        self._count_input("key", key=code, action=action)
+        arrows = {_KEYS["right"]: ("right", 1.0), _KEYS["left"]: ("right", -1.0), _KEYS["up"]: ("up", 1.0),
+                  _KEYS["down"]: ("up", -1.0), _KEYS["page_up"]: ("forward", 1.0),
+                  _KEYS["page_down"]: ("forward", -1.0)}
+        if code in arrows:
+            self._nudge(*arrows[code])
+            return False
+        if action == _REPEAT:
+            return False  # holding a letter does not repeat undo, saves, screenshots
+        if mods & _CTRL and code in (ord("Z"), ord("Y")):
+            (self._on_undo if code == ord("Z") else self._on_redo)()
+            return False
+        actions = {ord("U"): self._on_undo, ord("Y"): self._on_redo, ord("R"): self._on_reset,
+                   ord("S"): self._on_save, ord("J"): self._on_save_session, ord("L"): self._on_load_session,
+                   ord("P"): self._on_screenshot, ord("T"): lambda: self._on_setting("prior", not self.settings.prior),
+                   ord("H"): self._on_home, _KEYS["escape"]: self._on_clear}
+        action_ = actions.get(code)
+        if action_ is not None:
+            action_()
+        return False
 
-        ignored = gui.Widget.EventCallbackResult.IGNORED
-        handled = gui.Widget.EventCallbackResult.HANDLED
-        key = event.key
-        if key in (gui.KeyName.LEFT_CONTROL, gui.KeyName.RIGHT_CONTROL):
-            self._ctrl = event.type == gui.KeyEvent.Type.DOWN
-            return ignored
-        if event.type != gui.KeyEvent.Type.DOWN:
-            return ignored
-        arrows = {gui.KeyName.RIGHT: ("right", 1.0), gui.KeyName.LEFT: ("right", -1.0),
-                  gui.KeyName.UP: ("up", 1.0), gui.KeyName.DOWN: ("up", -1.0),
-                  gui.KeyName.PAGE_UP: ("forward", 1.0), gui.KeyName.PAGE_DOWN: ("forward", -1.0)}
-        if key in arrows:
-            self._nudge(*arrows[key])
-            return handled
-        actions = {gui.KeyName.U: self._on_undo, gui.KeyName.Y: self._on_redo, gui.KeyName.R: self._on_reset,
-                   gui.KeyName.S: self._on_save, gui.KeyName.J: self._on_save_session,
-                   gui.KeyName.L: self._on_load_session, gui.KeyName.P: self._on_screenshot,
-                   gui.KeyName.T: lambda: self._on_setting("prior", not self.settings.prior),
-                   gui.KeyName.ESCAPE: self._on_clear}
-        if self._ctrl and key == gui.KeyName.Z:
-            self._on_undo()
-            return handled
-        if key in actions:
-            actions[key]()
-            return handled
-        return ignored
+    def _on_home(self) -> None:
+        self.camera = self._home
+        self._changed(mesh=False)
 
     def _on_clear(self) -> None:
         self.selection = []
-        self._refresh(mesh=False)
+        self._changed(mesh=False)
         self._emit("select", picked=None)
 
     def _on_undo(self) -> None:
@@ -472,18 +536,28 @@ class EditorApp:
     def _after_history(self) -> None:
         self._slider_base = self.session.keypoints
         self._reset_sliders()
-        self._refresh()
+        self._changed()
 
     def _reset_sliders(self) -> None:
         self._sigmas[:] = 0.0
-        for slider in self.sliders:
-            slider.double_value = 0.0
+        self._quiet_sliders = True
+        try:
+            for slider in self.sliders:
+                if float(slider.get()) != 0.0:
+                    slider.set(0.0)
+            if self.sliders:
+                self.root.update_idletasks()
+        finally:
+            self._quiet_sliders = False
 
     def _on_slider(self, m: int, value: float) -> None:
+        if self._quiet_sliders or self.prior is None or value == self._sigmas[m]:
+            return
+        self._count_input("slider", component=m, value=value)
         self._sigmas[m] = float(value)
         keypoints = self._slider_base + component_offsets(self.prior, self.rig.normalizer, self._sigmas)
         if self.session.apply(keypoints, label="component", merge=("component", m)):
-            self._refresh()
+            self._changed()
         self._emit("component", component=m, value=float(value))
 
     # --- files -----------------------------------------------------------------------------------------------
@@ -527,25 +601,16 @@ class EditorApp:
         self._emit("load_session", path=str(path))
 
     def _on_screenshot(self) -> None:
+        """The 3D view as it is now (drawn at once with the newest state), numbers included, to a PNG."""
         self._shots += 1
         base = self.screenshot_path
         path = base.with_name(f"{base.stem}_{self._shots:03d}{base.suffix or '.png'}")
         while path.exists():
             self._shots += 1
             path = base.with_name(f"{base.stem}_{self._shots:03d}{base.suffix or '.png'}")
-        frame = self._frame()
-        view, projection, w, h = self._matrices()
-
-        def on_image(image: Any) -> None:
-            array = np.asarray(image)[:, :, :3].copy()
-            camera = self._camera_now()
-            labelled = label_image(array, self.scene, frame, camera)
-            self.app.post_to_main_thread(self.window, lambda: self._write_shot(path, labelled))
-
-        self.widget.scene.scene.render_to_image(on_image)
-        self.window.post_redraw()
-
-    def _write_shot(self, path: Path, image: np.ndarray) -> None:
+        self._apply_pending()
+        self._show(mesh=True)
+        image = self.view.capture()
         try:
             write_png(path, image)
         except KpdError as exc:
@@ -554,39 +619,34 @@ class EditorApp:
         self._message(f"saved {path}")
         self._emit("screenshot", path=str(path))
 
-    def _camera_now(self) -> Any:
-        """The current (possibly orbited) camera as a render.Camera, for drawing numbers into screenshots."""
-        from kpd.viewer.render import Camera
-
-        view = self._matrices()[0]
-        rotation, translation = view[:3, :3], view[:3, 3]
-        eye = -rotation.T @ translation
-        forward = -rotation[2]
-        c = self._camera
-        return Camera(center=eye + forward, eye=eye, up=rotation[1], fov=c.fov, near=c.near, far=c.far)
-
     def _message(self, text: str) -> None:
         log.info("%s", text)
+        self._message_text = text
         self._update_status()
-        self.status.text = self.status.text + "\n" + text
-        self.window.post_redraw()
 
     def _emit(self, event: str, **data: Any) -> None:
         if self._events is None:
             return
-        record = {"event": event, "time": time.time(), "selection": list(self.selection),
-                  "keypoints": self.session.keypoints.tolist(), "undo": self.session.depth, **data}
+        record: dict[str, Any] = {"event": event, "time": time.time(), **data}
+        if event not in ("input", "frame"):
+            record.update(selection=list(self.selection), keypoints=self.session.keypoints.tolist(),
+                          undo=self.session.depth)
+        if event == "frame":
+            record["keypoints"] = self.drawing.frame.keypoints.tolist()
         if event == "ready":
             view, projection, w, h = self._matrices()
-            frame = self.widget.frame
-            record.update(view=view.tolist(), projection=projection.tolist(), viewport=[frame.x, frame.y, w, h],
-                          scaling=float(self.window.scaling), title=self.title,
-                          sliders=[[f.x, f.y, f.width, f.height] for f in (s.frame for s in self.sliders)])
-        with open(self._events, "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(record) + "\n")
+            record.update(view=view.tolist(), projection=projection.tolist(), viewport=[_LEFT, _TOP, w, h],
+                          title=self.title, started=self._started,
+                          sliders=[[s.winfo_rootx(), s.winfo_rooty(), s.winfo_width(), s.winfo_height()]
+                                   for s in self.sliders])
+        if self._event_file is None:
+            self._event_file = open(self._events, "a", encoding="utf-8")  # noqa: SIM115 - closed in _close
+        self._event_file.write(json.dumps(record) + "\n")
+        self._event_file.flush()
 
 
-def _sun(settings: ViewSettings) -> np.ndarray:
-    from kpd.viewer.render import _sun_direction
-
-    return _sun_direction(settings)
+def _rotate(vector: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
+    """``vector`` turned by ``angle`` radians about the unit ``axis`` (Rodrigues)."""
+    axis = axis / max(np.linalg.norm(axis), 1e-12)
+    return (vector * math.cos(angle) + np.cross(axis, vector) * math.sin(angle)
+            + axis * (axis @ vector) * (1 - math.cos(angle)))
