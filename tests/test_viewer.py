@@ -283,24 +283,26 @@ def _last(path: Path, name: str, after: int = 0):
 
 
 class _Window(NamedTuple):
-    """A running editor on a private Xvfb: its events file, xdotool, its ready event and its top-left corner."""
+    """A running editor on a private Xvfb: its events file, xdotool, its ready event and the 3D view's top-left corner
+    on the screen."""
 
     events: Path
     xdo: Callable[..., str]
     ready: dict
     origin: tuple[int, int]
+    display: str
 
 
 @contextlib.contextmanager
-def _editor_window(tmp_path: Path, *args: object) -> Iterator[_Window]:
-    """``kpd view ARGS --size 480x400 --events ...`` in a real window on a private Xvfb, stopped on exit."""
+def _editor_window(tmp_path: Path, *args: object, size: str = "480x400") -> Iterator[_Window]:
+    """``kpd view ARGS --size SIZE --events ...`` in a real window on a private Xvfb, stopped on exit."""
     from kpd.viewer.render import private_display
 
     events = tmp_path / "events.jsonl"
-    with private_display(1000, 600) as display:
+    with private_display(1400, 900) as display:
         env = dict(os.environ, DISPLAY=display)
         window = subprocess.Popen(
-            [sys.executable, "-m", "kpd.cli", "view", *map(str, args), "--size", "480x400", "--events", str(events)],
+            [sys.executable, "-m", "kpd.cli", "view", *map(str, args), "--size", size, "--events", str(events)],
             env=env, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
         def xdo(*xargs: object) -> str:
@@ -309,10 +311,10 @@ def _editor_window(tmp_path: Path, *args: object) -> Iterator[_Window]:
 
         try:
             ready = _wait(lambda: _last(events, "ready"), 90, "the editor window")
-            wid = _wait(lambda: subprocess.run(["xdotool", "search", "--pid", str(window.pid)], env=env,
+            wid = _wait(lambda: subprocess.run(["xdotool", "search", "--name", f"^{ready['title']}$"], env=env,
                                                capture_output=True, text=True).stdout.split(), 30, "the X window")[-1]
             geometry = dict(line.split("=") for line in xdo("getwindowgeometry", "--shell", wid).split())
-            yield _Window(events, xdo, ready, (int(geometry["X"]), int(geometry["Y"])))
+            yield _Window(events, xdo, ready, (int(geometry["X"]), int(geometry["Y"])), display)
         finally:
             window.terminate()
             try:
@@ -320,6 +322,23 @@ def _editor_window(tmp_path: Path, *args: object) -> Iterator[_Window]:
             except subprocess.TimeoutExpired:
                 window.kill()
                 window.wait()
+        assert b"Traceback" not in window.stderr.read(), "the editor raised"
+
+
+def _screen_pixels(win: _Window, keypoints: np.ndarray) -> np.ndarray:
+    """(K, 2) screen positions of keypoints in the editor's 3D view (the camera of its ready event)."""
+    vx, vy, w, h = win.ready["viewport"]
+    pixels, _ = project(np.asarray(keypoints), np.array(win.ready["view"]), np.array(win.ready["projection"]), w, h)
+    return pixels + np.array([win.origin[0] + vx, win.origin[1] + vy])
+
+
+def _clear_keypoint(win: _Window, keypoints: np.ndarray) -> int:
+    """A keypoint well inside the view and far from the others' markers on screen."""
+    vx, vy, w, h = win.ready["viewport"]
+    pixels = _screen_pixels(win, keypoints) - np.array([win.origin[0] + vx, win.origin[1] + vy])
+    gaps = np.linalg.norm(pixels[:, None] - pixels[None], axis=2) + np.eye(len(pixels)) * 1e9
+    inside = (pixels[:, 0] > 60) & (pixels[:, 0] < w - 60) & (pixels[:, 1] > 80) & (pixels[:, 1] < h - 60)
+    return int(np.argmax(np.where(inside, gaps.min(axis=1), -1)))
 
 
 @pytest.mark.slow
@@ -333,15 +352,8 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
     with _editor_window(tmp_path, "--rig", chair_rig, "--out", out) as win:
         events, xdo, ready = win.events, win.xdo, win.ready
         np.testing.assert_allclose(ready["keypoints"], rig.keypoints)
-        vx, vy, w, h = ready["viewport"]
-        pixels, depth = project(np.array(ready["keypoints"]), np.array(ready["view"]),
-                                np.array(ready["projection"]), w, h)
-        # a keypoint well inside the view and far from the others' markers on screen
-        gaps = np.linalg.norm(pixels[:, None] - pixels[None], axis=2) + np.eye(len(pixels)) * 1e9
-        inside = (pixels[:, 0] > 40) & (pixels[:, 0] < w - 40) & (pixels[:, 1] > 80) & (pixels[:, 1] < h - 20)
-        index = int(np.argmax(np.where(inside, gaps.min(axis=1), -1)))
-        x = win.origin[0] + vx + round(pixels[index, 0])
-        y = win.origin[1] + vy + round(pixels[index, 1])
+        index = _clear_keypoint(win, rig.keypoints)
+        x, y = np.rint(_screen_pixels(win, rig.keypoints)[index]).astype(int)
         xdo("mousemove", x, y)
         xdo("mousedown", 1)
         selected = _wait(lambda: _last(events, "select"), 60, "the selection")
@@ -374,6 +386,73 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
+def test_editor_scripted_session_of_many_drags_and_keys(chair_rig, tmp_path):
+    """Eight drags of one keypoint with nudges between them, an undo and a redo (over 50 inputs): nothing is lost
+    (the last frame drawn shows the final keypoints), the saved mesh is Rig.deform of the keypoints the window
+    reports, and the screenshots differ where the dragged part is."""
+    from kpd.io import read_mesh
+    from kpd.rig import Rig
+
+    rig = Rig.load(chair_rig)
+    out = tmp_path / "edited.ply"
+    with _editor_window(tmp_path, "--rig", chair_rig, "--out", out, "--screenshot", tmp_path / "shot.png") as win:
+        events, xdo = win.events, win.xdo
+        xdo("key", "p")
+        first = _wait(lambda: _last(events, "screenshot"), 60, "the first screenshot")
+        index = _clear_keypoint(win, rig.keypoints)
+        keypoints = rig.keypoints
+        vx, vy, w, h = win.ready["viewport"]
+        centre = np.array([win.origin[0] + vx + w / 2, win.origin[1] + vy + h / 2])
+        start = _screen_pixels(win, keypoints)[index]
+        towards = np.sign(centre - start)  # drag towards the middle of the view so the keypoint stays in sight
+        for drag in range(8):
+            x, y = np.rint(_screen_pixels(win, keypoints)[index]).astype(int)
+            xdo("mousemove", x, y)
+            xdo("mousedown", 1)
+            for step in range(1, 6):
+                xdo("mousemove", x + int(towards[0] * 2 * step), y + int(towards[1] * 3 * step))
+            xdo("mouseup", 1)
+            released = _wait(lambda: [e for e in _events(events) if e["event"] == "release"][drag:], 60,
+                             f"the end of drag {drag + 1}")[0]
+            assert released["moved"] and released["selection"] == [index]
+            xdo("key", "Left" if drag % 2 else "Right")  # a nudge, undone by the next one
+            nudges = _wait(lambda: [e for e in _events(events) if e["event"] == "nudge"][drag:], 60, "the nudge")
+            keypoints = np.array(nudges[0]["keypoints"])
+        xdo("key", "u")
+        _wait(lambda: _last(events, "undo"), 60, "undo")
+        xdo("key", "y")
+        redone = _wait(lambda: _last(events, "redo"), 60, "redo")
+        np.testing.assert_allclose(redone["keypoints"], keypoints)
+        xdo("key", "s")
+        saved = _wait(lambda: _last(events, "save"), 60, "the saved mesh")
+        xdo("key", "p")
+        second = _wait(lambda: [e for e in _events(events) if e["event"] == "screenshot"][1:], 60,
+                       "the second screenshot")[0]
+        final = np.array(saved["keypoints"])
+        np.testing.assert_allclose(final, keypoints)
+        inputs = [e for e in _events(events) if e["event"] == "input"]
+        assert len(inputs) >= 50
+        frames = [e for e in _events(events) if e["event"] == "frame"]
+        redo = max(i for i, e in enumerate(inputs, 1) if e["kind"] == "key" and e["key"] == ord("Y"))
+        assert frames[-1]["serial"] >= redo  # the last input that changed anything was drawn (save and P change none)
+        np.testing.assert_allclose(frames[-1]["keypoints"], final)  # nothing lost: the last frame is the final state
+    moved = np.flatnonzero(np.abs(final - rig.keypoints).max(axis=1) > 0)
+    assert moved.tolist() == [index]
+    mesh = read_mesh(out)
+    scale = np.abs(rig.mesh.vertices).max()
+    np.testing.assert_allclose(mesh.vertices, rig.deform(final), atol=1e-5 * scale)
+    before, after = read_png(first["path"]).astype(int), read_png(second["path"]).astype(int)
+    changed = np.abs(after - before).sum(axis=2) > 60
+    assert changed.sum() > 200
+    ys, xs = np.nonzero(changed)
+    centroid = np.array([xs.mean(), ys.mean()]) + np.array(win.origin) + np.array(win.ready["viewport"][:2])
+    path_mid = (_screen_pixels(win, rig.keypoints)[index] + _screen_pixels(win, final)[index]) / 2
+    others = np.linalg.norm(_screen_pixels(win, rig.keypoints) - path_mid, axis=1)
+    assert np.linalg.norm(centroid - path_mid) < np.sort(others)[len(others) // 2]  # near the dragged keypoint
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
 def test_editor_window_pca_slider_explores_the_category(chair_rig, tmp_path):
     """Drag the first PCA slider in the real window: the keypoints become the rig's plus that many standard
     deviations of the chair prior's first component."""
@@ -384,9 +463,9 @@ def test_editor_window_pca_slider_explores_the_category(chair_rig, tmp_path):
     prior = Model.load("chair").prior
     with _editor_window(tmp_path, "--rig", chair_rig, "--model", "chair") as win:
         assert len(win.ready["sliders"]) == min(len(prior.components_), 8)
-        sx, sy, sw, sh = win.ready["sliders"][0]
+        sx, sy, sw, sh = win.ready["sliders"][0]  # on the screen (the panel is a window of its own)
         assert sw > 150  # drawn across the panel, not a thumb's width
-        x, y = win.origin[0] + sx + sw // 2, win.origin[1] + sy + sh // 2  # the thumb: value 0
+        x, y = sx + sw // 2, sy + sh // 2  # the thumb: value 0
         win.xdo("mousemove", x, y)
         time.sleep(0.3)
         win.xdo("mousedown", 1)
