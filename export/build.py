@@ -12,17 +12,16 @@ from __future__ import annotations
 import json
 import logging
 import os
-import shutil
-import tempfile
 from pathlib import Path
 from typing import Any, Mapping, NamedTuple
 
 import numpy as np
 import torch
 
-from kpd.bundle import build_manifest, replace_path, write_bundle
+from kpd.bundle import build_manifest, write_bundle
 from kpd.cage import Cage
 from kpd.errors import BundleError, DataError, InputError
+from kpd.io import Outputs
 from kpd.export.onnx import Graphs, Parity, export_graphs, parity, torch_outputs
 from kpd.prior import KeypointPrior
 from kpd.train.nets import KeypointDeformer, ModelConfig
@@ -109,7 +108,15 @@ def export_model(
             if m < n_components:
                 log.warning("only %d training shapes: the prior keeps %d components instead of %d",
                             len(mean_keypoints), m, n_components)
-            prior = KeypointPrior(n_components=m).fit(mean_keypoints)
+            # the mirror images of the training shapes (about x, the left/right axis of ModelNet and ShapeNet)
+            # make the prior mirror-symmetric: moving one keypoint moves its mirror partner (kpd.prior)
+            flip = np.array([-1.0, 1.0, 1.0])
+            mirrored = _shape_keypoints(model, shapes.points * flip.astype(shapes.points.dtype)) * flip
+            try:
+                prior = KeypointPrior(n_components=m).fit(mean_keypoints, mirrored)
+            except InputError as exc:
+                log.warning("prior without a mirror: %s", exc)
+                prior = KeypointPrior(n_components=m).fit(mean_keypoints)
         centre = prior.mean_ if prior is not None else mean_keypoints.mean(axis=0)
         pick = int(np.argmin(((mean_keypoints - centre) ** 2).sum(axis=(1, 2))))
         template = shapes.points[pick].reshape(-1, 3)
@@ -145,13 +152,10 @@ def export_model(
         m=cfg.m, point_count=point_count, cage_fit=cage_fit, prior=prior, template_points=template,
         template_source=template_source, up=up, training=_json_safe(record), clamp=cfg.clamp,
     )
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".staging", dir=out.parent))
-    try:
-        staged = write_bundle(staging / out.name, files)
+    with Outputs(force=force) as outputs:  # validated where it is written, placed only when it passes
+        target = outputs.file(out, None) if out.suffix == ".zip" else outputs.folder(out, None)
+        staged = write_bundle(outputs.stage(target), files)
         _validate(staged, model, checks, tolerance)
-        replace_path(staged, out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     return ExportResult(out, measured, manifest)
 
 

@@ -212,3 +212,80 @@ def test_shipped_chair_prior_mirrors_edits(data_dir):
         edited = prior.sync(keypoints, {i: keypoints[i] + [0.1 * outward, 0, 0]})
         moved_out += np.sign(edited[j, 0] - keypoints[j, 0]) == -outward
     assert moved_out >= 0.75 * len(pairs), f"{moved_out} of {len(pairs)} partners mirrored the edit"
+
+
+# --- the mirror-symmetric prior --------------------------------------------------------------------------------------
+
+def mirrored_pairs(s=60, seed=0):
+    """Keypoint sets of left/right-symmetric shapes: keypoints 0-2 at -x mirror 3-5 at +x, keypoint 6 on the plane.
+
+    Returns the sets and what a network with some left/right placement noise would predict on the mirror images,
+    mirrored back (each keypoint lands on its partner's place: the permutation to find is 0<->3, 1<->4, 2<->5, 6).
+    """
+    rng = np.random.default_rng(seed)
+    left = np.array([[-0.6, -0.5, -0.8], [-0.5, 0.4, 0.1], [-0.4, 0.5, 0.8]])
+    # symmetric shape variation: the same offsets on both sides, mirrored in x
+    z = rng.standard_normal((s, 3)) * [0.15, 0.1, 0.05]
+    modes = rng.standard_normal((3, 3, 3)) * 0.3
+    offsets = np.tensordot(z, modes, axes=1)  # (S, 3, 3)
+    sides = left + offsets
+    sets = np.concatenate([sides, sides * [-1, 1, 1], np.zeros((s, 1, 3)) + [0, 0.1, -0.1]], axis=1)  # (S, 7, 3)
+    sets = sets + 0.02 * rng.standard_normal(sets.shape)
+    perm = np.array([3, 4, 5, 0, 1, 2, 6])
+    mirrored = sets[:, perm] + 0.02 * rng.standard_normal(sets.shape)
+    return sets, mirrored
+
+
+def test_mirror_prior_finds_the_pairs_and_moves_partners():
+    sets, mirrored = mirrored_pairs()
+    prior = KeypointPrior(n_components=3).fit(sets, mirrored)
+    assert prior.mirror_permutation_.tolist() == [3, 4, 5, 0, 1, 2, 6]
+    flip = np.array([-1.0, 1.0, 1.0])
+    flat = prior.components_.reshape(3, -1)
+    mirror_of = prior.components_[:, prior.mirror_permutation_] * flip
+    np.testing.assert_allclose(mirror_of, prior.components_, atol=1e-9)  # every component is mirror-symmetric
+    np.testing.assert_allclose(flat @ flat.T, np.eye(3), atol=1e-9)
+    keypoints = sets[1]
+    for i in range(3):
+        for axis in range(3):
+            move = np.zeros(3)
+            move[axis] = 0.1
+            edited = prior.sync(keypoints, {i: keypoints[i] + move})
+            delta = edited - keypoints
+            np.testing.assert_allclose(delta[i + 3], move * flip, atol=0.015)  # the partner mirrors the move
+            others = np.delete(np.linalg.norm(delta, axis=1), [i, i + 3])
+            assert others.mean() < 0.3 * 0.1
+    # stiffer parts keep the others stiller
+    loose = KeypointPrior(n_components=3, part_variance=0.1).fit(sets, mirrored)
+    stiff = KeypointPrior(n_components=3, part_variance=10.0).fit(sets, mirrored)
+    move = {0: keypoints[0] + [0.0, 0.0, 0.1]}
+    moved = [np.delete(np.linalg.norm(p.sync(keypoints, move) - keypoints, axis=1), [0, 3]).mean()
+             for p in (loose, stiff)]
+    assert moved[0] > moved[1]
+
+
+def test_mirror_prior_roundtrip_and_errors():
+    sets, mirrored = mirrored_pairs()
+    prior = KeypointPrior(n_components=3).fit(sets, mirrored)
+    again = KeypointPrior.from_dict(json.loads(json.dumps(prior.to_dict())))
+    assert again.mirror_permutation_.tolist() == prior.mirror_permutation_.tolist()
+    edit = {1: sets[0][1] + [0.05, -0.02, 0.1]}
+    np.testing.assert_array_equal(again.sync(sets[0], edit), prior.sync(sets[0], edit))
+    old = prior.to_dict()
+    for key in ("mirror_permutation", "part_variance", "mirror_axis"):  # a bundle written before the mirror
+        del old[key]
+    assert KeypointPrior.from_dict(old).mirror_permutation_ is None
+    bad = prior.to_dict()
+    bad["mirror_permutation"] = [1, 2, 0, 3, 4, 5, 6]
+    with pytest.raises(InputError, match="mirror_permutation must pair the 7 keypoints"):
+        KeypointPrior.from_dict(bad)
+    with pytest.raises(InputError, match="mirrored_sets must have the shape"):
+        KeypointPrior(n_components=3).fit(sets, mirrored[:, :6])
+    with pytest.raises(InputError, match="part_variance must be a non-negative number"):
+        KeypointPrior(part_variance=-1.0).fit(sets, mirrored)
+    # keypoints that do not pair up under the mirror
+    rng = np.random.default_rng(3)
+    scattered = rng.uniform(-1, 1, (30, 5, 3))
+    shifted = scattered[:, [1, 2, 0, 3, 4]]  # keypoint 0 lands on 1, 1 on 2, 2 on 0: a cycle, not pairs
+    with pytest.raises(InputError, match="do not pair up under the mirror"):
+        KeypointPrior(n_components=2).fit(scattered, shifted)
