@@ -635,7 +635,7 @@ class EditorApp:
             record["keypoints"] = self.drawing.frame.keypoints.tolist()
         if event == "ready":
             view, projection, w, h = self._matrices()
-            record.update(view=view.tolist(), projection=projection.tolist(), viewport=[_LEFT, _TOP, w, h],
+            record.update(view=view.tolist(), projection=projection.tolist(), viewport=[0, 0, w, h],
                           title=self.title, started=self._started,
                           sliders=[[s.winfo_rootx(), s.winfo_rooty(), s.winfo_width(), s.winfo_height()]
                                    for s in self.sliders])

@@ -608,6 +608,7 @@ def render_shots(shots: Sequence[Shot], settings: Any, *, view: GLView | None = 
 
     own = view is None
     view = view or GLView(settings.width, settings.height, background=settings.background)
+    view.vis.get_render_option().point_size = max(2.0, settings.height / 130)
     images = []
     try:
         for shot in shots:
@@ -618,9 +619,16 @@ def render_shots(shots: Sequence[Shot], settings: Any, *, view: GLView | None = 
             view.camera = camera
             diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) or 1.0
             for i, layer in enumerate(shot.layers):
-                if layer.style == "points":
+                if layer.style in ("points", "splats"):
                     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(layer.mesh, np.float64)))
-                    cloud.paint_uniform_color(np.asarray(layer.color or (0.3, 0.3, 0.3), dtype=np.float64))
+                    color = np.asarray(layer.color or (0.55, 0.65, 0.85), dtype=np.float64)
+                    if layer.style == "splats":  # lit as a surface: normals from the neighbours, towards the camera
+                        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(12))
+                        cloud.orient_normals_towards_camera_location(np.asarray(camera.eye, dtype=np.float64))
+                        colors = shade(np.tile(color, (len(cloud.points), 1)), np.asarray(cloud.normals), camera)
+                        cloud.colors = o3d.utility.Vector3dVector(colors)
+                    else:
+                        cloud.paint_uniform_color(color)
                     view.put(f"layer:{i}", cloud)
                 elif layer.style == "wire":
                     view.put(f"layer:{i}", line_set(layer.mesh.vertices, mesh_edges(layer.mesh.triangles),

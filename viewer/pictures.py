@@ -1,0 +1,218 @@
+"""The pictures kpd makes outside the editor -- contact sheets of meshes (``kpd sample``, ``kpd demo``), the alignment
+gallery (``kpd eval alignment --gallery``) and the scan check (``kpd scan --picture``) -- drawn by the one OpenGL path
+of :mod:`kpd.viewer.gl`, so shading, framing and the numbered keypoint palette are those of ``kpd render`` and the
+editor. Cells are drawn at twice their size and averaged down (smooth edges without multisampling); captions are set
+with Pillow.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import shutil
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+
+from kpd.errors import InputError
+
+__all__ = ["picture_display", "render_sheet", "point_panels", "compose", "arrow_mesh"]
+
+_SUPERSAMPLE = 2
+
+
+@contextlib.contextmanager
+def picture_display(width: int = 1024, height: int = 1024) -> Iterator[None]:
+    """An X display for the (hidden) drawing window: a private Xvfb when installed, else the current ``$DISPLAY``."""
+    from kpd.viewer.gl import NoWindowError
+    from kpd.viewer.render import gl_display
+
+    if shutil.which("Xvfb"):
+        with gl_display("xvfb", width, height):
+            yield
+        return
+    if os.environ.get("DISPLAY"):
+        yield
+        return
+    raise NoWindowError("drawing a picture needs Xvfb (apt-get install xvfb) or a display ($DISPLAY is not set)")
+
+
+def _font(size: int) -> Any:
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # Pillow < 10.1: a fixed bitmap font
+        return ImageFont.load_default()
+
+
+def compose(images: Sequence[np.ndarray], *, titles: Sequence[str] | None = None, columns: int | None = None,
+            title: str | None = None, caption_colors: Sequence[Any] | None = None) -> np.ndarray:
+    """(H, W, 3) uint8: equal-sized cells in a grid, each with its caption above, and an optional title on top."""
+    from PIL import Image, ImageDraw
+
+    count = len(images)
+    columns = columns or int(math.ceil(math.sqrt(count)))
+    rows = int(math.ceil(count / columns))
+    h, w = images[0].shape[:2]
+    font_size = max(12, min(22, w // 22))
+    caption = 0
+    if titles is not None:
+        lines = max(str(t).count("\n") + 1 for t in titles)
+        caption = lines * (font_size + 4) + 6
+    top = (font_size + 14) if title else 0
+    sheet = Image.new("RGB", (columns * w, top + rows * (caption + h)), "white")
+    draw = ImageDraw.Draw(sheet)
+    font = _font(font_size)
+    if title:
+        draw.text((8, 6), title, fill=(20, 20, 20), font=_font(font_size + 2))
+    for i, image in enumerate(images):
+        r, c = divmod(i, columns)
+        x, y = c * w, top + r * (caption + h)
+        sheet.paste(Image.fromarray(np.ascontiguousarray(image)), (x, y + caption))
+        if titles is not None:
+            color = tuple(caption_colors[i]) if caption_colors is not None else (20, 20, 20)
+            draw.multiline_text((x + 6, y + 4), str(titles[i]), fill=color, font=font, spacing=4)
+    return np.asarray(sheet)
+
+
+def arrow_mesh(start: Any, end: Any, radius: float) -> Any:
+    """A kpd Mesh of an arrow from ``start`` to ``end`` (3,), shaft ``radius`` thick."""
+    import open3d as o3d
+
+    from kpd.io import Mesh
+
+    start, end = np.asarray(start, dtype=np.float64), np.asarray(end, dtype=np.float64)
+    d = end - start
+    length = float(np.linalg.norm(d))
+    if length <= 0:
+        raise InputError("an arrow needs distinct ends")
+    head = min(0.35 * length, 6 * radius)
+    arrow = o3d.geometry.TriangleMesh.create_arrow(cylinder_radius=radius, cone_radius=2.2 * radius,
+                                                   cylinder_height=length - head, cone_height=head, resolution=16)
+    z = d / length
+    helper = np.array([1.0, 0, 0]) if abs(z[0]) < 0.9 else np.array([0, 1.0, 0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    rotation = np.stack([x, np.cross(z, x), z], axis=1)  # columns: the arrow's x, y, z in the world
+    vertices = np.asarray(arrow.vertices) @ rotation.T + start
+    return Mesh(vertices=vertices, triangles=np.asarray(arrow.triangles).astype(np.int64))
+
+
+def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
+    if factor == 1:
+        return image
+    h, w = image.shape[0] // factor, image.shape[1] // factor
+    blocks = image[:h * factor, :w * factor].reshape(h, factor, w, factor, 3).astype(np.float32)
+    return np.clip(np.rint(blocks.mean(axis=(1, 3))), 0, 255).astype(np.uint8)
+
+
+def _draw_cells(shots: Sequence[Any], settings: Any, radius: float | None) -> list[np.ndarray]:
+    """The shots at ``settings``' size (drawn supersampled), with the keypoint numbers set at the final size."""
+    from kpd.viewer.gl import render_shots
+    from kpd.viewer.render import label_image_at
+
+    big = settings.replace(width=settings.width * _SUPERSAMPLE, height=settings.height * _SUPERSAMPLE,
+                           show_labels=False)
+    with picture_display(big.width + 64, big.height + 64):
+        images = render_shots(shots, big, keypoint_radius=radius)
+    out = []
+    for shot, image in zip(shots, images):
+        image = _downsample(image, _SUPERSAMPLE)
+        if shot.keypoints is not None and settings.show_labels and settings.show_keypoints and radius is not None:
+            image = label_image_at(image, shot.keypoints, radius, shot.camera)
+        out.append(image)
+    return out
+
+
+def render_sheet(meshes: Sequence[Any], path: Any, *, titles: Sequence[str] | None = None,
+                 keypoints: Sequence[Any] | None = None, columns: int | None = None, up: str = "z",
+                 cell: float = 3.0, arrows: Sequence[Any] | None = None, max_triangles: int | None = None,
+                 title: str | None = None) -> None:
+    """Draw meshes side by side from one camera and on one scale (a contact sheet) into a PNG.
+
+    Parameters
+    ----------
+    meshes : kpd.io.Mesh objects in one frame (a shape and its variants, say).
+    path : the PNG to write (atomically).
+    titles : one caption per mesh.
+    keypoints : per mesh, (K, 3) keypoints or None: numbered markers in the keypoint palette.
+    columns : grid width; about square when None.
+    up : the frames' up axis ("z" for ModelNet, "y" for ShapeNet); the view looks at the front three-quarters.
+    cell : cell size in hundreds of pixels.
+    arrows : per mesh, None or (starts (E, 3), ends (E, 3)) drawn as dark arrows (keypoint moves).
+    max_triangles : unused (kept for callers of the former matplotlib sheet; the OpenGL path draws every triangle).
+    title : a line across the top.
+    """
+    from kpd.viewer.gl import Layer, Shot
+    from kpd.viewer.render import ViewSettings, camera_pose, write_png
+
+    if not len(meshes):
+        raise InputError("a contact sheet needs at least one mesh")
+    pixels = int(round(cell * 100))
+    axis = str(up).strip().lower().lstrip("+")
+    settings = ViewSettings(width=pixels, height=pixels, up=f"+{axis}" if not str(up).startswith("-") else up,
+                            azimuth=30.0, elevation=18.0)
+    everything = [np.asarray(m.vertices) for m in meshes]
+    if keypoints is not None:
+        everything += [np.asarray(k) for k in keypoints if k is not None]
+    points = np.vstack(everything)
+    camera = camera_pose(points, settings.replace(zoom=1.12))
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) or 1.0
+    radius = settings.keypoint_size * diagonal * 1.1
+    shots = []
+    for i, mesh in enumerate(meshes):
+        layers = [Layer(mesh)]
+        if arrows is not None and arrows[i] is not None:
+            for s, e in zip(*(np.asarray(a, dtype=np.float64) for a in arrows[i])):
+                if np.linalg.norm(e - s) > 1e-9 * diagonal:
+                    layers.append(Layer(arrow_mesh(s, e, 0.006 * diagonal), color=(0.12, 0.12, 0.12)))
+        kp = None if keypoints is None or keypoints[i] is None else np.asarray(keypoints[i], dtype=np.float64)
+        shots.append(Shot(layers=layers, keypoints=kp, camera=camera))
+    images = _draw_cells(shots, settings, radius)
+    write_png(path, compose(images, titles=titles, columns=columns, title=title))
+
+
+def point_panels(panels: Sequence[dict], path: Any, *, up: str = "z", cell: float = 3.0, columns: int | None = None,
+                 title: str | None = None) -> None:
+    """Draw point sets (clouds as lit splats) with optional keypoints into a PNG grid.
+
+    Parameters
+    ----------
+    panels : dicts with ``points`` (N, 3), optional ``behind`` (M, 3) drawn in light grey (a reference),
+        ``keypoints`` (K, 3), ``mesh`` (a kpd Mesh drawn shaded instead of ``points``), ``title`` and ``color``
+        (RGB 0-255 of the caption).
+    path : the PNG to write (atomically).
+    """
+    from kpd.viewer.gl import Layer, Shot
+    from kpd.viewer.render import ViewSettings, camera_pose, write_png
+
+    pixels = int(round(cell * 100))
+    axis = str(up).strip().lower()
+    settings = ViewSettings(width=pixels, height=pixels, up=axis if axis[0] in "+-" else f"+{axis}", azimuth=30.0,
+                            elevation=20.0)
+    shots, radii = [], []
+    for panel in panels:
+        layers = []
+        if panel.get("behind") is not None:
+            layers.append(Layer(np.asarray(panel["behind"], dtype=np.float64), color=(0.72, 0.72, 0.74),
+                                style="points"))
+        if panel.get("mesh") is not None:
+            layers.append(Layer(panel["mesh"], color=panel.get("tint")))
+        elif panel.get("points") is not None:
+            layers.append(Layer(np.asarray(panel["points"], dtype=np.float64), color=panel.get("tint"),
+                                style="splats"))
+        kp = panel.get("keypoints")
+        shot = Shot(layers=layers, keypoints=None if kp is None else np.asarray(kp, dtype=np.float64))
+        from kpd.viewer.gl import frame_points
+
+        everything = frame_points(shot)
+        shot.camera = camera_pose(everything, settings.replace(zoom=1.12))
+        radii.append(settings.keypoint_size * 1.1 * float(np.linalg.norm(np.ptp(everything, axis=0)) or 1.0))
+        shots.append(shot)
+    radius = float(np.median(radii))
+    images = _draw_cells(shots, settings, radius)
+    titles = [p.get("title", "") for p in panels]
+    colors = [p.get("color", (20, 20, 20)) for p in panels]
+    write_png(path, compose(images, titles=titles, columns=columns, title=title, caption_colors=colors))
