@@ -175,7 +175,7 @@ def render_sheet(meshes: Sequence[Any], path: Any, *, titles: Sequence[str] | No
 
 
 def point_panels(panels: Sequence[dict], path: Any, *, up: str = "z", cell: float = 3.0, columns: int | None = None,
-                 title: str | None = None) -> None:
+                 title: str | None = None, shared_camera: bool = False) -> None:
     """Draw point sets (clouds as lit splats) with optional keypoints into a PNG grid.
 
     Parameters
@@ -184,8 +184,9 @@ def point_panels(panels: Sequence[dict], path: Any, *, up: str = "z", cell: floa
         ``keypoints`` (K, 3), ``mesh`` (a kpd Mesh drawn shaded instead of ``points``), ``title`` and ``color``
         (RGB 0-255 of the caption).
     path : the PNG to write (atomically).
+    shared_camera : one camera framing every panel (shapes compare on one scale), else each panel framed alone.
     """
-    from kpd.viewer.gl import Layer, Shot
+    from kpd.viewer.gl import Layer, Shot, frame_points
     from kpd.viewer.render import ViewSettings, camera_pose, write_png
 
     pixels = int(round(cell * 100))
@@ -205,12 +206,14 @@ def point_panels(panels: Sequence[dict], path: Any, *, up: str = "z", cell: floa
                                 style="splats"))
         kp = panel.get("keypoints")
         shot = Shot(layers=layers, keypoints=None if kp is None else np.asarray(kp, dtype=np.float64))
-        from kpd.viewer.gl import frame_points
-
         everything = frame_points(shot)
         shot.camera = camera_pose(everything, settings.replace(zoom=1.12))
         radii.append(settings.keypoint_size * 1.1 * float(np.linalg.norm(np.ptp(everything, axis=0)) or 1.0))
         shots.append(shot)
+    if shared_camera:
+        camera = camera_pose(np.vstack([frame_points(shot) for shot in shots]), settings.replace(zoom=1.12))
+        for shot in shots:
+            shot.camera = camera
     radius = float(np.median(radii))
     images = _draw_cells(shots, settings, radius)
     titles = [p.get("title", "") for p in panels]
