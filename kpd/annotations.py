@@ -982,16 +982,49 @@ def coverage_protocol(root: str | os.PathLike, category: str, source, *, split: 
 
 
 def alignment_pairs(n: int, count: int, seed: int = 0) -> np.ndarray:
-    """``count`` seeded (source, target) index pairs over ``n`` shapes with source != target: (count, 2) int64.
+    """Up to ``count`` seeded, distinct (source, target) index pairs over ``n`` shapes, source != target:
+    (P, 2) int64 with P = min(count, n (n - 1)).
 
-    The same pairs as the training evaluation (``kpd.train.evaluate.fixed_pairs``), without importing torch.
+    No pair appears twice (a small test split cannot pass a few pairs off as many): the seeded draws are the same as
+    before duplicates were dropped, so a draw without repeats is unchanged; repeats are replaced by further draws of
+    the same generator, and when ``count`` exceeds the n (n - 1) ordered pairs every pair is used once (callers
+    report the shortfall). The same pairs as the training evaluation (``kpd.train.evaluate.fixed_pairs``), without
+    importing torch.
     """
     if n < 2:
         raise DataError(f"alignment needs at least 2 shapes; got {n}")
+    total = n * (n - 1)
+    want = min(int(count), total)
     rng = np.random.default_rng([seed, 3])
-    source = rng.integers(n, size=count)
-    target = (source + rng.integers(1, n, size=count)) % n
-    return np.stack([source, target], axis=1).astype(np.int64)
+    chosen: dict[tuple[int, int], None] = {}
+    size = int(count)
+    while len(chosen) < want:
+        source = rng.integers(n, size=size)
+        target = (source + rng.integers(1, n, size=size)) % n
+        for pair in zip(source.tolist(), target.tolist()):
+            chosen.setdefault(pair)
+            if len(chosen) == want:
+                break
+        size = max(16, want - len(chosen))
+        if len(chosen) < want and want == total and len(chosen) > 0.9 * total:  # the last few: take them in order
+            for pair in ((s, t) for s in range(n) for t in range(n) if s != t):
+                chosen.setdefault(pair)
+    return np.array(list(chosen)[:want], dtype=np.int64).reshape(-1, 2)
+
+
+# fewer test shapes than this make a score that says little; it is flagged in the result and on the console
+FEW_TEST_SHAPES = 10
+
+
+def pair_notes(n: int, requested: int, used: int, split_source: str) -> list[str]:
+    """Loud notes for an alignment score over few shapes or fewer distinct pairs than asked for."""
+    notes = []
+    if used < requested:
+        notes.append(f"only {used} distinct pairs exist among {n} test shapes; {requested} were asked for, each pair "
+                     "is scored once")
+    if n < FEW_TEST_SHAPES:
+        notes.append(f"only {n} test shapes ({split_source}): the score says little about the category")
+    return notes
 
 
 def chamfer_protocol(model: Any, root: str | os.PathLike, category: str | None = None, *, pairs: int = 200,
@@ -1039,16 +1072,19 @@ def chamfer_protocol(model: Any, root: str | os.PathLike, category: str | None =
         none.append(alignment_chamfer(predictions[s].points, predictions[t].points))
         scores.append(alignment_chamfer(deformed, predictions[t].points))
     none, scores = np.array(none), np.array(scores)
+    notes = pair_notes(len(test), pairs, len(index), data.split_source)
     return {
         "protocol": "chamfer",
+        "notes": notes,
         "definition": "Fig. 7: seeded pairs of distinct test shapes; the model's point sample of the source deformed "
                       "by the bundle's rig to the target's keypoints; chamfer (squared, mean, both directions, "
                       "REFERENCE §6) to the target's sample in the [-1, 1] frame, x1e3",
         "data": {"root": str(root), "layout": data.layout, "category": data.category, "split_source": data.split_source,
-                 "test_shapes": len(test)},
+                 "test_shapes": len(test), "test_names": [f.name for f in test]},
         "keypoints": {"source": "model", "bundle": str(model.bundle.path), "category": model.category,
                       "keypoints": model.num_keypoints, "seed": seed},
-        "settings": {"pairs": int(pairs), "seed": int(seed), "points": model.point_count},
+        "settings": {"pairs": int(len(index)), "requested_pairs": int(pairs), "seed": int(seed),
+                     "points": model.point_count},
         "results": {
             "chamfer_x1e3": {"model": _stats(1e3 * scores), "no_deformation": _stats(1e3 * none)},
             "ratio_to_no_deformation": float(scores.mean() / none.mean()),

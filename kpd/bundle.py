@@ -15,9 +15,8 @@ import io
 import json
 import logging
 import os
-import shutil
-import tempfile
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -191,8 +190,8 @@ def _read_files(path: Path) -> dict[str, bytes]:
             # files at the archive's root, or inside one top-level folder
             prefix = roots.pop() + "/" if len(roots) == 1 and all("/" in n for n in names) else ""
             return {n[len(prefix):]: archive.read(n) for n in names if "/" not in n[len(prefix):]}
-    except (zipfile.BadZipFile, OSError) as exc:
-        raise BundleError(f"{path}: unreadable zip ({exc})") from exc
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
+        raise BundleError(f"{path}: damaged zip ({exc or type(exc).__name__})") from exc
 
 
 def _check_format(manifest: dict, where: str) -> None:
@@ -371,58 +370,30 @@ def build_manifest(
 def write_bundle(path: str | os.PathLike, files: Mapping[str, bytes], *, force: bool = False) -> Path:
     """Write bundle files to a folder, or to a zip when ``path`` ends in ``.zip``, atomically.
 
-    The files go to a temporary sibling first, which is renamed onto ``path`` only when complete; an existing
-    ``path`` is replaced only with ``force``.
+    Everything is written through :class:`kpd.io.Outputs`: into a staging area beside ``path``, fsynced, then put
+    in place; an existing ``path`` is replaced only with ``force``.
     """
+    from kpd.io import Outputs
+
     path = Path(path)
-    if path.exists() and not force:
-        raise InputError(f"{path} exists; pass force=True (--force) to replace it")
-    if not path.parent.is_dir():
-        raise InputError(f"output folder {path.parent} does not exist")
-    if path.suffix == ".zip":
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        os.close(fd)
-        try:
-            with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+    with Outputs(force=force) as outputs:
+        is_zip = path.suffix == ".zip"
+        target = outputs.file(path, None) if is_zip else outputs.folder(path, None)
+        staged = outputs.stage(target)
+        if is_zip:
+            with zipfile.ZipFile(staged, "w", compression=zipfile.ZIP_DEFLATED) as archive:
                 for name, data in sorted(files.items()):
                     info = zipfile.ZipInfo(name, date_time=(2021, 6, 1, 0, 0, 0))
                     info.compress_type = zipfile.ZIP_DEFLATED
                     info.external_attr = 0o644 << 16
                     archive.writestr(info, data)
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-        return path
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
-    try:
-        for name, data in files.items():
-            (tmp / name).write_bytes(data)
-            os.chmod(tmp / name, 0o644)
-        os.chmod(tmp, 0o755)
-        replace_path(tmp, path)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
+        else:
+            staged.mkdir()
+            for name, data in files.items():
+                (staged / name).write_bytes(data)
+                os.chmod(staged / name, 0o644)
+            os.chmod(staged, 0o755)
     return path
-
-
-def replace_path(source: Path, target: Path) -> None:
-    """Move ``source`` (a file or folder) onto ``target``, replacing a folder there as late as possible."""
-    if target.is_dir() and not target.is_symlink():
-        old = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".old", dir=target.parent))
-        old.rmdir()
-        os.replace(target, old)
-        try:
-            os.replace(source, target)
-        except OSError:
-            os.replace(old, target)
-            raise
-        shutil.rmtree(old)
-    else:
-        if target.exists():
-            target.unlink()
-        os.replace(source, target)
 
 
 def _version() -> str:

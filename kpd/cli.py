@@ -7,12 +7,20 @@ import importlib
 import logging
 import sys
 
-from kpd.commands import COMMANDS
+from kpd.commands import COMMANDS, run_checks
 from kpd.errors import KpdError
+from kpd.io.atomic import describe_os_error
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``kpd train: error: argument --samples: must be at least 1; got 0``."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="kpd",
         description="Unsupervised 3D keypoints and keypoint-driven shape deformation (KeypointDeformer).",
         epilog="Run 'kpd COMMAND --help' for a command's options and an example.",
@@ -35,19 +43,31 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a bad option (2, one line already printed)
+        return int(exc.code or 0)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if args.command is None:
         parser.print_help()
         return 2
     try:
+        run_checks(args)
         return int(args._run(args) or 0)
     except KpdError as exc:
-        print(f"kpd {args.command}: error: {exc}", file=sys.stderr)
+        print(f"kpd {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # the environment failed (a disk, a folder's permissions) where kpd did not expect it
+        print(f"kpd {args.command}: error: {_one_line(describe_os_error(exc, exc.filename or 'a file'))}",
+              file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"kpd {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+def _one_line(message) -> str:
+    return " ".join(str(message).split())
 
 
 if __name__ == "__main__":

@@ -6,10 +6,12 @@ Layouts (``discover``):
 - **ShapeNet v1**: ``ROOT/<synset>/<id>/model.obj``; **ShapeNet v2**: ``ROOT/<synset>/<id>/models/model_normalized.obj``.
   The category is a synset id or a common name (``chair``). The split comes from the official ``all.csv``
   (``--split-file``, or ``ROOT/all.csv`` when present).
-- **Flat folder**: mesh files in ``ROOT/<category>/`` (or ``ROOT`` itself), with an optional split file.
+- **Flat folder**: mesh files in ``ROOT/<category>/`` (or ``ROOT`` itself), with an optional split file;
+  ``train.txt`` / ``val.txt`` / ``test.txt`` beside the meshes are used as the split when no split file is given.
 
 Split files: the ShapeNet csv (columns ``modelId`` and ``split``), JSON ``{"train": [names], "val": [...], "test": [...]}``,
-a folder with ``train.txt`` / ``val.txt`` / ``test.txt`` (one name per line; KeypointNet's ``<synset>-<id>`` works),
+a folder with ``train.txt`` / ``val.txt`` / ``test.txt`` (one name per line; KeypointNet's ``<synset>-<id>`` works;
+one of those files given by itself stands for its folder),
 or text lines ``name split``. Shapes are named by model id (ShapeNet) or file stem. When there is no validation split it
 is carved from train with a seed (``val_fraction``); a layout with no split at all also has its test split carved.
 
@@ -105,10 +107,29 @@ def _mesh_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
 
 
+def _is_name_list(path: Path) -> bool:
+    """A list of names, one per line (not the two-column 'name split' format)."""
+    try:
+        lines = [s.replace(",", " ").split() for s in path.read_text().splitlines() if s.strip()]
+    except (OSError, UnicodeDecodeError):
+        return False
+    return all(len(parts) == 1 for parts in lines)
+
+
+def _split_lists(folder: Path) -> bool:
+    return any((folder / f"{s}.txt").is_file() for s in SPLITS)
+
+
 def read_split_file(path: str | os.PathLike) -> dict[str, str]:
-    """Read a split description: name -> ``train`` / ``val`` / ``test`` (formats in the module docstring)."""
+    """Read a split description: name -> ``train`` / ``val`` / ``test`` (formats in the module docstring).
+
+    A ``train.txt``, ``val.txt`` or ``test.txt`` given by itself (one name per line) stands for the lists of its
+    folder: its siblings among those three are read with it.
+    """
     path = Path(path)
     result: dict[str, str] = {}
+    if path.is_file() and path.name.lower() in {f"{s}.txt" for s in SPLITS} and _is_name_list(path):
+        path = path.parent
 
     def put(name: str, split: str) -> None:
         key = _SPLIT_ALIASES.get(split.strip().lower())
@@ -224,6 +245,8 @@ def discover(root: str | os.PathLike, category: str | None = None, *, split_file
                                 f"folder, and no ModelNet train/test folders")
             layout = "flat"
             pool = [ShapeFile(p.stem, p) for p in _mesh_files(folder)]
+            if split_file is None and _split_lists(folder):  # train.txt / val.txt / test.txt beside the meshes
+                split_file = folder
 
     if split_file is not None:
         assignment = read_split_file(split_file)

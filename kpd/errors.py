@@ -6,7 +6,7 @@ exits with status 2, so messages must name the problem, the expected value and t
 
 from __future__ import annotations
 
-__all__ = ["KpdError", "InputError", "BundleError", "DataError", "NotFittedError"]
+__all__ = ["KpdError", "InputError", "BundleError", "DataError", "NotFittedError", "WriteError", "TrainingError"]
 
 
 class KpdError(Exception):
@@ -27,3 +27,13 @@ class DataError(KpdError):
 
 class NotFittedError(KpdError, AttributeError):
     """A fitted attribute of an estimator was used before ``fit``."""
+
+
+class WriteError(KpdError):
+    """An output cannot be written or placed: a full disk, a read-only or forbidden folder, a file that another
+    process created at the output path meanwhile, or a writer that wrote less than it was given. Nothing is left
+    behind when it is raised (no partial output, no temporary file) and no existing file was changed."""
+
+
+class TrainingError(KpdError):
+    """Training cannot go on (the loss diverged); the run folder keeps its last good checkpoint."""

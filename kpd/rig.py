@@ -23,6 +23,7 @@ from kpd.cage import Cage, cage_faces_from_vertices, default_m, fit_cage, influe
 from kpd.errors import InputError
 from kpd.geometry import Normalizer, as_points, sample_surface
 from kpd.io import Mesh, atomic_output
+from kpd.io.integrity import HASH_KEY, check_hash, content_hash, load_numpy
 from kpd.mvc import mvc_weights
 
 __all__ = ["Rig", "RIG_FORMAT"]
@@ -217,33 +218,38 @@ class Rig:
         }
         for name, value in _mesh_arrays(self.mesh).items():
             arrays["mesh_" + name] = value
+        arrays[HASH_KEY] = np.array(content_hash(arrays))
         with atomic_output(path) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez_compressed(fh, **arrays)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Rig":
-        """Read a rig written by :meth:`save`."""
+        """Read a rig written by :meth:`save`; a damaged file (bad zip, bad CRC, content not matching the stored
+        sha256) raises :class:`~kpd.errors.InputError`."""
         path = Path(path)
+        if path.is_dir():
+            raise InputError(f"{path}: is a folder; a rig is a .npz file (a folder of the authors' demo files is "
+                             "read by Rig.from_demo)")
         if not path.is_file():
             raise InputError(f"{path}: no such rig file")
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {name: data[name] for name in data.files}
-        except (OSError, ValueError) as exc:
-            raise InputError(f"{path}: not a kpd rig (.npz): {exc}") from exc
+        arrays = load_numpy(path, "kpd rig (.npz)")
+        if not isinstance(arrays, dict):
+            raise InputError(f"{path}: a single array, not a kpd rig (.npz)")
         fmt = str(arrays.get("format", ""))
         if fmt != RIG_FORMAT:
             raise InputError(f"{path}: rig format must be {RIG_FORMAT!r}; got {fmt or 'none'!r}")
+        check_hash(arrays, arrays.get(HASH_KEY), str(path), "rig")
         try:
             mesh = _mesh_from_arrays({k[5:]: v for k, v in arrays.items() if k.startswith("mesh_")})
             normalizer = Normalizer.from_dict(
                 {"center": arrays["normalizer_center"].tolist(), "scale": float(arrays["normalizer_scale"])}
             )
             cage = Cage(arrays["cage_vertices"], arrays["cage_faces"])
-            return cls(mesh, normalizer, arrays["keypoints"], cage, arrays["influence"], arrays["weights"])
+            rig = cls(mesh, normalizer, arrays["keypoints"], cage, arrays["influence"], arrays["weights"])
         except KeyError as exc:
             raise InputError(f"{path}: rig file lacks {exc.args[0]!r}") from exc
+        return rig
 
     @classmethod
     def from_demo(cls, directory: str | os.PathLike) -> "Rig":

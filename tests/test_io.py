@@ -653,7 +653,7 @@ def test_numpy_point_files(tmp_path):
     np.savez(tmp_path / "c.npz", points=np.zeros((4, 3)), colors=np.full((4, 3), 255, np.uint8))
     assert (read_points(tmp_path / "c.npz").colors == 1.0).all()
     np.save(tmp_path / "d.npy", np.array([{"a": 1}], dtype=object))
-    with pytest.raises(InputError, match=r"d\.npy: not a readable numpy file"):
+    with pytest.raises(InputError, match=r"d\.npy: the \.npy holds pickled objects"):
         read_points(tmp_path / "d.npy")  # pickles are refused
 
 
@@ -718,7 +718,7 @@ def test_failed_mesh_write_leaves_existing_files_untouched(ext, tmp_path, monkey
 
     monkeypatch.setattr(o3d.io, "write_triangle_mesh", fail_write)
     monkeypatch.setattr(o3d.io, "write_image", fail_write)
-    with pytest.raises(KpdError, match=rf"Open3D could not write"):
+    with pytest.raises(KpdError, match=r"cannot write .*Open3D failed"):
         write_mesh(tmp_path / f"chair.{ext}", mesh.with_vertices(mesh.vertices + 1))
     assert {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path)} == before
 

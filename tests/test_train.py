@@ -366,17 +366,17 @@ def test_eval_commands_on_a_tiny_run(data_dir, tmp_path, capsys):
     assert "--force" in capsys.readouterr().err
 
 
-def test_recipe_flags_map_to_the_paper_values():
+def test_recipe_flags_map_to_the_paper_values(tmp_path):
     import argparse
 
     from kpd.commands import train as cmd
 
     parser = argparse.ArgumentParser()
     cmd.add_arguments(parser)
-    code = cmd.recipe(parser.parse_args(["data", "--out", "x"]))
+    code = cmd.recipe(parser.parse_args([str(tmp_path), "--out", "x"]))
     assert (code.alpha_kpt, code.alpha_inf, code.inf_reg, code.warmup, code.wc_lr, code.clamp, code.paper_m) == (
         2.0, 1e6, "code", 200, 1e-2, True, False)
-    paper = cmd.recipe(parser.parse_args(["data", "--out", "x", "--paper"]))
+    paper = cmd.recipe(parser.parse_args([str(tmp_path), "--out", "x", "--paper"]))
     assert (paper.alpha_kpt, paper.alpha_inf, paper.inf_reg, paper.warmup, paper.wc_lr, paper.clamp,
             paper.paper_m) == (1.0, 1e-6, "paper", 0, 1e-3, False, True)
     mixed = cmd.recipe(parser.parse_args(["data", "--out", "x", "--inf-reg", "paper", "--warmup", "0",

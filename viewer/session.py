@@ -218,10 +218,12 @@ class EditSession:
     def save(self, path: str | os.PathLike, **meta: Any) -> Path:
         """Write the session as JSON, atomically (see :meth:`to_dict`)."""
         from kpd.io import atomic_output
+        from kpd.io.integrity import HASH_KEY, json_hash
 
         path = Path(path)
         try:
-            text = json.dumps(self.to_dict(**meta), indent=2, allow_nan=False)
+            data = self.to_dict(**meta)
+            text = json.dumps({**data, HASH_KEY: json_hash(data)}, indent=2, allow_nan=False)
         except (TypeError, ValueError) as exc:
             raise InputError(f"{path}: session metadata is not JSON-serialisable ({exc})") from exc
         with atomic_output(path) as tmp:
@@ -273,6 +275,10 @@ def read_session_file(path: str | os.PathLike) -> dict:
         raise InputError(f"{path}: not a JSON edit session ({exc})") from exc
     if not isinstance(data, dict):
         raise InputError(f"{path}: an edit session must be a JSON object; got {type(data).__name__}")
+    from kpd.io.integrity import HASH_KEY, check_hash
+
+    if HASH_KEY in data:  # kpd writes one; a session written by hand or by a script may have none
+        check_hash(data, data[HASH_KEY], str(path), "edit session")
     return data
 
 

@@ -7,6 +7,8 @@ inside ``run`` so that ``kpd --help`` stays fast and torch is loaded only by ``t
 
 from __future__ import annotations
 
+import argparse
+import math
 import os
 from pathlib import Path
 
@@ -29,21 +31,84 @@ COMMANDS = {
 }
 
 
-def check_output(out: str | os.PathLike, *, force: bool = False, inputs: tuple = ()) -> Path:
-    """Refuse an output path that would overwrite an input, or an existing file unless ``force``.
+def check_output(out: str | os.PathLike, *, force: bool = False, inputs: tuple = (), option: str = "--out",
+                 kind: str = "file", formats: tuple | None = None, what: str = "") -> Path:
+    """Refuse an output that is an input or holds one, an unwritable folder, or an existing file unless ``force``
+    (one line naming ``option``); see :func:`kpd.io.check_output`. Commands write through :class:`kpd.io.Outputs`,
+    which makes this check for every output it registers."""
+    from kpd.io import check_output as check
 
-    Parameters
-    ----------
-    out : path the command will write (atomically, after all work is done).
-    force : allow replacing an existing output (never an input).
-    inputs : paths the command reads.
-    """
-    path = Path(out)
-    for source in inputs:
-        if source is not None and Path(source).exists() and path.exists() and path.resolve() == Path(source).resolve():
-            raise InputError(f"output {path} is also an input; choose another --out")
-    if path.exists() and not force:
-        raise InputError(f"output {path} exists; pass --force to replace it")
-    if not path.parent.exists():
-        raise InputError(f"output folder {path.parent} does not exist")
-    return path
+    return check(out, option=option, force=force, inputs=inputs, kind=kind, formats=formats, what=what)
+
+
+# --- options checked before any work: argparse types (one line naming the option, exit status 2) ----------------
+
+
+def integer(minimum: int | None = None, maximum: int | None = None):
+    """An argparse ``type`` for an integer option in [minimum, maximum] (either bound optional)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer; got {text!r}") from None
+        _bounds(value, minimum, maximum)
+        return value
+
+    parse.__name__ = "integer"
+    return parse
+
+
+def number(minimum: float | None = None, maximum: float | None = None, *, positive: bool = False):
+    """An argparse ``type`` for a finite number in [minimum, maximum]; ``positive``: strictly above 0."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number; got {text!r}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"must be a finite number; got {text!r}")
+        if positive and value <= 0:
+            raise argparse.ArgumentTypeError(f"must be greater than 0; got {text}")
+        _bounds(value, minimum, maximum)
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+def _bounds(value, minimum, maximum) -> None:
+    if minimum is not None and maximum is not None and not minimum <= value <= maximum:
+        raise argparse.ArgumentTypeError(f"must lie in [{minimum}, {maximum}]; got {value:g}")
+    if minimum is not None and value < minimum:
+        raise argparse.ArgumentTypeError(f"must be at least {minimum}; got {value:g}")
+    if maximum is not None and value > maximum:
+        raise argparse.ArgumentTypeError(f"must be at most {maximum}; got {value:g}")
+
+
+def folder(text: str) -> str:
+    """An argparse ``type`` for an existing folder (a file or a missing path is named as such)."""
+    p = Path(text)
+    if p.is_file():
+        raise argparse.ArgumentTypeError(f"must be a folder; {text} is a file")
+    if not p.exists():
+        raise argparse.ArgumentTypeError(f"no such folder {text}")
+    return text
+
+
+def existing(text: str) -> str:
+    """An argparse ``type`` for an input path (file or folder) that must exist."""
+    if not os.path.exists(text):
+        raise argparse.ArgumentTypeError(f"no such file or folder {text}")
+    return text
+
+
+def add_check(parser: argparse.ArgumentParser, check) -> None:
+    """Run ``check(args)`` (raising :class:`~kpd.errors.InputError`) after parsing and before the command's work."""
+    parser.set_defaults(_checks=[*(parser.get_default("_checks") or []), check])
+
+
+def run_checks(args: argparse.Namespace) -> None:
+    for check in getattr(args, "_checks", None) or []:
+        check(args)

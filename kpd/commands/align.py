@@ -23,32 +23,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from kpd.commands import check_output
-    from kpd.commands.keypoints import check_suffix, load_model
-    from kpd.io import MESH_FORMATS, atomic_output, read_mesh, read_shape, write_mesh
+    from kpd.commands.keypoints import load_model
+    from kpd.io import MESH_FORMATS, Outputs, mesh_companions, read_mesh, read_shape, write_mesh
 
-    check_suffix(args.out, MESH_FORMATS, "mesh")
-    out = check_output(args.out, force=args.force, inputs=(args.source, args.target))
-    extra = None
-    if args.keypoints is not None:
-        check_suffix(args.keypoints, (".json",), "keypoint")
-        extra = check_output(args.keypoints, force=args.force, inputs=(args.source, args.target))
-        if extra.resolve() == out.resolve():
-            from kpd.errors import InputError
-
-            raise InputError("--keypoints and --out must be different files")
-    model = load_model(args)
-    source = read_mesh(args.source)
-    target = read_shape(args.target)
-    rig = model.rig(source, seed=args.seed)
-    prediction = model.predict(target, seed=args.seed)
-    target_keypoints = rig.normalizer.invert(prediction.keypoints)  # target's shape, source's frame
-    write_mesh(out, rig.deformed_mesh(target_keypoints))
-    if extra is not None:
-        text = json.dumps({"source_keypoints": rig.keypoints.tolist(), "target_keypoints": target_keypoints.tolist(),
-                           "frame": "source", "model": str(args.model)}, indent=2)
-        with atomic_output(extra) as tmp:
-            tmp.write_text(text + "\n")
+    with Outputs(force=args.force, inputs=(args.source, args.target)) as outputs:
+        out = outputs.file(args.out, "--out", formats=MESH_FORMATS, what="mesh")
+        extra = None
+        if args.keypoints is not None:
+            extra = outputs.file(args.keypoints, "--keypoints", formats=(".json",), what="keypoint")
+        model = load_model(args)
+        source = read_mesh(args.source)
+        outputs.companions(out, mesh_companions(out, source))
+        target = read_shape(args.target)
+        rig = model.rig(source, seed=args.seed)
+        prediction = model.predict(target, seed=args.seed)
+        target_keypoints = rig.normalizer.invert(prediction.keypoints)  # target's shape, source's frame
+        write_mesh(outputs.stage(out), rig.deformed_mesh(target_keypoints))
+        if extra is not None:
+            text = json.dumps({"source_keypoints": rig.keypoints.tolist(),
+                               "target_keypoints": target_keypoints.tolist(), "frame": "source",
+                               "model": str(args.model)}, indent=2)
+            outputs.stage(extra).write_text(text + "\n")
     print(f"wrote {out} ({len(source.vertices)} vertices, source deformed to the target's {model.num_keypoints} "
-          "keypoints)")
+          "keypoints)" + (f" and {extra}" if extra is not None else ""))
     return 0

@@ -9,6 +9,8 @@ import platform
 import statistics
 import time
 
+from kpd.commands import integer
+
 HELP = "measure the deployment path on this machine: model load, keypoints + influence, rig binding, one edit"
 EXAMPLE = "kpd bench chair --vertices 10000 100000 --out bench.json    (or: kpd bench chair --mesh my_chair.obj)"
 
@@ -21,9 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     add_model_arguments(parser)
     parser.add_argument("--mesh", default=None, help="time your own mesh instead of procedural chairs")
-    parser.add_argument("--vertices", type=int, nargs="+", default=[10_000, 100_000], metavar="V",
+    parser.add_argument("--vertices", type=integer(1_000, 2_000_000), nargs="+", default=[10_000, 100_000], metavar="V",
                         help="procedural chair sizes to time, in mesh vertices (default: 10000 100000)")
-    parser.add_argument("--repeats", type=int, default=200, help="timed calls per measurement (median reported)")
+    parser.add_argument("--repeats", type=integer(1), default=200, help="timed calls per measurement (median reported)")
     parser.add_argument("--out", default=None, help="also write the results as JSON")
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
 
@@ -69,16 +71,11 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from kpd.commands import check_output
-    from kpd.errors import InputError
+    from kpd.io import Outputs
     from kpd.runtime import Model
 
-    if args.repeats < 1:
-        raise InputError(f"--repeats must be at least 1; got {args.repeats}")
-    for count in args.vertices:
-        if not 1_000 <= count <= 2_000_000:
-            raise InputError(f"--vertices must lie in [1000, 2000000]; got {count}")
-    out = check_output(args.out, force=args.force, inputs=(args.mesh,)) if args.out else None
+    outputs = Outputs(force=args.force, inputs=(args.mesh,))
+    out = outputs.file(args.out, "--out", formats=(".json",), what="JSON") if args.out else None
 
     start = time.perf_counter()
     model = Model.load(args.model, threads=args.threads)
@@ -116,9 +113,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {row['mesh']} ({row['vertices']} vertices): predict {row['predict_ms']:.1f} ms, "
               f"bind {row['bind_ms']:.1f} ms, one edit {row['edit_ms']:.3f} ms")
     if out is not None:
-        from kpd.io import atomic_output
-
-        with atomic_output(out) as temporary:
-            temporary.write_text(json.dumps(result, indent=2) + "\n")
+        with outputs:
+            outputs.stage(out).write_text(json.dumps(result, indent=2) + "\n")
         print(f"wrote {out}")
     return 0

@@ -7,6 +7,7 @@ import re
 
 import numpy as np
 
+from kpd.commands import integer
 from kpd.errors import InputError
 
 HELP = "move keypoints of a shape and write the deformed mesh (same topology, UVs and colours)"
@@ -54,8 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prior", action="store_true",
                         help="move the other keypoints as the model's category prior says (e.g. a leg's partner)")
     parser.add_argument("--out", required=True, help="deformed mesh to write (.obj .ply .off .stl .gltf .glb)")
-    parser.add_argument("--seed", type=int, default=0, help="surface-sampling seed (with MODEL)")
-    parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (with MODEL)")
+    parser.add_argument("--seed", type=integer(0), default=0, help="surface-sampling seed (with MODEL)")
+    parser.add_argument("--threads", type=integer(1), default=None, help="onnxruntime intra-op threads (with MODEL)")
     add_scan_arguments(parser)
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
 
@@ -69,9 +70,7 @@ def load_rig(path: str):
 
 
 def run(args: argparse.Namespace) -> int:
-    from kpd.commands import check_output
-    from kpd.commands.keypoints import check_suffix
-    from kpd.io import MESH_FORMATS, write_mesh
+    from kpd.io import MESH_FORMATS, Outputs, mesh_companions, write_mesh
 
     with_model = args.model is not None or args.shape is not None
     if with_model == (args.rig is not None):
@@ -80,25 +79,24 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("give both MODEL and SHAPE (for example: kpd deform chair chair.obj --move 0:0,0,1 --out o.obj)")
     if args.rig is not None and (args.prior or args.scan):
         raise InputError("--prior and --scan need MODEL SHAPE, not --rig")
-    if args.up is not None and not args.scan:
-        raise InputError("--up goes with --scan")
     moves = parse_moves(args.move)
-    check_suffix(args.out, MESH_FORMATS, "mesh")
-    out = check_output(args.out, force=args.force, inputs=(args.rig, args.shape))
-    if args.rig is not None:
-        rig = load_rig(args.rig)
-        write_mesh(out, rig.deformed_mesh(rig.moved(moves)))
-        print(f"wrote {out} ({len(rig.mesh.vertices)} vertices, {len(moves)} keypoint(s) moved)")
-        return 0
-    mesh = deform_with_model(args, moves)
-    write_mesh(out, mesh)
+    with Outputs(force=args.force, inputs=(args.rig, args.shape)) as outputs:
+        out = outputs.file(args.out, "--out", formats=MESH_FORMATS, what="mesh")
+        if args.rig is not None:
+            rig = load_rig(args.rig)
+            mesh = rig.deformed_mesh(rig.moved(moves))
+        else:
+            mesh = deform_with_model(args, moves, check=lambda m: outputs.companions(out, mesh_companions(out, m)))
+        outputs.companions(out, mesh_companions(out, mesh))
+        write_mesh(outputs.stage(out), mesh)
     print(f"wrote {out} ({len(mesh.vertices)} vertices, {len(moves)} keypoint(s) moved"
           f"{', others by the prior' if args.prior else ''})")
     return 0
 
 
-def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray]):
-    """The deformed mesh of ``kpd deform MODEL SHAPE``: rig the mesh, move keypoints (through the prior if asked)."""
+def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray], check=None):
+    """The deformed mesh of ``kpd deform MODEL SHAPE``: rig the mesh, move keypoints (through the prior if asked).
+    ``check(mesh)`` runs on the input mesh before the work (the output's companion files)."""
     from kpd.commands.keypoints import ScanFrame, load_model
     from kpd.io import read_mesh
 
@@ -110,6 +108,8 @@ def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray]):
     if args.prior and model.prior is None:
         raise InputError(f"{args.model}: this bundle has no category prior; drop --prior")
     mesh = read_mesh(args.shape)
+    if check is not None:
+        check(mesh)
     scan = None
     if args.scan:
         # orient with the scan pipeline, but rig the whole input mesh (topology kept) in the model's orientation

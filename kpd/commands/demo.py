@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from kpd.commands import number
+
 HELP = "deform a chair with the shipped chair model (offline) and write the meshes, keypoints and a picture"
 EXAMPLE = "kpd demo --out demo-output    (or: kpd demo --mesh my_chair.obj --out demo-output)"
 
@@ -16,28 +18,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mesh", default=None, help="your own chair mesh instead of the built-in procedural chair "
                                                      "(z up, back toward +y, like ModelNet)")
     parser.add_argument("--model", default="chair", help="bundle to use (default: the shipped chair model)")
-    parser.add_argument("--amount", type=float, default=0.12, metavar="FRACTION",
+    parser.add_argument("--amount", type=number(0, 1), default=0.12, metavar="FRACTION",
                         help="how far to pull one leg outward, as a fraction of the shape's height (default 0.12)")
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
 
 
 def run(args: argparse.Namespace) -> int:
     import json
-    import shutil
-    import tempfile
 
-    from kpd.bundle import replace_path
-    from kpd.commands import check_output
     from kpd.commands.sample import render_sheet
-    from kpd.errors import InputError
-    from kpd.io import read_mesh, write_mesh
+    from kpd.io import Outputs, read_mesh, write_mesh
     from kpd.runtime import Model
 
-    if not (np.isfinite(args.amount) and 0 <= args.amount <= 1):
-        raise InputError(f"--amount must lie in [0, 1]; got {args.amount}")
-    out = check_output(args.out, force=args.force, inputs=(args.mesh,))
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} is a file; demo writes a folder")
+    outputs = Outputs(force=args.force, inputs=(args.mesh, args.model))
+    out = outputs.folder(args.out, "--out")
     model = Model.load(args.model)
     mesh = read_mesh(args.mesh) if args.mesh is not None else procedural_chair()
     rig = model.rig(mesh)
@@ -48,8 +42,9 @@ def run(args: argparse.Namespace) -> int:
     alone = rig.moved({leg: target - rest[leg]})
     synced = model.sync(rig, {leg: target}) if model.prior is not None else None
 
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    try:
+    with outputs:
+        staging = outputs.stage(out)
+        staging.mkdir()
         write_mesh(staging / "input.ply", mesh)
         write_mesh(staging / "deformed_alone.ply", rig.deformed_mesh(alone))
         meshes, keypoints = [mesh, rig.deformed_mesh(alone)], [rest, alone]
@@ -69,9 +64,6 @@ def run(args: argparse.Namespace) -> int:
         arrows = [(rest[[leg]], target[None]), None] + ([None] if synced is not None else [])
         render_sheet(meshes, staging / "demo.png", titles=titles, keypoints=keypoints, columns=len(meshes),
                      up=_up_letter(model.up), cell=3.6, arrows=arrows)
-        replace_path(staging, out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     files = "input.ply, deformed_alone.ply" + (", deformed.ply" if synced is not None else "")
     print(f"wrote {out}/: {files}, rig.npz, keypoints.json, demo.png (keypoint {leg}, a leg, pulled outward by "
           f"{args.amount:g} of the height" + (", and again with the category prior moving the others)" if synced

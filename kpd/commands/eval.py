@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
-from kpd.commands import check_output
+from kpd.commands import existing, folder, integer, number
 from kpd.errors import InputError
 
 HELP = "evaluate trained runs: alignment chamfer (paper Fig. 7) and label-free keypoint quality"
@@ -20,73 +21,82 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        description="The paper's Fig. 7 protocol: seeded pairs of distinct test shapes; chamfer "
                                    "(REFERENCE §6, [-1, 1] frame, x1e3) of the deformed source to the target, next "
                                    "to no deformation and an optional baseline run.")
-    a.add_argument("run", help="run folder (or checkpoint) from kpd train")
-    a.add_argument("--baseline", help="a second run to compare, e.g. trained with --keypoint-source fps")
-    a.add_argument("--pairs", type=int, default=200, help="number of pairs (default 200)")
+    a.add_argument("run", type=existing, help="run folder (or checkpoint) from kpd train")
+    a.add_argument("--baseline", type=existing, help="a second run to compare, e.g. trained with --keypoint-source fps")
+    a.add_argument("--pairs", type=integer(1), default=200, help="number of pairs (default 200)")
     a.add_argument("--gallery", help="PNG with source / keypoints / deformed / target for the first pairs")
-    a.add_argument("--gallery-pairs", type=int, default=8, help="pairs in the gallery (default 8)")
+    a.add_argument("--gallery-pairs", type=integer(1), default=8, help="pairs in the gallery (default 8)")
     _common(a)
 
     k = sub.add_parser("keypoints", help="stability, distance to the surface and mirror consistency of keypoints",
                        description="Label-free keypoint quality on the test split; distances in the [-1, 1] frame.")
-    k.add_argument("run", help="run folder (or checkpoint) from kpd train")
-    k.add_argument("--samples", type=int, default=5, help="independent point samples per shape (default 5)")
+    k.add_argument("run", type=existing, help="run folder (or checkpoint) from kpd train")
+    k.add_argument("--samples", type=integer(1), default=5, help="independent point samples per shape (default 5)")
     k.add_argument("--mirror-axis", choices=("x", "y", "z", "none"), default="x",
                    help="mirror plane normal in the data's frame (ModelNet chairs and tables: x)")
-    k.add_argument("--max-train", type=int, default=200, help="train shapes used to fit the mirror permutation")
-    k.add_argument("--max-test", type=int, default=None, help="evaluate at most this many test shapes")
+    k.add_argument("--max-train", type=integer(1), default=200, help="train shapes used to fit the mirror permutation")
+    k.add_argument("--max-test", type=integer(1), default=None, help="evaluate at most this many test shapes")
     _common(k)
     _add_protocol_parsers(sub)  # pck, parts, das, coverage, chamfer (bottom of this file)
 
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="JSON result")
-    p.add_argument("--data", help="dataset folder, if it moved since training (default: the run's record)")
+    p.add_argument("--data", type=folder, help="dataset folder, if it moved since training (default: the run's record)")
     p.add_argument("--cache", help="sample cache folder (default $KPD_CACHE or ~/.cache/kpd)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the pairs / samples (default 0)")
+    p.add_argument("--seed", type=integer(0), default=0, help="seed of the pairs / samples (default 0)")
     p.add_argument("--force", action="store_true", help="replace existing outputs")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def _write_json(path: Path, data: dict) -> None:
-    from kpd.train.trainer import _write_json as write
-
-    write(path, data)
+    path.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
 
 
 def run(args: argparse.Namespace) -> int:
+    from kpd.io import Outputs
+
     if args.task in _PROTOCOLS:
         return _run_protocol(args)
-    out = check_output(args.out, force=args.force)
-    if not Path(args.run).exists():
-        raise InputError(f"run {args.run} does not exist")
+    inputs = (args.run, getattr(args, "baseline", None), args.data, args.cache)
+    with Outputs(force=args.force, inputs=inputs) as outputs:
+        out = outputs.file(args.out, "--out", formats=(".json",), what="result (JSON)")
+        _run_run(args, outputs, out)
+    print(f"wrote {out}")
+    return 0
+
+
+def _run_run(args: argparse.Namespace, outputs, out: Path) -> None:
     from kpd.train import evaluate
 
     if args.task == "alignment":
+        gallery = None
         if args.gallery:
-            check_output(args.gallery, force=args.force)
-        if args.pairs < 1:
-            raise InputError(f"--pairs must be at least 1; got {args.pairs}")
+            gallery = outputs.file(args.gallery, "--gallery", formats=(".png",), what="gallery (PNG)")
         result = evaluate.evaluate_alignment(args.run, args.baseline, pairs=args.pairs, seed=args.seed,
-                                             data_root=args.data, cache_dir=args.cache, gallery=args.gallery,
+                                             data_root=args.data, cache_dir=args.cache,
+                                             gallery=None if gallery is None else outputs.stage(gallery),
                                              gallery_pairs=args.gallery_pairs, progress=not args.quiet)
-        _write_json(out, result)
+        if gallery is not None:
+            result["gallery"] = str(gallery)
+        _write_json(outputs.stage(out), result)
         scores = result["chamfer_x1e3"]
         print(f"{result['category']}: {result['pairs']} pairs of {result['test_shapes']} test shapes, chamfer x1e3 "
               + ", ".join(f"{name} {s['mean']:.3f}" for name, s in scores.items()))
+        print("test shapes: " + _names(result["test_names"], "the run's test split"))
+        for note in result["notes"]:
+            print(f"warning: {note}", file=sys.stderr)
     else:
         axis = None if args.mirror_axis == "none" else "xyz".index(args.mirror_axis)
         result = evaluate.evaluate_keypoints(args.run, samples=args.samples, seed=args.seed, mirror_axis=axis,
                                              data_root=args.data, cache_dir=args.cache, max_train=args.max_train,
                                              max_test=args.max_test, progress=not args.quiet)
-        _write_json(out, result)
+        _write_json(outputs.stage(out), result)
         line = (f"{result['category']}: stability {result['stability']['mean']:.4f}, surface distance "
                 f"{result['surface_distance']['mean']:.4f}")
         if "mirror" in result:
             line += f", mirror consistency {result['mirror']['consistency']:.4f}"
         print(line)
-    print(f"wrote {out}")
-    return 0
 
 
 # --- Protocols on annotated datasets (helper "eval"): pck, parts, das, coverage, and chamfer on a bundle ------------
@@ -108,13 +118,13 @@ def _add_protocol_parsers(sub) -> None:
         epilog="example:\n  kpd eval pck ../shared/data/keypointnet --category chair --model chair "
                "--geometry ../shared/data/shapenetpart_sample --out chair_pck.json",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("data", help="KeypointNet folder (annotations/, splits/, pcds/ and optionally models/)")
+    p.add_argument("data", type=folder, help="KeypointNet folder (annotations/, splits/, pcds/ and optionally models/)")
     _source_arguments(p)
     _geometry_argument(p)
-    p.add_argument("--threshold", type=float, default=0.05, help="PCK distance in the [-1, 1] box (default 0.05)")
-    p.add_argument("--ridge", type=float, default=1e-3,
+    p.add_argument("--threshold", type=number(positive=True), default=0.05, help="PCK distance in the [-1, 1] box (default 0.05)")
+    p.add_argument("--ridge", type=number(0), default=1e-3,
                    help="relative ridge strength of the regressor (default 1e-3; 0: least squares)")
-    p.add_argument("--min-fraction", type=float, default=0.8,
+    p.add_argument("--min-fraction", type=number(0, 1), default=0.8,
                    help="keep the semantic ids present together in more than this share of models (default 0.8)")
     p.add_argument("--fit-split", default="train", choices=("train", "val", "test", "all"),
                    help="split the regressor is fitted on (default train)")
@@ -131,10 +141,10 @@ def _add_protocol_parsers(sub) -> None:
         epilog="example:\n  kpd eval parts ../shared/data/shapenetpart_sample --category chair --split all "
                "--model chair --out chair_parts.json",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("data", help="ShapeNetPart folder (synsetoffset2category.txt, <synset>/points, points_label)")
+    p.add_argument("data", type=folder, help="ShapeNetPart folder (synsetoffset2category.txt, <synset>/points, points_label)")
     _source_arguments(p)
     p.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="split (default test)")
-    p.add_argument("--radius", type=float, default=0.05, help="association distance in the [-1, 1] box")
+    p.add_argument("--radius", type=number(positive=True), default=0.05, help="association distance in the [-1, 1] box")
     _protocol_common(p)
 
     p = sub.add_parser(
@@ -145,7 +155,7 @@ def _add_protocol_parsers(sub) -> None:
         epilog="example:\n  kpd eval das ../shared/data/keypointnet --category chair --model chair "
                "--out chair_das.json",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("data", help="KeypointNet folder")
+    p.add_argument("data", type=folder, help="KeypointNet folder")
     _source_arguments(p)
     _geometry_argument(p)
     p.add_argument("--split", default="all", choices=("train", "val", "test", "all"),
@@ -160,10 +170,10 @@ def _add_protocol_parsers(sub) -> None:
         epilog="example:\n  kpd eval coverage ../shared/data/keypointnet --category chair --model chair "
                "--out chair_coverage.json",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("data", help="KeypointNet folder (its pcds/) or ShapeNetPart folder")
+    p.add_argument("data", type=folder, help="KeypointNet folder (its pcds/) or ShapeNetPart folder")
     _source_arguments(p)
     p.add_argument("--split", default="all", choices=("train", "val", "test", "all"), help="split (default all)")
-    p.add_argument("--threshold", type=float, default=0.05, help="inclusivity distance (default 0.05, as SC3K)")
+    p.add_argument("--threshold", type=number(positive=True), default=0.05, help="inclusivity distance (default 0.05, as SC3K)")
     _protocol_common(p)
 
     p = sub.add_parser(
@@ -174,10 +184,10 @@ def _add_protocol_parsers(sub) -> None:
         epilog="example:\n  kpd eval chamfer ../shared/data/modelnet10 --category chair --model chair "
                "--out chair_chamfer.json",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("data", help="dataset folder (ModelNet, ShapeNet, or a flat folder; see kpd train)")
+    p.add_argument("data", type=folder, help="dataset folder (ModelNet, ShapeNet, or a flat folder; see kpd train)")
     p.add_argument("--model", required=True, help="bundle: a .kpd folder or zip, or a shipped name (chair)")
-    p.add_argument("--pairs", type=int, default=200, help="number of pairs (default 200)")
-    p.add_argument("--split-file", help="split file overriding the layout's")
+    p.add_argument("--pairs", type=integer(1), default=200, help="number of pairs (default 200)")
+    p.add_argument("--split-file", type=existing, help="split file overriding the layout's")
     p.add_argument("--category", help="category of the dataset (ModelNet class, ShapeNet synset or name)")
     _protocol_common(p)
 
@@ -205,7 +215,7 @@ def _geometry_argument(p: argparse.ArgumentParser) -> None:
 
 def _protocol_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="JSON result")
-    p.add_argument("--seed", type=int, default=0, help="seed of the model's point sampling (default 0)")
+    p.add_argument("--seed", type=integer(0), default=0, help="seed of the model's point sampling (default 0)")
     p.add_argument("--force", action="store_true", help="replace an existing output")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -224,9 +234,12 @@ def _keypoint_source(args: argparse.Namespace):
 def _run_protocol(args: argparse.Namespace) -> int:
     from kpd import annotations
 
-    out = check_output(args.out, force=args.force)
-    if not Path(args.data).exists():
-        raise InputError(f"data folder {args.data} does not exist")
+    from kpd.io import Outputs
+
+    inputs = (args.data, getattr(args, "model", None), getattr(args, "keypoints", None),
+              getattr(args, "split_file", None), *getattr(args, "geometry", []))
+    outputs = Outputs(force=args.force, inputs=inputs)
+    out = outputs.file(args.out, "--out", formats=(".json",), what="result (JSON)")
     progress = None
     if not args.quiet:
         from tqdm import tqdm
@@ -276,12 +289,14 @@ def _run_protocol(args: argparse.Namespace) -> int:
         rows = [("chamfer x1e3, model", f"{r['chamfer_x1e3']['model']['mean']:.3f}"),
                 ("chamfer x1e3, no deformation", f"{r['chamfer_x1e3']['no_deformation']['mean']:.3f}"),
                 ("ratio to no deformation", f"{r['ratio_to_no_deformation']:.3f}"),
-                ("pairs / test shapes", f"{args.pairs} / {result['data']['test_shapes']}")]
+                ("pairs / test shapes", f"{result['settings']['pairs']} / {result['data']['test_shapes']}"),
+                ("test shapes", _names(result["data"]["test_names"], result["data"]["split_source"]))]
     from kpd import __version__
 
     result["arguments"] = {k: v for k, v in sorted(vars(args).items()) if not k.startswith("_")}
     result["kpd_version"] = __version__
-    _write_protocol_json(out, result)
+    with outputs:
+        _write_protocol_json(outputs.stage(out), result)
     skipped = result["data"].get("skipped", {"count": 0})
     if skipped["count"]:
         reasons = ", ".join(f"{reason}: {n}" for reason, n in skipped["reasons"].items())
@@ -292,13 +307,17 @@ def _run_protocol(args: argparse.Namespace) -> int:
         print(f"  {name:<{width}}  {value}")
     for note in result.get("notes", []):
         print(f"  note: {note}")
+        if args.task == "chamfer":
+            print(f"warning: {note}", file=sys.stderr)
     print(f"wrote {out}")
     return 0
 
 
-def _write_protocol_json(path: Path, data: dict) -> None:
-    from kpd.io import atomic_output
+def _names(names: list, source: str, shown: int = 8) -> str:
+    more = f" and {len(names) - shown} more" if len(names) > shown else ""
+    return f"{', '.join(names[:shown])}{more} ({source})"
 
+
+def _write_protocol_json(path: Path, data: dict) -> None:
     text = json.dumps(data, indent=1, allow_nan=False)
-    with atomic_output(path) as tmp:
-        Path(tmp).write_text(text + "\n", encoding="utf-8")
+    path.write_text(text + "\n", encoding="utf-8")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from kpd.commands import folder, integer
+
 HELP = "export a trained model to a bundle (ONNX graphs + manifest) that runs without torch"
 EXAMPLE = ("kpd export runs/chair --out chair.kpd    "
            "(or: kpd export --from-authors net_final.pth --category airplane --out airplane.kpd)")
@@ -17,12 +19,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="bundle to write: a .kpd folder, or a .zip of the same files")
     parser.add_argument("--category", default=None, help="category name (required with --from-authors; "
                                                          "default: the run's)")
-    parser.add_argument("--data", default=None, metavar="DIR",
+    parser.add_argument("--data", type=folder, default=None, metavar="DIR",
                         help="training data for the prior and the template cloud (default: the run's own data; "
                              "with --from-authors the bundle has no prior unless given)")
     parser.add_argument("--cache", default=None, metavar="DIR", help="sample cache folder (default: the run's)")
     parser.add_argument("--no-prior", action="store_true", help="do not fit the category prior")
-    parser.add_argument("--points", type=int, default=1024,
+    parser.add_argument("--points", type=integer(1), default=1024,
                         help="with --from-authors: points per shape the model was trained on (default 1024)")
     parser.add_argument("--up", default=None, metavar="AXIS",
                         help="the training frame's up axis to record (+z for ModelNet, +y for ShapeNet)")
@@ -42,9 +44,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"{source}: no such run folder or checkpoint")
     if args.up is not None and args.up.strip().lower().lstrip("+-") not in ("x", "y", "z"):
         raise InputError(f"--up must be one of x, y, z, +x, -y...; got {args.up!r}")
-    if args.points < 1:
-        raise InputError(f"--points must be positive; got {args.points}")
-    out = check_output(args.out, force=args.force, inputs=(source,))
+    out = check_output(args.out, force=args.force, inputs=(source, args.data, args.cache),
+                       kind="file" if Path(args.out).suffix == ".zip" else "folder")
     from kpd.export.build import export_authors, export_checkpoint  # imports torch
 
     up = None if args.up is None else ("+" + args.up.lstrip("+") if not args.up.startswith("-") else args.up)

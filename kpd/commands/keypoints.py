@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 
+from kpd.commands import add_check, integer
+
 HELP = "predict the keypoints of a mesh or point cloud (written in the input's own frame and units)"
 EXAMPLE = "kpd keypoints chair my_chair.obj --out my_chair_keypoints.json"
 
@@ -13,11 +15,14 @@ EXAMPLE = "kpd keypoints chair my_chair.obj --out my_chair_keypoints.json"
 def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     """MODEL, the seed and the onnxruntime threads (shared by the commands that run a model)."""
     parser.add_argument("model", metavar="MODEL", help="a bundle (.kpd folder or .zip) or a shipped name: chair, table")
-    parser.add_argument("--seed", type=int, default=0, help="surface-sampling seed (default 0: same result every run)")
-    parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: its own)")
+    parser.add_argument("--seed", type=integer(0), default=0,
+                        help="surface-sampling seed (default 0: same result every run)")
+    parser.add_argument("--threads", type=integer(1), default=None, help="onnxruntime intra-op threads (default: its own)")
 
 
 def add_scan_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--scan`` and ``--up`` (which needs ``--scan``, checked alike for every command that has them)."""
+    add_check(parser, check_scan_arguments)
     parser.add_argument("--scan", action="store_true",
                         help="treat the input as a real scan: clean it and orient it to the model's template first "
                              "(kpd.scan); results are mapped back onto the scan")
@@ -33,6 +38,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                     "'%%03d x y z' rows); printed as JSON when omitted")
     add_scan_arguments(parser)
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
+
+
+def check_scan_arguments(args: argparse.Namespace) -> None:
+    from kpd.errors import InputError
+
+    if args.up is not None:
+        from kpd.scan import parse_axis  # here: kpd.scan (scipy) is slow to import and most runs need none of it
+
+        if not args.scan:
+            raise InputError("--up goes with --scan (the scan's known up axis); add --scan or drop --up")
+        parse_axis(args.up, "--up")
 
 
 def ambiguity_advice(up_given: bool) -> str:
@@ -51,13 +67,13 @@ def load_model(args: argparse.Namespace):
     return Model.load(args.model, threads=args.threads)
 
 
-def check_suffix(path: str, formats: tuple, what: str) -> None:
+def check_suffix(path: str, formats: tuple, what: str, option: str = "--out") -> None:
     from pathlib import Path
 
     from kpd.errors import InputError
 
     if Path(path).suffix.lower() not in formats:
-        raise InputError(f"--out {path}: a {what} file must end in one of {' '.join(formats)}")
+        raise InputError(f"{option} {path}: a {what} file must end in one of {' '.join(formats)}")
 
 
 class ScanFrame:
@@ -100,29 +116,28 @@ class ScanFrame:
 
 
 def run(args: argparse.Namespace) -> int:
-    from kpd.commands import check_output
-    from kpd.io import KEYPOINT_FORMATS, read_shape, write_keypoints
+    from kpd.io import KEYPOINT_FORMATS, Outputs, read_shape, write_keypoints
 
-    out = None
-    if args.out is not None:
-        check_suffix(args.out, KEYPOINT_FORMATS, "keypoint")
-        out = check_output(args.out, force=args.force, inputs=(args.shape,))
-    model = load_model(args)
-    shape = read_shape(args.shape)
-    meta = {"model": str(args.model), "category": model.category, "shape": str(args.shape), "frame": "input",
-            "seed": args.seed}
-    if args.scan:
-        scan = ScanFrame(model, shape, args.up)
-        keypoints = scan.to_original(model.keypoints(scan.result.shape, seed=args.seed))
-        meta["scan"] = scan.report()
-    else:
-        keypoints = model.keypoints(shape, seed=args.seed)
-    if out is None:
-        print(json.dumps({"keypoints": keypoints.tolist(), **meta}, indent=2))
-        return 0
-    if out.suffix.lower() == ".txt":
-        write_keypoints(out, keypoints)
-    else:
-        write_keypoints(out, keypoints, **meta)
+    with Outputs(force=args.force, inputs=(args.shape,)) as outputs:
+        out = None
+        if args.out is not None:
+            out = outputs.file(args.out, "--out", formats=KEYPOINT_FORMATS, what="keypoint")
+        model = load_model(args)
+        shape = read_shape(args.shape)
+        meta = {"model": str(args.model), "category": model.category, "shape": str(args.shape), "frame": "input",
+                "seed": args.seed}
+        if args.scan:
+            scan = ScanFrame(model, shape, args.up)
+            keypoints = scan.to_original(model.keypoints(scan.result.shape, seed=args.seed))
+            meta["scan"] = scan.report()
+        else:
+            keypoints = model.keypoints(shape, seed=args.seed)
+        if out is None:
+            print(json.dumps({"keypoints": keypoints.tolist(), **meta}, indent=2))
+            return 0
+        if out.suffix.lower() == ".txt":
+            write_keypoints(outputs.stage(out), keypoints)
+        else:
+            write_keypoints(outputs.stage(out), keypoints, **meta)
     print(f"wrote {out} ({len(keypoints)} keypoints)")
     return 0

@@ -28,15 +28,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from kpd.commands import check_output
     from kpd.commands.deform import parse_moves
     from kpd.commands.view import load_source, view_settings
+    from kpd.io import Outputs
     from kpd.viewer.render import render_rig, write_png
     from kpd.viewer.session import propose
 
     if not args.out.lower().endswith(".png"):
         raise InputError(f"--out {args.out}: kpd render writes PNG images (.png)")
-    out = check_output(args.out, force=args.force, inputs=(args.rig, args.shape))
+    outputs = Outputs(force=args.force, inputs=(args.rig, args.shape))
+    out = outputs.file(args.out, "--out")
     moves = parse_moves(args.move)
     selection = []
     if args.select:
@@ -56,7 +57,8 @@ def run(args: argparse.Namespace) -> int:
         keypoints = propose(rig.keypoints, {i: keypoints[i] for i in moves}, prior=source.prior,
                             normalizer=rig.normalizer)
     image = render_rig(rig, keypoints, settings=settings, selection=selection, backend=args.backend)
-    write_png(out, image)
+    with outputs:
+        write_png(outputs.stage(out), image)
     print(f"wrote {out} ({image.shape[1]}x{image.shape[0]}, {len(moves)} keypoint(s) moved"
           f"{', others by the prior' if args.prior and moves else ''})")
     return 0

@@ -8,6 +8,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from kpd.commands import integer, number
+
 HELP = "write variants of a mesh deformed to keypoints sampled from the category prior, and a contact sheet"
 EXAMPLE = "kpd sample chair my_chair.obj --n 16 --out chair_variants"
 
@@ -22,11 +24,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     add_model_arguments(parser)
     parser.add_argument("mesh", metavar="MESH", help="the mesh to vary")
-    parser.add_argument("--n", type=int, default=16, help="number of variants (default 16)")
-    parser.add_argument("--scale", type=float, default=0.5,
+    parser.add_argument("--n", type=integer(1, 1000), default=16, help="number of variants (default 16)")
+    parser.add_argument("--scale", type=number(0), default=0.5,
                         help="standard deviations of the prior's components (default 0.5; 1 is as varied as the "
                              "whole category, which bends diverse categories such as tables strongly)")
-    parser.add_argument("--sample-seed", type=int, default=0, help="seed of the prior draws (default 0)")
+    parser.add_argument("--sample-seed", type=integer(0), default=0, help="seed of the prior draws (default 0)")
     parser.add_argument("--format", default=None, metavar="EXT",
                         help="file type of the variants (.obj .ply ...); default: the input's, else .ply")
     parser.add_argument("--out", required=True, metavar="DIR", help="folder to create with the variants, "
@@ -36,37 +38,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import json
-    import shutil
-    import tempfile
 
-    from kpd.bundle import replace_path
-    from kpd.commands import check_output
     from kpd.commands.keypoints import load_model
     from kpd.errors import InputError
-    from kpd.io import MESH_FORMATS, read_mesh, write_mesh
+    from kpd.io import MESH_FORMATS, Outputs, read_mesh, write_mesh
 
-    if args.n < 1 or args.n > 1000:
-        raise InputError(f"--n must lie in [1, 1000]; got {args.n}")
-    if not (np.isfinite(args.scale) and args.scale >= 0):
-        raise InputError(f"--scale must be a number >= 0; got {args.scale}")
     suffix = args.format or Path(args.mesh).suffix.lower()
     suffix = suffix if suffix.startswith(".") else "." + suffix
     if suffix not in MESH_FORMATS:
         if args.format is not None:
             raise InputError(f"--format must be one of {' '.join(MESH_FORMATS)}; got {args.format!r}")
         suffix = ".ply"
-    out = check_output(args.out, force=args.force, inputs=(args.mesh,))
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} is a file; sample writes a folder")
-    model = load_model(args)
-    if model.prior is None:
-        raise InputError(f"{args.model}: this bundle has no category prior to sample from")
-    mesh = read_mesh(args.mesh)
-    rig = model.rig(mesh, seed=args.seed)
-    keypoint_sets = model.sample_keypoints(rig, args.n, seed=args.sample_seed, scale=args.scale)
-    meshes = [rig.deformed_mesh(keypoints) for keypoints in keypoint_sets]
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    try:
+    with Outputs(force=args.force, inputs=(args.mesh, args.model)) as outputs:
+        out = outputs.folder(args.out, "--out")
+        model = load_model(args)
+        if model.prior is None:
+            raise InputError(f"{args.model}: this bundle has no category prior to sample from")
+        mesh = read_mesh(args.mesh)
+        rig = model.rig(mesh, seed=args.seed)
+        keypoint_sets = model.sample_keypoints(rig, args.n, seed=args.sample_seed, scale=args.scale)
+        meshes = [rig.deformed_mesh(keypoints) for keypoints in keypoint_sets]
+        staging = outputs.stage(out)
+        staging.mkdir()
         names = []
         for i, variant in enumerate(meshes):
             name = f"variant_{i:03d}{suffix}"
@@ -79,9 +72,6 @@ def run(args: argparse.Namespace) -> int:
         render_sheet([mesh, *meshes], staging / "contact_sheet.png",
                      titles=["input", *[f"{i:03d}" for i in range(len(meshes))]],
                      keypoints=[rig.keypoints, *keypoint_sets])
-        replace_path(staging, out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     print(f"wrote {len(meshes)} variants, keypoints.json and contact_sheet.png to {out}")
     return 0
 
@@ -155,5 +145,10 @@ def render_sheet(meshes: Sequence[Any], path: str | Path, *, titles: Sequence[st
         if titles is not None:
             ax.set_title(titles[i], fontsize=9, pad=0)
     fig.subplots_adjust(left=0, right=1, bottom=0, top=0.95, wspace=0, hspace=0.05)
-    fig.savefig(path, format="png", facecolor="white")
-    plt.close(fig)
+    from kpd.io import verify_png
+
+    try:
+        fig.savefig(path, format="png", facecolor="white")
+    finally:
+        plt.close(fig)
+    verify_png(path)

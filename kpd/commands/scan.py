@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from kpd.commands import integer
+
 HELP = "clean a real scan, turn it into a reference's or a model's frame and normalise it to [-1, 1] (with a report)"
 EXAMPLE = ("kpd scan my_sneaker.ply --reference sneaker_template.ply --out aligned.ply --report report.json --up z "
            "--picture check.png")
@@ -32,52 +34,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ground", action="store_true",
                         help="look for a ground plane even without --up (may take a table top for a floor)")
     parser.add_argument("--no-pieces", action="store_true", help="keep small disconnected pieces (mesh scans)")
-    parser.add_argument("--reference-points", type=int, default=5000,
+    parser.add_argument("--reference-points", type=integer(10), default=5000,
                         help="points sampled on a mesh reference (default 5000)")
     parser.add_argument("--picture", metavar="PNG", default=None,
                         help="also draw the scan as given, and over the reference as the best and the runner-up "
                              "rotation, to check by eye")
-    parser.add_argument("--seed", type=int, default=0, help="seed of sampling, RANSAC and subsets (default 0)")
+    parser.add_argument("--seed", type=integer(0), default=0, help="seed of sampling, RANSAC and subsets (default 0)")
     parser.add_argument("--force", action="store_true", help="replace --out and --report if they exist")
 
 
 def run(args: argparse.Namespace) -> int:
-    import contextlib
     import json
     import sys
     from pathlib import Path
 
-    from kpd.commands import check_output
     from kpd.commands.keypoints import ambiguity_advice
     from kpd.errors import InputError
     from kpd.geometry import sample_surface
-    from kpd.io import MESH_FORMATS, POINT_FORMATS, Mesh, atomic_output, read_shape, write_mesh, write_points
+    from kpd.io import MESH_FORMATS, POINT_FORMATS, Mesh, Outputs, mesh_companions, read_shape, write_mesh, write_points
     from kpd.scan import parse_axis, preprocess
 
     if args.ground and args.no_ground:
         raise InputError("--ground and --no-ground contradict each other; give one")
-    if args.reference_points < 10:
-        raise InputError(f"--reference-points must be at least 10; got {args.reference_points}")
     for name in ("up", "reference_up"):
         if getattr(args, name) is not None:
             parse_axis(getattr(args, name), "--" + name.replace("_", "-"))
     out_suffix = Path(args.out).suffix.lower()
-    if Path(args.report).suffix.lower() != ".json":
-        raise InputError(f"--report {args.report}: the report is JSON and must end in .json")
-    inputs = (args.scan, args.reference)
-    out = check_output(args.out, force=args.force, inputs=inputs)
-    report_path = check_output(args.report, force=args.force, inputs=inputs)
-    if out.resolve() == report_path.resolve():
-        raise InputError("--out and --report name the same file")
+    outputs = Outputs(force=args.force, inputs=(args.scan, args.reference, args.model))
+    out = outputs.file(args.out, "--out", formats=MESH_FORMATS + POINT_FORMATS, what="mesh or point")
+    report_path = outputs.file(args.report, "--report", formats=(".json",), what="report (JSON)")
     picture = None
     if args.picture is not None:
-        if Path(args.picture).suffix.lower() != ".png":
-            raise InputError(f"--picture {args.picture}: the picture is a PNG and must end in .png")
         if args.reference is None and args.model is None:
             raise InputError("--picture shows the orientation: give --reference or --model")
-        picture = check_output(args.picture, force=args.force, inputs=inputs)
-        if picture.resolve() in (out.resolve(), report_path.resolve()):
-            raise InputError("--picture names the same file as --out or --report")
+        picture = outputs.file(args.picture, "--picture", formats=(".png",), what="picture (PNG)")
 
     scan = read_shape(args.scan)
     is_mesh = isinstance(scan, Mesh)
@@ -85,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
     if out_suffix not in formats:
         kind = "mesh" if is_mesh else "point cloud"
         raise InputError(f"--out {args.out}: the scan is a {kind}, so --out must end in one of {' '.join(formats)}")
+    if is_mesh:
+        outputs.companions(out, mesh_companions(out, scan))
 
     reference_up = args.reference_up
     if args.model is not None:
@@ -126,19 +118,17 @@ def run(args: argparse.Namespace) -> int:
         "frame": "aligned = transform @ [x, y, z, 1] of the cleaned scan; inverse maps back (original units)",
         **result.to_dict(),
     }
-    with contextlib.ExitStack() as stack:
-        tmp_out = stack.enter_context(atomic_output(out))
-        tmp_report = stack.enter_context(atomic_output(report_path))
+    with outputs:
         if picture is not None:
             from kpd.scan import alignment_picture
 
-            alignment_picture(result, reference, stack.enter_context(atomic_output(picture)),
-                              up=reference_up or args.up or "z", seed=args.seed)
+            alignment_picture(result, reference, outputs.stage(picture), up=reference_up or args.up or "z",
+                              seed=args.seed)
         if is_mesh:
-            write_mesh(tmp_out, result.shape)
+            write_mesh(outputs.stage(out), result.shape)
         else:
-            write_points(tmp_out, result.shape)
-        tmp_report.write_text(json.dumps(record, indent=1) + "\n")
+            write_points(outputs.stage(out), result.shape)
+        outputs.stage(report_path).write_text(json.dumps(record, indent=1) + "\n")
 
     c = result.clean
     removed = ", ".join(f"{name} {value}" for name, value in (("outliers", c.outliers_removed),

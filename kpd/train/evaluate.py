@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpd.annotations import alignment_pairs, pair_notes
 from kpd.data import PreparedData, SampleSettings, ShapeSamples, Skipped, discover, prepare
 from kpd.errors import InputError, KpdError
 from kpd.metrics import (alignment_chamfer, fit_mirror_permutation, keypoint_stability, mirror_consistency,
@@ -45,13 +46,10 @@ def run_data(predictor: CheckpointPredictor, run: str | os.PathLike, *, splits: 
 
 
 def fixed_pairs(n: int, count: int, seed: int = 0) -> np.ndarray:
-    """``count`` seeded (source, target) index pairs over ``n`` shapes with source != target: (count, 2) int64."""
+    """Up to ``count`` seeded distinct (source, target) index pairs, source != target: :func:`kpd.annotations.alignment_pairs`."""
     if n < 2:
         raise InputError(f"alignment needs at least 2 shapes; got {n}")
-    rng = np.random.default_rng([seed, 3])
-    source = rng.integers(n, size=count)
-    target = (source + rng.integers(1, n, size=count)) % n
-    return np.stack([source, target], axis=1).astype(np.int64)
+    return alignment_pairs(n, count, seed)
 
 
 def _align_all(predictor: CheckpointPredictor, test: ShapeSamples, pairs: np.ndarray, batch: int = 16):
@@ -108,7 +106,10 @@ def evaluate_alignment(run: str | os.PathLike, baseline: str | os.PathLike | Non
                     "in the [-1, 1] frame, x1e3",
         "category": data["model"].category.category,
         "test_shapes": len(test),
-        "pairs": int(pairs),
+        "test_names": list(test.names),
+        "pairs": int(len(index)),
+        "requested_pairs": int(pairs),
+        "notes": pair_notes(len(test), pairs, len(index), data["model"].category.split_source),
         "seed": int(seed),
         "runs": {name: str(p.path) for name, p in models.items()},
         "keypoint_source": {name: p.keypoint_source for name, p in models.items()},

@@ -27,7 +27,6 @@ import math
 import os
 import platform
 import sys
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -36,7 +35,7 @@ import numpy as np
 import torch
 
 from kpd.data import PreparedData, SampleSettings, ShapeSamples
-from kpd.errors import InputError
+from kpd.errors import InputError, TrainingError
 from kpd.train.losses import influence_loss, keypoint_loss, similarity_loss
 from kpd.train.nets import KeypointDeformer, ModelConfig
 from kpd.train.ops import chamfer, farthest_point_sampling, fps_keypoints, gather_points, mvc_weights, serial
@@ -129,24 +128,13 @@ def resolve_device(device: str = "auto") -> torch.device:
     return dev
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def _atomic_write(path: Path, write) -> None:
-    """Write ``path`` through ``write(tmp)`` on a temporary file in the same folder, then rename it into place."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        write(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Write ``path`` through ``write(tmp)`` with kpd's one atomic writer (:func:`kpd.io.atomic_output`: a temporary
+    name that ``--resume`` cleans up after a kill, fsync, one-line :class:`~kpd.errors.WriteError` on a full disk)."""
+    from kpd.io import atomic_output
+
+    with atomic_output(path) as tmp:
+        write(str(tmp))
 
 
 def _write_json(path: Path, data: dict) -> None:
@@ -173,6 +161,9 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
         raise InputError(f"{path} is not a kpd checkpoint (format {CHECKPOINT_FORMAT!r} missing)")
     if ckpt.get("version") != CHECKPOINT_VERSION:
         raise InputError(f"{path}: checkpoint version {ckpt.get('version')}; this kpd reads {CHECKPOINT_VERSION}")
+    from kpd.io.integrity import HASH_KEY, check_hash
+
+    check_hash(ckpt, ckpt.get(HASH_KEY), str(path), "checkpoint")  # a flipped byte is refused, not trained on
     return ckpt
 
 
@@ -399,7 +390,10 @@ class Trainer:
     def save(self) -> None:
         """Write checkpoint, model.json, record.json, losses.csv and losses.png (each atomically)."""
         self.out_dir.mkdir(parents=True, exist_ok=True)
+        from kpd.io.integrity import HASH_KEY, content_hash
+
         state = self.state()
+        state[HASH_KEY] = content_hash(state)  # checked by load_checkpoint
         _atomic_write(self.out_dir / CHECKPOINT_NAME, lambda tmp: torch.save(state, tmp))
         _write_json(self.out_dir / "model.json", {
             "model_config": self.model_config.to_dict(), "train_config": self.config.to_dict(),
@@ -497,7 +491,10 @@ class Trainer:
                 self.history.append([float(t)] + [terms[k] for k in HISTORY_COLUMNS[1:]])
                 self.seconds += time.perf_counter() - start
                 if not math.isfinite(terms["loss"]):
-                    raise FloatingPointError(f"training diverged at iteration {t}: loss {terms['loss']}")
+                    kept = self.out_dir / CHECKPOINT_NAME
+                    raise TrainingError(f"training diverged at iteration {t}: loss {terms['loss']}; "
+                                        + (f"{kept} keeps the last good checkpoint" if kept.is_file()
+                                           else "no checkpoint had been written yet"))
                 if self.iteration % 10 == 0:
                     bar.set_postfix({k: f"{v:.3g}" for k, v in terms.items() if not math.isnan(v)}, refresh=False)
                 bar.update()

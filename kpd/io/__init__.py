@@ -31,10 +31,13 @@ Conventions
 - Precision: PLY keeps float64, PCD and glTF float32, OBJ and OFF (written by Open3D) six significant digits, and
   the text formats kpd writes (``.xyz``, ``.pts``) nine significant digits (float32-exact).
 
-Writes are atomic: everything is written under a temporary name in the target folder and renamed into place only
-when complete, so a failed write leaves nothing behind and never touches an existing file. Formats with companion
-files (OBJ: ``.mtl`` and one ``<name>_<i>.png`` per texture; ``.gltf``: the PNGs) are written into a temporary
-folder first, then every file is moved.
+Writes are atomic (:mod:`kpd.io.atomic`, the one writer every kpd output goes through): everything is written
+under a temporary name in the target folder, fsynced, checked (Open3D's writers report a full disk only on stderr
+and return success, so the file is re-read: PLY/PCD/OFF headers against the bytes that follow, OBJ vertex and face
+counts, STL size, PNG end chunk) and renamed into place only when complete; a failed write raises
+:class:`~kpd.errors.WriteError` and leaves nothing behind. Formats with companion files (OBJ: ``.mtl`` and one
+``<name>_<i>.png`` per texture; ``.gltf``: the PNGs) are written under their final names into a temporary folder
+first, then moved together.
 """
 
 from __future__ import annotations
@@ -58,7 +61,9 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import numpy as np
 
-from kpd.errors import InputError, KpdError
+from kpd.errors import InputError, KpdError, WriteError
+from kpd.io.atomic import Outputs, atomic_files, atomic_output, check_output, remove_stale_temporaries
+from kpd.io.atomic import _check_target, disk_full  # noqa: F401  (kept importable from kpd.io)
 
 if TYPE_CHECKING:  # pragma: no cover
     import open3d
@@ -75,6 +80,12 @@ __all__ = [
     "write_points",
     "read_shape",
     "atomic_output",
+    "atomic_files",
+    "Outputs",
+    "check_output",
+    "remove_stale_temporaries",
+    "verify_png",
+    "mesh_companions",
     "write_keypoints",
     "read_keypoints",
 ]
@@ -555,8 +566,10 @@ def _input_path(path: str | os.PathLike, formats: tuple, kind: str) -> tuple[Pat
         )
     if not p.exists():
         raise InputError(f"{p}: no such file")
+    if p.is_dir():
+        raise InputError(f"{p}: is a folder, not a {kind} file")
     if not p.is_file():
-        raise InputError(f"{p}: not a file")
+        raise InputError(f"{p}: not a regular file")
     if p.stat().st_size == 0:
         raise InputError(f"{p}: the file is empty (0 bytes)")
     return p, ext
@@ -652,14 +665,9 @@ def _read_point_arrays(p: Path, ext: str) -> tuple[np.ndarray, np.ndarray | None
 
 
 def _load_numpy(p: Path):
-    try:
-        data = np.load(p, allow_pickle=False)
-        if isinstance(data, np.lib.npyio.NpzFile):
-            with data:
-                return {k: data[k] for k in data.files}
-        return data
-    except (ValueError, OSError, EOFError) as exc:
-        raise InputError(f"{p}: not a readable numpy file ({exc})") from exc
+    from kpd.io.integrity import load_numpy
+
+    return load_numpy(p, "point file")
 
 
 def _describe(a: Any) -> str:
@@ -733,8 +741,11 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh) -> None:
         log.warning("%s: %s cannot store %s; written without them", p, ext, " and ".join(dropped))
     if ext in (".gltf", ".glb"):
         if ext == ".gltf" and mesh.textures:
-            with _atomic_folder(p) as target:
+            with atomic_files(p) as target:
                 _write_gltf(target, mesh, binary=False)
+                for companion in target.parent.iterdir():
+                    if companion != target:
+                        _verify_companion(p.parent / companion.name, companion)
         else:
             with atomic_output(p) as target:
                 _write_gltf(target, mesh, binary=ext == ".glb")
@@ -744,16 +755,29 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh) -> None:
         m.compute_triangle_normals()
     if ext == ".obj":
         textured = mesh.triangle_uvs is not None
-        with _atomic_folder(p) as target:
-            _open3d_write(lambda: _open3d().io.write_triangle_mesh(str(target), m), p)
+        with atomic_files(p) as target:
+            _open3d_write(lambda: _open3d().io.write_triangle_mesh(str(target), m), p, target)
             expected = [target.with_suffix(".mtl")] if textured else []
             expected += [target.parent / f"{target.stem}_{i}.png" for i in range(len(mesh.textures) if textured else 0)]
             missing = [f.name for f in expected if not f.is_file()]
             if missing:
-                raise KpdError(f"{p}: Open3D did not write {', '.join(missing)}")
+                raise WriteError(f"cannot write {p}: Open3D did not write {', '.join(missing)}")
+            _verify_mesh_file(p, target, mesh, ext)
         return
-    with atomic_output(p) as target:
-        _open3d_write(lambda: _open3d().io.write_triangle_mesh(str(target), m), p)
+    with atomic_output(p, verify=lambda tmp: _verify_mesh_file(p, tmp, mesh, ext)) as target:
+        _open3d_write(lambda: _open3d().io.write_triangle_mesh(str(target), m), p, target)
+
+
+def mesh_companions(path: str | os.PathLike, mesh: "Mesh") -> list[str]:
+    """Names of the companion files :func:`write_mesh` adds beside ``path`` for ``mesh`` (OBJ: the ``.mtl`` and one
+    PNG per texture when the mesh has UVs; ``.gltf``: the PNGs)."""
+    p = Path(path)
+    ext = p.suffix.lower()
+    if ext == ".obj" and mesh.triangle_uvs is not None:
+        return [p.stem + ".mtl"] + [f"{p.stem}_{i}.png" for i in range(len(mesh.textures))]
+    if ext == ".gltf" and mesh.textures and mesh.triangle_uvs is not None:
+        return [f"{p.stem}_{i}.png" for i in range(len(mesh.textures))]
+    return []
 
 
 def write_points(
@@ -789,7 +813,7 @@ def write_points(
     if dropped:
         log.warning("%s: %s cannot store %s; written without them", p, ext, " and ".join(dropped))
     normals_kept = ps.normals if "normals" in keeps else None
-    with atomic_output(p) as target:
+    with atomic_output(p, verify=lambda tmp: _verify_points_file(p, tmp, len(ps.points), ext)) as target:
         if ext in (".ply", ".pcd"):
             o3d = _open3d()
             pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(ps.points))
@@ -797,7 +821,7 @@ def write_points(
                 pc.normals = o3d.utility.Vector3dVector(ps.normals)
             if ps.colors is not None:
                 pc.colors = o3d.utility.Vector3dVector(ps.colors)
-            _open3d_write(lambda: o3d.io.write_point_cloud(str(target), pc), p)
+            _open3d_write(lambda: o3d.io.write_point_cloud(str(target), pc), p, target)
         elif ext in (".xyz", ".pts"):
             table = ps.points if normals_kept is None else np.hstack([ps.points, normals_kept])
             np.savetxt(target, table, fmt="%.9g")
@@ -817,78 +841,120 @@ def _output_path(path: str | os.PathLike, formats: tuple, kind: str) -> Path:
     return p
 
 
-def _open3d_write(write: Callable[[], bool], p: Path) -> None:
-    with _open3d_log() as messages:
+def _open3d_write(write: Callable[[], bool], p: Path, tmp: Path | None = None) -> None:
+    """Run an Open3D writer and raise :class:`WriteError` if it failed, including the failures Open3D reports only
+    in its log or on the C stderr ("RPly: Failed writing ...") while returning success."""
+    with _open3d_log() as messages, _c_stderr() as c_lines:
         ok = write()
-    failed = _failures(messages)
+    failed = _failures(messages) + [s for s in c_lines if _FAILURE.search(s)]
     if not ok or failed:
-        raise KpdError(f"{p}: Open3D could not write the file ({'; '.join(failed) or 'no reason given'})")
+        written = tmp if tmp is not None else p
+        if written.exists() and disk_full(written.parent):
+            raise WriteError(f"cannot write {p}: the disk is full (no space left on device)")
+        raise WriteError(f"cannot write {p}: Open3D failed ({'; '.join(dict.fromkeys(failed)) or 'no reason given'})")
 
 
 @contextlib.contextmanager
-def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
-    """Write a file atomically: yield a temporary path in the same folder, rename it onto ``path`` on success.
-
-    The temporary name keeps ``path``'s extension (so format-by-extension writers work) and is hidden
-    (``.<stem>.<random><ext>``). If the block raises, the temporary file is removed and ``path`` is untouched.
-
-    Example
-    -------
-    >>> with atomic_output("out.npz") as tmp:          # doctest: +SKIP
-    ...     np.savez(tmp, points=points)
-
-    Raises
-    ------
-    InputError
-        If the target folder does not exist or ``path`` is a folder.
-    KpdError
-        If the block finished without writing the temporary file.
-    """
-    p = _check_target(path)
-    tmp = p.with_name(f".{p.stem}.{secrets.token_hex(4)}{p.suffix}")
-    done = False
+def _c_stderr() -> Iterator[list[str]]:
+    """Capture what C code writes to file descriptor 2 (RPly's messages) while the block runs; yields the lines.
+    Lines that are not about a failure are passed on to stderr."""
+    lines: list[str] = []
     try:
-        yield tmp
-        if not tmp.is_file():
-            raise KpdError(f"{p}: nothing was written")
-        if p.exists():
-            shutil.copymode(p, tmp)
-        os.replace(tmp, p)
-        done = True
-    finally:
-        if not done:
-            tmp.unlink(missing_ok=True)
-
-
-@contextlib.contextmanager
-def _atomic_folder(path: Path) -> Iterator[Path]:
-    """Like atomic_output for writers that add companion files: yield ``<temp folder>/<name>``; on success move
-    every file of the temp folder into ``path``'s folder (companions first, ``path`` last)."""
-    p = _check_target(path)
-    folder = Path(tempfile.mkdtemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent))
+        sys.stderr.flush()
+        saved = os.dup(2)
+        sink = tempfile.TemporaryFile()
+    except OSError:  # no descriptor or no room for the capture: run uncaptured
+        yield lines
+        return
     try:
-        target = folder / p.name
-        yield target
-        if not target.is_file():
-            raise KpdError(f"{p}: nothing was written")
-        for f in sorted(folder.iterdir()):
-            if f != target:
-                os.replace(f, p.parent / f.name)
-        if p.exists():
-            shutil.copymode(p, target)
-        os.replace(target, p)
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            text = sink.read().decode("utf-8", errors="replace")
+            lines.extend(s.strip() for s in _ANSI.sub("", text).splitlines() if s.strip())
+            rest = [s for s in lines if not _FAILURE.search(s)]
+            if rest:
+                sys.stderr.write("\n".join(rest) + "\n")
     finally:
-        shutil.rmtree(folder, ignore_errors=True)
+        sink.close()
 
 
-def _check_target(path: str | os.PathLike) -> Path:
-    p = Path(path)
-    parent = p.parent
-    if not parent.is_dir():
-        raise InputError(f"{p}: folder {parent} does not exist")
-    if p.is_dir():
-        raise InputError(f"{p}: is a folder, not a file")
-    return p
+def _incomplete(p: Path, detail: str) -> WriteError:
+    cause = "the disk is full" if disk_full(p.parent) else "the writer stopped early"
+    return WriteError(f"cannot write {p}: the written file is incomplete ({detail}; {cause})")
+
+
+def _verify_mesh_file(p: Path, tmp: Path, mesh: "Mesh", ext: str) -> None:
+    """Check a mesh file Open3D wrote: complete and holding what it was given (re-read header or counts)."""
+    V, T = len(mesh.vertices), len(mesh.triangles)
+    try:
+        if ext == ".ply":
+            _check_ply_complete(tmp)
+            _check_header_counts(tmp, rb"element vertex (\d+)", V, rb"element face (\d+)", T)
+        elif ext == ".off":
+            _check_off_complete(tmp)
+        elif ext == ".stl":
+            size = tmp.stat().st_size
+            if size != 84 + 50 * T:
+                raise InputError(f"{size} bytes instead of {84 + 50 * T}")
+        elif ext == ".obj":
+            data = tmp.read_bytes()
+            v, f = len(re.findall(rb"^v ", data, re.M)), len(re.findall(rb"^f ", data, re.M))
+            if v != V or f != T or not data.endswith(b"\n"):
+                raise InputError(f"{v} of {V} vertices and {f} of {T} faces")
+            for companion in tmp.parent.iterdir():
+                if companion != tmp:
+                    _verify_companion(p.parent / companion.name, companion)
+    except InputError as exc:
+        raise _incomplete(p, str(exc).removeprefix(f"{tmp}: ")) from None
+
+
+def _verify_companion(p: Path, tmp: Path) -> None:
+    if tmp.stat().st_size == 0:
+        raise _incomplete(p, "empty")
+    if tmp.suffix.lower() == ".png":
+        _verify_png(p, tmp)
+
+
+def _verify_png(p: Path, tmp: Path) -> None:
+    """A PNG ends with its IEND chunk; a file cut short by a full disk does not."""
+    with open(tmp, "rb") as fh:
+        head = fh.read(8)
+        fh.seek(max(0, tmp.stat().st_size - 12))
+        tail = fh.read()
+    if head != b"\x89PNG\r\n\x1a\n" or not tail.endswith(b"IEND\xaeB`\x82"):
+        raise _incomplete(p, "the PNG has no end chunk")
+
+
+def _check_header_counts(tmp: Path, *pairs) -> None:
+    with open(tmp, "rb") as fh:
+        head = fh.read(1 << 14)
+    for pattern, expected in zip(pairs[::2], pairs[1::2]):
+        m = re.search(pattern, head)
+        if m is None or int(m.group(1)) != expected:
+            raise InputError(f"the header declares {m.group(1) if m else 'no'} of {expected} elements")
+
+
+def _verify_points_file(p: Path, tmp: Path, n: int, ext: str) -> None:
+    try:
+        if ext == ".ply":
+            _check_ply_complete(tmp)
+            _check_header_counts(tmp, rb"element vertex (\d+)", n)
+        elif ext == ".pcd":
+            _check_pcd_complete(tmp)
+            _check_header_counts(tmp, rb"POINTS (\d+)", n)
+    except InputError as exc:
+        raise _incomplete(p, str(exc).removeprefix(f"{tmp}: ")) from None
+
+
+def verify_png(path: str | os.PathLike) -> None:
+    """Raise :class:`WriteError` unless ``path`` is a complete PNG (use as ``atomic_output(..., verify=verify_png)``)."""
+    _verify_png(Path(path), Path(path))
+
 
 
 # --- keypoints -----------------------------------------------------------------------------------------------------

@@ -1,0 +1,155 @@
+"""Content hashes of what kpd writes and reads back (checkpoints, rigs, edit sessions), and safe numpy loading.
+
+A file kpd wrote carries the sha256 of its content (:func:`content_hash`), computed over the values themselves
+(arrays as dtype, shape and bytes; numbers, strings and nested containers in a canonical order), not over the
+container's bytes: the hash survives the container (a zip, a torch checkpoint, JSON) and a flipped byte anywhere
+in the data is refused on load (:func:`check_hash`) instead of being used.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import zipfile
+import zlib
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from kpd.errors import InputError
+
+__all__ = ["HASH_KEY", "content_hash", "json_hash", "check_hash", "load_numpy"]
+
+HASH_KEY = "sha256"
+
+
+def content_hash(value: Any) -> str:
+    """sha256 (hex) of a nested value: dicts (keys sorted), lists and tuples, numpy arrays and tensors (anything
+    with ``.detach().cpu().numpy()``), numbers, strings, bytes, None. The key :data:`HASH_KEY` of the top-level
+    mapping is left out, so a mapping can hold its own hash."""
+    h = hashlib.sha256()
+    _feed(h, value, top=True)
+    return h.hexdigest()
+
+
+def _feed(h, value: Any, top: bool = False) -> None:
+    if isinstance(value, Mapping):
+        items = [(k, v) for k, v in value.items() if not (top and k == HASH_KEY)]
+        h.update(b"{%d" % len(items))
+        for key, item in sorted(items, key=lambda kv: (type(kv[0]).__name__, str(kv[0]))):
+            _feed(h, key)
+            _feed(h, item)
+        h.update(b"}")
+    elif isinstance(value, (list, tuple)):
+        h.update(b"[%d" % len(value))
+        for item in value:
+            _feed(h, item)
+        h.update(b"]")
+    elif hasattr(value, "detach") and hasattr(value, "numpy"):  # a torch tensor, without importing torch
+        _feed(h, value.detach().cpu().contiguous().numpy())
+    elif isinstance(value, np.ndarray) or isinstance(value, np.generic):
+        a = np.ascontiguousarray(value)
+        if a.dtype.kind in "OV":
+            raise TypeError(f"cannot hash a {a.dtype} array")
+        h.update(f"a{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    elif isinstance(value, bool) or value is None:
+        h.update(f"c{value!r}".encode())
+    elif isinstance(value, int):
+        h.update(f"i{value}".encode())
+    elif isinstance(value, float):
+        h.update(f"f{value!r}".encode() if math.isfinite(value) else f"f{value}".encode())
+    elif isinstance(value, str):
+        data = value.encode("utf-8")
+        h.update(b"s%d:" % len(data) + data)
+    elif isinstance(value, (bytes, bytearray)):
+        h.update(b"b%d:" % len(value) + bytes(value))
+    else:
+        raise TypeError(f"cannot hash a {type(value).__name__}")
+
+
+def check_hash(data: Mapping, stored: Any, where: str, what: str) -> None:
+    """Raise :class:`InputError` unless ``stored`` is the :func:`content_hash` of ``data``."""
+    if stored is None:
+        raise InputError(f"{where}: this {what} has no content hash (written by an older kpd?); write it again")
+    if isinstance(stored, np.ndarray):
+        stored = str(stored)
+    try:
+        actual = content_hash(data)
+    except TypeError as exc:
+        raise InputError(f"{where}: this {what} holds a value kpd does not write ({exc})") from exc
+    if actual != stored:
+        raise InputError(f"{where}: this {what} is damaged: its content does not match its sha256 hash "
+                         "(changed or corrupted after kpd wrote it)")
+
+
+_NPY_MAGIC = b"\x93NUMPY"
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
+
+
+def load_numpy(path: str | os.PathLike, what: str = "numpy file") -> Any:
+    """Read a ``.npy`` array or every array of a ``.npz`` (a dict), without pickle, with one-line errors.
+
+    An empty, truncated or non-numpy file, a zip with a bad CRC or a broken member, and pickled data each raise
+    :class:`InputError` saying which.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{p}: is a folder, not a {what}")
+    if not p.is_file():
+        raise InputError(f"{p}: no such {what}")
+    with open(p, "rb") as fh:
+        head = fh.read(8)
+    if not head:
+        raise InputError(f"{p}: the file is empty; not a {what}")
+    if head.startswith(_ZIP_MAGIC):
+        try:
+            with np.load(p, allow_pickle=False) as data:
+                return {k: data[k] for k in data.files}
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, KeyError) as exc:
+            raise InputError(f"{p}: damaged .npz (zip) file: {_reason(exc)}") from exc
+        except ValueError as exc:
+            if "pickle" in str(exc):
+                raise InputError(f"{p}: the .npz holds pickled objects, which kpd never reads") from exc
+            raise InputError(f"{p}: damaged .npz file: {exc}") from exc
+    if head.startswith(_NPY_MAGIC):
+        try:
+            return np.load(p, allow_pickle=False)
+        except ValueError as exc:
+            if "pickle" in str(exc):
+                raise InputError(f"{p}: the .npy holds pickled objects, which kpd never reads") from exc
+            raise InputError(f"{p}: damaged .npy file: {exc}") from exc
+        except (OSError, EOFError) as exc:
+            raise InputError(f"{p}: damaged .npy file: {_reason(exc)}") from exc
+    if head.startswith(b"\x80"):
+        raise InputError(f"{p}: a Python pickle, which kpd never reads; not a {what}")
+    kind = "a text file" if _is_text(p) else "neither a .npy nor a .npz file"
+    raise InputError(f"{p}: {kind}, not a {what} (no numpy header)")
+
+
+def _is_text(p: Path) -> bool:
+    with open(p, "rb") as fh:
+        chunk = fh.read(4096)
+    try:
+        chunk.decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    return b"\0" not in chunk
+
+
+def _reason(exc: BaseException) -> str:
+    text = str(exc) or type(exc).__name__
+    if isinstance(exc, zipfile.BadZipFile) and "CRC" in text:
+        return f"a member fails its CRC check ({text})"
+    if isinstance(exc, EOFError) or "truncated" in text.lower() or "end of" in text.lower():
+        return f"truncated ({text})"
+    return text
+
+
+def json_hash(data: Mapping) -> str:
+    """:func:`content_hash` of JSON data as read back (floats and ints as JSON gives them)."""
+    return content_hash(json.loads(json.dumps(data)))
+
