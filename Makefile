@@ -3,13 +3,14 @@ SHELL := /bin/bash
 VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
-APT_PACKAGES := libusb-1.0-0 libvulkan1 mesa-vulkan-drivers xvfb xdotool
+APT_PACKAGES := libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libegl-mesa0 libgl1-mesa-dri libtk8.6 xvfb xdotool
 TORCH := torch==2.13.0
 STAMP := $(VENV)/.kpd-installed
 
 .PHONY: demo test bench system venv clean
 
-# System packages: installed when missing and we are root (open3d needs libusb; rendering needs vulkan/mesa;
+# System packages: installed when missing and we are root (open3d needs libusb; rendering needs vulkan/mesa, and
+# EGL + Mesa GL for the OpenGL pictures; the editor's panel needs Tk;
 # the editor's tests need xvfb and xdotool).
 system:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \

@@ -245,7 +245,7 @@ def _check_render(path: Path, k: int) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("backend", ["offscreen", "xvfb"])
+@pytest.mark.parametrize("backend", ["auto", "xvfb", "offscreen"])
 def test_render_writes_a_png_of_the_shape(chair_rig, tmp_path, backend):
     if backend == "xvfb" and not HAS_XVFB:
         pytest.skip("Xvfb/xdotool not installed (make system)")
@@ -255,6 +255,73 @@ def test_render_writes_a_png_of_the_shape(chair_rig, tmp_path, backend):
                "--out", out, env=env)
     assert done.returncode == 0, done.stderr
     _check_render(out, 12)
+
+
+@pytest.mark.slow
+def test_render_is_cleanly_shaded_and_frames_the_deformed_shape(data_dir, tmp_path):
+    """ModelNet10 chair_0890 is double-sided (every triangle twice, both windings: normals averaged over it cancel to
+    zero, which drew black and white blotches). Raised by 80% of its height at the back, the chair must stay inside
+    the picture, and its plain grey surface must shade without near-black or near-white patches."""
+    from kpd.io import read_mesh, write_mesh
+    from kpd.runtime import Model
+
+    mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply")
+    rig = Model.load("chair").rig(mesh)
+    height = float(np.ptp(mesh.vertices[:, 2]))
+    tops = np.argsort(rig.keypoints[:, 2])[-2:]
+    moves = [f"{i}:0,0,{0.8 * height:.4f}" for i in tops]
+    path = tmp_path / "chair.ply"
+    write_mesh(path, mesh)
+    out = tmp_path / "taller.png"
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    done = kpd("render", "chair", path, *[a for m in moves for a in ("--move", m)], "--no-labels", "--size",
+               "480x360", "--out", out, env=env)
+    assert done.returncode == 0, done.stderr
+    image = read_png(out).astype(int)
+    background = image[0, 0]
+    shape = np.abs(image - background).sum(axis=2) > 24
+    assert shape.mean() > 0.04
+    ys, xs = np.nonzero(shape)
+    assert ys.min() > 2 and xs.min() > 2 and ys.max() < image.shape[0] - 3 and xs.max() < image.shape[1] - 3
+    colours = keypoint_palette(12) * 255
+    grey = shape & (np.abs(image[..., :, None, :] - colours[None, None]).max(axis=3).min(axis=2) > 60)  # not markers
+    brightness = image[grey].mean(axis=1)
+    assert (brightness < 40).mean() < 0.01 and (brightness > 245).mean() < 0.01, (
+        (brightness < 40).mean(), (brightness > 245).mean())
+    assert brightness.std() > 8  # shaded, not flat
+
+
+def test_shading_normals_turn_double_sided_triangles_towards_the_camera():
+    from kpd.viewer.gl import shading_normals
+
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    both = np.array([[0, 1, 2], [0, 2, 1]])  # the same triangle in both windings
+    assert np.allclose(shading_normals(vertices, both, None), [0, 0, 1])  # cancelled: the old blotches
+    np.testing.assert_allclose(shading_normals(vertices, both, np.array([0.2, 0.2, 5.0])), np.tile([0, 0, 1.0], (3, 1)))
+    np.testing.assert_allclose(shading_normals(vertices, both, np.array([0.2, 0.2, -5.0])),
+                               np.tile([0, 0, -1.0], (3, 1)))
+    unwelded = np.vstack([vertices, vertices[[1, 2]] + [0, 0, 0]])  # copies of two corners at the same places
+    tris = np.array([[0, 1, 2], [3, 4, 0]])
+    normals = shading_normals(unwelded, tris, np.array([0.0, 0, 3.0]))
+    np.testing.assert_allclose(normals[1], normals[3])  # welded: the copies shade alike
+
+
+def test_open3d_plotly_helpers_load_on_first_use():
+    code = ("import sys, kpd, open3d, numpy as np\n"
+            "assert 'dash' not in sys.modules and 'plotly' not in sys.modules\n"
+            "fig = open3d.visualization.get_plotly_fig([open3d.geometry.TriangleMesh.create_box()])\n"
+            "print(type(fig).__name__)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "Figure"
+
+
+def test_no_window_is_one_line(chair_rig, tmp_path):
+    env = dict(os.environ, DISPLAY=":987")  # no X server there
+    _one_line_error(kpd("view", "--rig", chair_rig, env=env), "could not open an OpenGL window")
+    _one_line_error(kpd("render", "--rig", chair_rig, "--backend", "window", "--out", tmp_path / "a.png", env=env),
+                    "could not open an OpenGL")
+    assert not (tmp_path / "a.png").exists()
 
 
 # --- the real window -------------------------------------------------------------------------------------------------
@@ -503,7 +570,11 @@ def test_render_draws_textures_the_right_way_up():
     rig = Rig.bind(mesh, np.array([[0.0, 0, 0.5], [0, 0, -0.5]]), normalizer=Normalizer().fit(vertices))
     settings = ViewSettings(width=240, height=240, show_keypoints=False, show_labels=False, azimuth=0.0,
                             elevation=0.0)
-    image = render_rig(rig, settings=settings, backend="offscreen").astype(int)
+    for backend in ("egl", "offscreen"):
+        _check_texture(render_rig(rig, settings=settings, backend=backend).astype(int))
+
+
+def _check_texture(image: np.ndarray) -> None:
     red = (image[..., 0] > image[..., 2] + 40) & (image[..., 0] > 60)
     blue = (image[..., 2] > image[..., 0] + 40) & (image[..., 2] > 60)
     assert red.sum() > 500 and blue.sum() > 500, (red.sum(), blue.sum())

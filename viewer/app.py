@@ -154,8 +154,13 @@ class EditorApp:
     def _build_panel(self) -> None:
         import tkinter as tk
 
+        from kpd.viewer.gl import NoWindowError
+
         s = self.settings
-        root = tk.Tk()
+        try:
+            root = tk.Tk()
+        except tk.TclError as exc:
+            raise NoWindowError(f"could not open the editor's panel window: {exc}") from exc
         self.root = root
         root.title(f"{self.title} - panel")
         root.geometry(f"{PANEL_WIDTH}x{max(s.height, 520)}+{_LEFT + s.width + 8}+{_TOP}")

@@ -197,20 +197,29 @@ class GLView:
     """
 
     def __init__(self, width: int, height: int, *, title: str = "kpd", visible: bool = False, left: int = 40,
-                 top: int = 40, background: Sequence[float] = (1.0, 1.0, 1.0)) -> None:
+                 top: int = 40, background: Sequence[float] = (1.0, 1.0, 1.0), on_display: bool | None = None) -> None:
         import open3d as o3d
 
-        if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-            raise NoWindowError("no display to open an OpenGL window on ($DISPLAY is not set): install Xvfb "
-                                "(apt-get install xvfb) for kpd render, or use --backend offscreen")
+        from kpd.viewer.render import _quiet_native_output
+
+        display = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+        if visible and not display:
+            raise NoWindowError("no display to open a window on ($DISPLAY is not set); run under xvfb-run, or draw "
+                                "pictures with kpd render")
         _runtime_dir()
         self.width, self.height = int(width), int(height)
         self.vis = o3d.visualization.VisualizerWithKeyCallback()
-        with _quiet_stderr():
+        with _quiet_native_output() as said:
             ok = self.vis.create_window(title, self.width, self.height, int(left), int(top), bool(visible))
-        if not ok:
-            raise NoWindowError(f"could not open an OpenGL window on display {os.environ.get('DISPLAY')!r} (no GL "
-                                "driver?): install mesa (apt-get install libgl1-mesa-dri), or use --backend offscreen")
+        # without a usable display Open3D falls back to a headless EGL context: right for pictures, not for a window
+        headless = "falling back to EGL" in said.text
+        on_display = visible if on_display is None else on_display  # must it be on the X display (not EGL)?
+        if not ok or (on_display and headless):
+            where = f"display {display!r}" if display else "EGL (no display)"
+            raise NoWindowError(f"could not open an OpenGL {'window' if on_display else 'context'} on {where}: "
+                                "install Mesa's OpenGL (apt-get install libgl1-mesa-dri libegl-mesa0)"
+                                + (", check $DISPLAY" if on_display else ", or use --backend xvfb or offscreen"))
+        self.headless = headless
         options = self.vis.get_render_option()
         options.mesh_show_back_face = True  # flipped triangles of CAD meshes stay visible
         options.background_color = np.asarray(background, dtype=np.float64)

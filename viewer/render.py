@@ -52,7 +52,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("auto", "xvfb", "window", "offscreen")
+BACKENDS = ("auto", "egl", "xvfb", "window", "offscreen")
 
 # The first twelve keypoint colours are picked by hand to be saturated and far apart (and far from the grey of an
 # uncoloured mesh and from a white or black background); more keypoints get golden-angle hues.
@@ -740,7 +740,7 @@ def render_frames(rig: Any, keypoint_sets: Sequence[Any], *, settings: ViewSetti
     if backend == "offscreen":
         return _render_offscreen(rig.mesh, k, rig.cage.faces, frames, settings, camera)
     with gl_display(backend, settings.width, settings.height):
-        return _render_gl(rig, frames, settings, camera)
+        return _render_gl(rig, frames, settings, camera, on_display=backend != "egl")
 
 
 @contextlib.contextmanager
@@ -751,8 +751,15 @@ def gl_display(backend: str, width: int, height: int) -> Iterator[None]:
     if backend == "window":
         yield
         return
+    if backend == "egl":  # no X server: Open3D's legacy renderer then draws into a headless EGL context
+        hidden = {name: os.environ.pop(name) for name in ("DISPLAY", "WAYLAND_DISPLAY") if name in os.environ}
+        try:
+            yield
+        finally:
+            os.environ.update(hidden)
+        return
     if backend != "xvfb":
-        raise InputError(f"the OpenGL path needs the xvfb or window backend; got {backend!r}")
+        raise InputError(f"the OpenGL path needs the egl, xvfb or window backend; got {backend!r}")
     saved = os.environ.get("DISPLAY")
     with private_display(width + 64, height + 64) as display:
         os.environ["DISPLAY"] = display
@@ -765,10 +772,11 @@ def gl_display(backend: str, width: int, height: int) -> Iterator[None]:
                 os.environ["DISPLAY"] = saved
 
 
-def _render_gl(rig: Any, frames: list[Frame], settings: ViewSettings, camera: Camera) -> list[np.ndarray]:
+def _render_gl(rig: Any, frames: list[Frame], settings: ViewSettings, camera: Camera, *,
+               on_display: bool = False) -> list[np.ndarray]:
     from kpd.viewer.gl import GLView, RigDrawing
 
-    view = GLView(settings.width, settings.height, background=settings.background)
+    view = GLView(settings.width, settings.height, background=settings.background, on_display=on_display)
     try:
         drawing = RigDrawing(view, rig.mesh, rig.num_keypoints, rig.cage.faces, settings=settings, digits=False)
         view.set_box(np.vstack([np.vstack([f.vertices, f.keypoints]) for f in frames]))
@@ -785,15 +793,14 @@ def _render_gl(rig: Any, frames: list[Frame], settings: ViewSettings, camera: Ca
 
 
 def resolve_backend(backend: str) -> str:
+    """The backend ``auto`` stands for (``egl``), after checking that the one asked for can run here."""
     if backend == "auto":
-        if shutil.which("Xvfb"):
-            return "xvfb"
-        return "window" if os.environ.get("DISPLAY") else "offscreen"
+        return "egl"
     if backend == "xvfb" and not shutil.which("Xvfb"):
         raise KpdError("the xvfb backend needs the Xvfb program (Debian/Ubuntu: apt-get install xvfb); or use "
-                       "--backend offscreen")
+                       "--backend egl")
     if backend == "window" and not os.environ.get("DISPLAY"):
-        raise KpdError("the window backend needs a display ($DISPLAY is not set); use --backend xvfb or offscreen")
+        raise KpdError("the window backend needs a display ($DISPLAY is not set); use --backend egl or xvfb")
     return backend
 
 
@@ -851,12 +858,17 @@ def _render_offscreen(mesh: Any, k: int, cage_faces: Any, frames: list[Frame], s
     return images
 
 
+class _Said:
+    """What native code printed inside :func:`_quiet_native_output` (filled in when the block ends)."""
+
+    text = ""
+
+
 @contextlib.contextmanager
-def _quiet_native_output() -> Iterator[None]:
-    """Send what Open3D's native code prints (Filament/Vulkan banners) to the log instead of the terminal."""
-    if log.isEnabledFor(logging.DEBUG):
-        yield
-        return
+def _quiet_native_output() -> Iterator[_Said]:
+    """Send what Open3D's native code prints (Filament/Vulkan/GLFW banners) to the log instead of the terminal; the
+    yielded object's ``text`` holds it after the block."""
+    said = _Said()
     sys.stdout.flush()
     sys.stderr.flush()
     saved = [os.dup(1), os.dup(2)]
@@ -864,7 +876,7 @@ def _quiet_native_output() -> Iterator[None]:
         try:
             os.dup2(sink.fileno(), 1)
             os.dup2(sink.fileno(), 2)
-            yield
+            yield said
         finally:
             sys.stdout.flush()
             sys.stderr.flush()
@@ -873,9 +885,9 @@ def _quiet_native_output() -> Iterator[None]:
             for fd in saved:
                 os.close(fd)
             sink.seek(0)
-            text = sink.read().decode("utf-8", "replace").strip()
-            if text:
-                log.debug("Open3D said:\n%s", text)
+            said.text = sink.read().decode("utf-8", "replace").strip()
+            if said.text:
+                log.debug("Open3D said:\n%s", said.text)
 
 
 # --- a private X server ---------------------------------------------------------------------------------------------
