@@ -1154,6 +1154,7 @@ def preprocess(
     *,
     clean_params: dict | None = None,
     aligner: ScanAligner | None = None,
+    outer: bool = False,
     **orient_params: Any,
 ) -> ScanResult:
     """Clean, orient and normalise a scan in one call.
@@ -1165,6 +1166,8 @@ def preprocess(
         then only cleaned and normalised).
     clean_params : keyword arguments of :func:`clean` (``up`` is passed on from ``orient_params`` if not given).
     aligner : an already fitted :class:`ScanAligner` (then ``reference`` and ``orient_params`` are not used).
+    outer : orient a mesh by samples of its outer surface only (:func:`kpd.geometry.sample_surface`): for meshes
+        made of overlapping pieces, as the models trained with ``kpd train --outer-surface`` see them.
     orient_params : keyword arguments of :class:`ScanAligner`.
 
     Returns
@@ -1182,7 +1185,7 @@ def preprocess(
     if aligner is not None:
         # a mesh is oriented by its surface, not its vertices (CAD meshes crowd vertices on curved details)
         triangles = np.asarray(getattr(cleaned, "triangles", np.zeros((0, 3))))
-        seen = (sample_surface(points, triangles, MESH_ORIENT_SAMPLES, aligner.seed).points
+        seen = (sample_surface(points, triangles, MESH_ORIENT_SAMPLES, aligner.seed, outer=outer).points
                 if _is_mesh(cleaned) and len(triangles) else points)
         orientation = aligner.orient(seen)
     else:
@@ -1212,10 +1215,7 @@ def alignment_picture(result: ScanResult, reference: Any, path: Any, *, up: Any 
     reference : (M, 3) points in the model's frame.
     path : the PNG to write (written as given; use :func:`kpd.io.atomic_output` around it).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from kpd.viewer.pictures import point_panels
 
     if result.orientation is None:
         raise InputError("no orientation to draw: preprocess was given no reference")
@@ -1225,39 +1225,31 @@ def alignment_picture(result: ScanResult, reference: Any, path: Any, *, up: Any 
         return points if len(points) <= max_points else points[rng.choice(len(points), max_points, replace=False)]
 
     points = result.to_original(result.points)
-    if _is_mesh(result.shape) and len(result.shape.triangles):  # a mesh's surface, not its vertices
-        points = sample_surface(points, result.shape.triangles, max_points, rng).points
-    points = thin(points)
+    mesh = result.shape if _is_mesh(result.shape) and len(result.shape.triangles) else None
     ref = thin(Normalizer().fit(as_points(reference, "reference")).apply(as_points(reference, "reference")))
     up_axis = parse_axis(up, "up")
-    vertical = "xyz"[int(np.argmax(np.abs(up_axis)))]
+    vertical = int(np.argmax(np.abs(up_axis)))
+    up_name = ("+" if up_axis[vertical] > 0 else "-") + "xyz"[vertical]
+
+    def shown(rotation: np.ndarray | None) -> dict:
+        """The scan (its mesh when it has one) turned by ``rotation`` into the reference's box."""
+        orange = (0.93, 0.55, 0.25)
+        if rotation is None:  # the mesh's vertices are the scan's points
+            return {"mesh": mesh.with_vertices(points), "tint": orange} if mesh is not None else {
+                "points": thin(points), "tint": orange}
+        turned = points @ rotation.T
+        normalizer = Normalizer().fit(turned)
+        if mesh is not None:
+            return {"mesh": mesh.with_vertices(normalizer.apply(turned)), "tint": orange}
+        return {"points": thin(normalizer.apply(turned)), "tint": orange}
+
     o = result.orientation
-    panels = [("the scan as given", points, None)]
-    panels.append((f"best: score {o.score:.4f}", Normalizer().fit(points @ o.rotation.T).apply(points @ o.rotation.T),
-                   ref))
+    panels = [{"title": "the scan as given", **shown(None)}]
+    panels.append({"title": f"best: score {o.score:.4f}", "behind": ref, **shown(o.rotation)})
     if o.runner_up_rotation is not None:
-        turned = points @ o.runner_up_rotation.T
         flag = "  AMBIGUOUS" if o.ambiguous else ""
-        panels.append((f"runner-up, {o.runner_up_angle:.0f} deg away: score {o.runner_up_score:.4f}\n"
-                       f"margin {o.margin:.3f}{flag}", Normalizer().fit(turned).apply(turned), ref))
-    figure = plt.figure(figsize=(5.0 * len(panels), 5.4), dpi=100)
-    for i, (title, shown, behind) in enumerate(panels):
-        axes = figure.add_subplot(1, len(panels), i + 1, projection="3d")
-        if behind is not None:
-            axes.scatter(*behind.T, s=1.0, c="0.7", alpha=0.5, depthshade=False, label="reference")
-        axes.scatter(*shown.T, s=1.5, c=shown @ up_axis, cmap="viridis", depthshade=False, label="scan")
-        centre = (shown.max(axis=0) + shown.min(axis=0)) / 2
-        half = float((shown.max(axis=0) - shown.min(axis=0)).max()) / 2 * 1.05
-        for set_lim, c in zip((axes.set_xlim, axes.set_ylim, axes.set_zlim), centre):
-            set_lim(c - half, c + half)
-        axes.set_box_aspect((1, 1, 1))
-        axes.view_init(elev=20, azim=-60, vertical_axis=vertical)
-        axes.set_title(title, fontsize=10, color="red" if "AMBIGUOUS" in title else "black")
-        axes.set_xlabel("x")
-        axes.set_ylabel("y")
-        axes.set_zlabel("z")
-    figure.suptitle("kpd scan: the scan turned into the reference's frame (grey: the reference; colour: height)",
-                    y=0.98)
-    figure.tight_layout(rect=(0.0, 0.0, 1.0, 0.93))
-    figure.savefig(str(path))
-    plt.close(figure)
+        panels.append({"title": f"runner-up, {o.runner_up_angle:.0f} deg away: score {o.runner_up_score:.4f}\n"
+                                f"margin {o.margin:.3f}{flag}", "behind": ref,
+                       "color": (200, 20, 20) if o.ambiguous else (20, 20, 20), **shown(o.runner_up_rotation)})
+    point_panels(panels, path, up=up_name, cell=4.2, columns=len(panels),
+                 title="kpd scan: the scan (orange) turned into the reference's frame; grey points: the reference")

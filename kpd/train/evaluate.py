@@ -135,45 +135,28 @@ def evaluate_alignment(run: str | os.PathLike, baseline: str | os.PathLike | Non
 
 
 def alignment_gallery(path: str | os.PathLike, sources: np.ndarray, targets: np.ndarray, deformed: dict,
-                      keypoints: dict, *, titles: list[str], scores: dict) -> None:
-    """PNG grid, one row per pair: source with its keypoints, each method's deformed source, target with keypoints.
+                      keypoints: dict, *, titles: list[str], scores: dict, up: str = "z") -> None:
+    """PNG grid, one row per pair: source with its keypoints, each method's deformed source, target with keypoints,
+    drawn as lit point splats by the editor's OpenGL path (:func:`kpd.viewer.pictures.point_panels`).
 
     sources, targets : (P, N, 3); deformed : name -> (P, N, 3); keypoints : name -> ((P, K, 3), (P, K, 3)).
+    up : the data's up axis (ModelNet: z).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from kpd.train.trainer import _atomic_write
+    from kpd.viewer.pictures import point_panels
 
     names = list(deformed)
-    cols = 2 + len(names)
-    rows = len(sources)
-    fig = plt.figure(figsize=(3.0 * cols, 3.0 * rows))
     first = names[0]
-
-    def panel(i, j, pts, kp, title, color):
-        ax = fig.add_subplot(rows, cols, i * cols + j + 1, projection="3d")
-        ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=2.0, c=color, alpha=0.7, linewidths=0)
-        if kp is not None:
-            ax.scatter(kp[:, 0], kp[:, 1], kp[:, 2], s=30, c=np.arange(len(kp)), cmap="tab20", depthshade=False,
-                       edgecolors="black", linewidths=0.4)
-        ax.set_xlim(-1, 1), ax.set_ylim(-1, 1), ax.set_zlim(-1, 1)
-        ax.set_box_aspect((1, 1, 1))
-        ax.view_init(elev=20, azim=-60)
-        ax.set_axis_off()
-        ax.set_title(title, fontsize=7)
-
-    for i in range(rows):
-        panel(i, 0, sources[i], keypoints[first][0][i], f"source {titles[i]}", "tab:blue")
-        for j, name in enumerate(names):
-            panel(i, 1 + j, deformed[name][i], None, f"{name}: {scores[name][i]:.2f}", "tab:green")
-        panel(i, cols - 1, targets[i], keypoints[first][1][i],
-              f"target (undeformed {scores['no_deformation'][i]:.2f})", "tab:red")
-    fig.tight_layout()
-    _atomic_write(Path(path), lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
-    plt.close(fig)
+    blue, green, red = (0.45, 0.6, 0.9), (0.45, 0.78, 0.5), (0.92, 0.5, 0.45)
+    panels = []
+    for i in range(len(sources)):
+        panels.append({"points": sources[i], "keypoints": keypoints[first][0][i], "tint": blue,
+                       "title": f"source {titles[i]}"})
+        for name in names:
+            panels.append({"points": deformed[name][i], "tint": green, "title": f"{name}: {scores[name][i]:.2f}"})
+        panels.append({"points": targets[i], "keypoints": keypoints[first][1][i], "tint": red,
+                       "title": f"target (undeformed {scores['no_deformation'][i]:.2f})"})
+    point_panels(panels, path, up=up, cell=2.6, columns=2 + len(names), shared_camera=True,
+                 title="alignment chamfer x10^3: source (blue), deformed to the target (green), target (red)")
 
 
 def _mirror(points: np.ndarray, axis: int) -> np.ndarray:
