@@ -109,3 +109,108 @@ def test_shoe_interior_samples_are_gone_where_pieces_overlap(shoes_dir, name):
     dense = cKDTree(sample_surface(vertices, triangles, 40000, seed=1, outer=True).points)
     assert np.median(dense.query(plain.points[inside])[0]) > 0.01 * diagonal
     assert np.median(dense.query(plain.points[~inside])[0]) < 0.005 * diagonal
+
+
+# --- collection alignment ---------------------------------------------------------------------------------------
+
+FAST = {"n_points": 600, "coarse_points": 200, "fpfh_runs": 1}  # a lighter search: a test's budget
+
+
+@pytest.fixture(scope="module")
+def turned_shoes(shoes_dir):
+    """Five shoes as 3000 outer-surface points each, turned by seeded random rotations (and the rotations)."""
+    from scipy.spatial.transform import Rotation
+
+    from kpd.collection import collection_points
+    from kpd.io import read_mesh
+
+    names = list(SHOES[:5])
+    clouds = [collection_points(read_mesh(shoes_dir / n / "model.obj"), 3000, seed=0) for n in names]
+    truth = Rotation.random(len(names), random_state=7).as_matrix()
+    return names, [c @ q.T for c, q in zip(clouds, truth)], truth
+
+
+def test_a_small_collection_turned_at_random_comes_back_to_one_frame(turned_shoes, tmp_path):
+    from kpd.collection import align_collection, pairwise_rotation_errors
+
+    names, clouds, truth = turned_shoes
+    result = align_collection(clouds, names, rounds=2, state=tmp_path / "state.json", **FAST)
+    assert len(result.shapes) == 5 and [s.name for s in result.shapes] == names
+    assert sum(s.template for s in result.shapes) == 1
+    decided = ~result.ambiguous
+    assert decided.sum() >= 4
+    errors = pairwise_rotation_errors(result.rotations, truth, decided)
+    assert errors.max() <= 10.0, errors.round(1)
+    # without the estimates the same shapes are far apart: the check can fail
+    assert pairwise_rotation_errors(np.repeat(np.eye(3)[None], 5, 0), truth)[np.triu_indices(5, 1)].min() > 20
+
+
+def test_collection_alignment_continues_from_its_state(turned_shoes, tmp_path, monkeypatch):
+    import kpd.collection as collection
+
+    names, clouds, truth = turned_shoes
+    state = tmp_path / "state.json"
+    first = collection.align_collection(clouds[:3], names[:3], rounds=1, state=state, **FAST)
+
+    def refuse(item):
+        raise AssertionError("a shape was oriented again although its result was saved")
+
+    monkeypatch.setattr(collection, "_worker_orient", refuse)
+    again = collection.align_collection(clouds[:3], names[:3], rounds=1, state=state, **FAST)
+    assert np.array_equal(first.rotations, again.rotations)
+    with pytest.raises(InputError, match="other shapes or settings"):
+        collection.align_collection(clouds[:3], names[:3], rounds=1, state=state, up="y", **FAST)
+
+
+def test_pairwise_rotation_errors_and_input_checks():
+    from scipy.spatial.transform import Rotation
+
+    from kpd.collection import align_collection, pairwise_rotation_errors
+
+    truth = Rotation.random(4, random_state=0).as_matrix()
+    common = Rotation.random(random_state=1).as_matrix()
+    estimated = np.einsum("ij,skj->sik", common, truth)  # E_i = G Q_i^T: all come back into frame G
+    assert pairwise_rotation_errors(estimated, truth).max() < 1e-5
+    estimated[2] = Rotation.from_rotvec([0, 0, np.pi / 2]).as_matrix() @ estimated[2]
+    errors = pairwise_rotation_errors(estimated, truth)
+    assert np.allclose(errors[2, [0, 1, 3]], 90.0) and errors[0, 1] < 1e-5
+    with pytest.raises(InputError, match="at least 2 shapes"):
+        align_collection([np.zeros((20, 3))])
+    with pytest.raises(InputError, match="distinct"):
+        align_collection([np.random.default_rng(0).random((20, 3))] * 2, ["a", "a"])
+
+
+def test_kpd_scan_on_a_folder_writes_an_aligned_folder_kpd_train_reads(turned_shoes, shoes_dir, tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    from kpd.cli import main
+    from kpd.data import discover
+    from kpd.io import read_mesh, write_mesh
+
+    names = sorted(SHOES[:3])  # kpd scan lists a folder by name
+    collection = tmp_path / "shoes"
+    collection.mkdir()
+    truth = Rotation.random(3, random_state=3).as_matrix()
+    for name, q in zip(names, truth):
+        mesh = read_mesh(shoes_dir / name / "model.obj")
+        (collection / name).mkdir()
+        write_mesh(collection / name / "model.obj", mesh.with_vertices(mesh.vertices @ q.T))
+    out = tmp_path / "shoe"
+    assert main(["scan", str(collection), "--out", str(out), "--points", "2000", "--rounds", "1"]) == 0
+    report = __import__("json").loads((out / "alignment.json").read_text())
+    assert [row["name"] for row in report["shapes"]] == names
+    assert (out / "contact_sheet.png").stat().st_size > 0 and not (tmp_path / ".shoe.partial").exists()
+    rotations = np.array([np.asarray(row["transform"])[:3, :3] for row in report["shapes"]])
+    decided = [not row["ambiguous"] for row in report["shapes"]]
+    assert sum(decided) >= 2
+    for row, rotation in zip(report["shapes"], rotations):
+        aligned = read_mesh(row["output"]).vertices
+        given = read_mesh(collection / row["name"] / "model.obj").vertices
+        assert np.allclose(aligned, given @ rotation.T, atol=1e-5)  # the file is the input turned
+    from kpd.collection import pairwise_rotation_errors
+
+    assert pairwise_rotation_errors(rotations, truth, np.array(decided)).max() <= 10.0
+    category = discover(out)
+    found = sorted(f.name for s in category.splits.values() for f in s)
+    assert found == sorted(n for n, d in zip(names, decided) if d)
+    assert main(["scan", str(collection), "--out", str(out)]) == 2  # exists, no --force

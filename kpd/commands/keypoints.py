@@ -92,7 +92,7 @@ class ScanFrame:
             params["up"] = up
         if model.up is not None:  # as kpd scan --model: the model's up axis turns on the support prior
             params["reference_up"] = model.up
-        self.result = preprocess(shape, reference, **params)
+        self.result = preprocess(shape, reference, outer=model.outer_surface, **params)
         orientation = self.result.orientation
         if orientation is not None and orientation.ambiguous:
             print(f"warning: {ambiguity_advice(up is not None)}", file=sys.stderr)

@@ -6,23 +6,28 @@ import argparse
 
 from kpd.commands import integer
 
-HELP = "clean a real scan, turn it into a reference's or a model's frame and normalise it to [-1, 1] (with a report)"
+HELP = ("clean a real scan, turn it into a reference's or a model's frame and normalise it to [-1, 1] (with a "
+        "report); or bring a folder of scans into one frame")
 EXAMPLE = ("kpd scan my_sneaker.ply --reference sneaker_template.ply --out aligned.ply --report report.json --up z "
-           "--picture check.png")
+           "--picture check.png\n  kpd scan ../shared/data/gso_shoes --out shoes_aligned   "
+           "# a folder: groupwise, no reference; kpd train shoes_aligned reads the result")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scan", metavar="SCAN", help="the scan: a mesh (.obj .ply .off .stl .gltf .glb) or points "
-                                                      "(.ply .pcd .xyz .pts .npy .npz)")
+                                                      "(.ply .pcd .xyz .pts .npy .npz); or a folder of them (or of "
+                                                      "sub-folders with one each): collection mode")
     source = parser.add_mutually_exclusive_group()
     source.add_argument("--reference", metavar="REF", default=None,
                         help="a shape in the frame to turn the scan into (mesh or points)")
     source.add_argument("--model", metavar="MODEL", default=None,
                         help="a bundle (.kpd folder, .zip, or a shipped name: chair): orient to its template shape")
     parser.add_argument("--out", required=True, help="the cleaned, oriented, normalised scan (a mesh scan needs a "
-                                                     "mesh format; a point scan a point format)")
-    parser.add_argument("--report", required=True, help="JSON report: the cleaning counts, the orientation scores "
-                                                        "and the 4x4 transforms to the aligned frame and back")
+                                                     "mesh format; a point scan a point format); collection mode: "
+                                                     "the aligned folder to create")
+    parser.add_argument("--report", default=None, help="JSON report: the cleaning counts, the orientation scores "
+                                                       "and the 4x4 transforms to the aligned frame and back "
+                                                       "(required for one scan; collection mode: OUT/alignment.json)")
     parser.add_argument("--up", default=None, metavar="AXIS",
                         help="the scan's known up axis (x, y, z, -z, ...): only rotations about it are searched, "
                              "and a ground plane below the scan may be removed")
@@ -41,6 +46,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "rotation, to check by eye")
     parser.add_argument("--seed", type=integer(0), default=0, help="seed of sampling, RANSAC and subsets (default 0)")
     parser.add_argument("--force", action="store_true", help="replace --out and --report if they exist")
+    g = parser.add_argument_group("collection mode (SCAN is a folder)")
+    g.add_argument("--rounds", type=int, default=3,
+                   help="at most this many registrations of the collection to a re-estimated template (default 3)")
+    g.add_argument("--processes", type=int, default=1,
+                   help="worker processes orienting shapes (default 1; each uses one core)")
+    g.add_argument("--points", type=int, default=5000, help="surface points sampled per shape (default 5000)")
+    g.add_argument("--all-surface", action="store_true",
+                   help="sample every face, also those inside the shape (default: the outer surface only)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,6 +67,10 @@ def run(args: argparse.Namespace) -> int:
     from kpd.io import MESH_FORMATS, POINT_FORMATS, Mesh, Outputs, mesh_companions, read_shape, write_mesh, write_points
     from kpd.scan import parse_axis, preprocess
 
+    if Path(args.scan).is_dir():
+        return run_collection(args)
+    if args.report is None:
+        raise InputError("--report is required for one scan (the transforms that map results back onto it)")
     if args.ground and args.no_ground:
         raise InputError("--ground and --no-ground contradict each other; give one")
     for name in ("up", "reference_up"):
@@ -145,4 +162,103 @@ def run(args: argparse.Namespace) -> int:
         if o.ambiguous:
             print(f"warning: {ambiguity_advice(args.up is not None)}", file=sys.stderr)
     print(f"wrote {out} and {report_path}" + (f" and {picture}" if picture is not None else ""))
+    return 0
+
+
+def run_collection(args: argparse.Namespace) -> int:
+    """``kpd scan FOLDER --out ALIGNED``: groupwise alignment of a collection (kpd.collection).
+
+    The aligned folder holds one file per decided shape (the input turned into the shared frame, same format and
+    units), ``ambiguous/`` with the flagged ones (turned by their best rotation), ``alignment.json`` (the report) and
+    ``contact_sheet.png``. It is built in a hidden sibling folder that keeps the state of the run, so a killed run
+    started again with the same arguments continues where it stopped; the folder appears at ``--out`` when complete.
+    """
+    import json
+    import shutil
+    import time
+    from pathlib import Path
+
+    from kpd.collection import align_collection, collection_points, contact_sheet, find_shapes
+    from kpd.errors import InputError, KpdError
+    from kpd.io import Mesh, read_shape, write_mesh, write_points
+    from kpd.scan import parse_axis
+
+    if args.reference is not None or args.model is not None:
+        raise InputError("collection mode (SCAN is a folder) needs no --reference or --model: the collection's "
+                         "medoid is the template")
+    if args.up is not None:
+        parse_axis(args.up, "--up")
+    for name in ("rounds", "processes"):
+        if getattr(args, name) < 1:
+            raise InputError(f"--{name} must be at least 1; got {getattr(args, name)}")
+    if args.points < 100:
+        raise InputError(f"--points must be at least 100; got {args.points}")
+    out = Path(args.out)
+    source = Path(args.scan).resolve()
+    if out.resolve() == source or source in out.resolve().parents:
+        raise InputError(f"--out {out} lies inside the collection {args.scan}; choose another folder")
+    if not out.parent.is_dir():
+        raise InputError(f"output folder {out.parent} does not exist")
+    if out.exists() and not args.force:
+        raise InputError(f"output {out} exists; pass --force to replace it")
+    for option, value, suffix in (("--report", args.report, ".json"), ("--picture", args.picture, ".png")):
+        if value is not None and Path(value).suffix.lower() != suffix:
+            raise InputError(f"{option} {value} must end in {suffix}")
+        if value is not None and Path(value).exists() and not args.force:
+            raise InputError(f"output {value} exists; pass --force to replace it")
+    shapes = find_shapes(args.scan)
+    staging = out.parent / f".{out.name}.partial"
+    staging.mkdir(exist_ok=True)
+    (staging / "ambiguous").mkdir(exist_ok=True)
+    print(f"{len(shapes)} shapes in {args.scan}; working in {staging} (a run stopped there continues)")
+
+    started = time.perf_counter()
+    from tqdm import tqdm
+
+    loaded, clouds = [], []
+    for name, path in tqdm(shapes, desc="reading", unit="shape"):
+        try:
+            shape = read_shape(path)
+            clouds.append(collection_points(shape, args.points, seed=args.seed, outer=not args.all_surface))
+        except KpdError as exc:
+            raise InputError(f"{path}: {exc}") from exc
+        loaded.append(shape)
+    read_seconds = time.perf_counter() - started
+    started = time.perf_counter()
+    result = align_collection(clouds, [n for n, _ in shapes], up=args.up, rounds=args.rounds,
+                              processes=args.processes, state=staging / "state.json", progress=True,
+                              seed=args.seed)
+    align_seconds = time.perf_counter() - started
+
+    rows = []
+    for (name, path), shape, item in zip(shapes, loaded, result.shapes):
+        where = staging / ("ambiguous" if item.ambiguous else "") / (name + path.suffix.lower())
+        rotation = item.rotation
+        if isinstance(shape, Mesh):
+            write_mesh(where, shape.with_vertices(shape.vertices @ rotation.T))
+        else:
+            write_points(where, shape.points @ rotation.T,
+                         None if shape.normals is None else shape.normals @ rotation.T, shape.colors)
+        rows.append({**item.to_dict(), "source": str(path), "output": str(out / where.relative_to(staging))})
+    report = {"collection": str(args.scan), "output": str(out), "up": args.up, "seed": args.seed,
+              "surface": "all" if args.all_surface else "outer", "points": args.points,
+              "frame": "output = transform @ [x, y, z, 1] of the input (a rotation: the input's units and origin)",
+              "seconds": {"reading": read_seconds, "aligning_this_run": align_seconds,
+                          "per_shape": float(result.seconds.mean())},
+              **{k: v for k, v in result.to_dict().items() if k != "shapes"}, "shapes": rows}
+    (staging / "alignment.json").write_text(json.dumps(report, indent=1) + "\n")
+    contact_sheet(clouds, result, staging / "contact_sheet.png", up=args.up, seed=args.seed)
+    (staging / "state.json").unlink()
+    if out.exists():
+        shutil.rmtree(out)
+    staging.rename(out)
+    for option, value, name in (("--report", args.report, "alignment.json"), ("--picture", args.picture,
+                                                                             "contact_sheet.png")):
+        if value is not None:
+            shutil.copyfile(out / name, value)
+    flagged = int(result.ambiguous.sum())
+    print(f"aligned {len(shapes) - flagged} shapes, {flagged} flagged ambiguous (in {out / 'ambiguous'}); "
+          f"{len(result.templates)} round(s), templates {', '.join(result.templates)}; "
+          f"{result.seconds.mean():.2f} s per shape")
+    print(f"wrote {out} (alignment.json, contact_sheet.png)")
     return 0

@@ -1,0 +1,471 @@
+"""Bring a collection of scans of one category into one shared frame, without a hand-picked reference.
+
+Groupwise alignment (:func:`align_collection`), reusing the orientation search of :class:`kpd.scan.ScanAligner`:
+
+1. the first template is the collection's **medoid** by a rotation-invariant descriptor (:func:`shape_descriptor`:
+   the distribution of point-pair distances and the principal extents of each shape at unit RMS radius), so no
+   rotation search is needed to choose it, and the collection frame is that shape's own frame;
+2. every shape is oriented to the template (the full rotation search, or the turns about ``up`` when it is known),
+   with its score, runner-up and ambiguity flag;
+3. the template is **re-estimated** as the medoid, by chamfer distance in the shared frame, of the shapes just
+   aligned and not flagged, and step 2 is repeated, until the template no longer changes or no shape turns by
+   more than 10 degrees between rounds (or ``rounds``).
+
+A shape flagged ambiguous (two rotations more than ``distinct_angle`` apart fit within the ambiguity margin) is
+reported as such, never silently counted as aligned. Every result is kept in a JSON state file after each shape,
+so a killed run continues where it stopped (``state``). Everything is numpy, scipy and Open3D; no torch.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any, NamedTuple, Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from kpd.errors import DataError, InputError
+from kpd.geometry import as_points, as_rng, sample_surface
+from kpd.scan import ScanAligner, parse_axis, rotation_angle
+
+__all__ = [
+    "CollectionShape",
+    "CollectionAlignment",
+    "find_shapes",
+    "collection_points",
+    "shape_descriptor",
+    "descriptor_medoid",
+    "chamfer_medoid",
+    "align_collection",
+    "pairwise_rotation_errors",
+    "contact_sheet",
+]
+
+log = logging.getLogger(__name__)
+
+STATE_VERSION = 1
+
+
+class CollectionShape(NamedTuple):
+    """One shape's result in :class:`CollectionAlignment`.
+
+    name : the shape's name ; rotation : (3, 3) float64, turns the shape into the shared frame (``x @ rotation.T``)
+    score : trimmed RMS distance to the template after refinement (template's [-1, 1] units)
+    runner_up_score / runner_up_angle : the best rotation more than ``distinct_angle`` degrees away, and its angle
+    margin : ``runner_up_score / score - 1`` ; ambiguous : margin under the threshold (not decided)
+    template : True for the shape that served as the final template (its rotation is the reference's)
+    """
+
+    name: str
+    rotation: np.ndarray
+    score: float
+    runner_up_score: float
+    runner_up_angle: float
+    margin: float
+    ambiguous: bool
+    template: bool = False
+
+    def to_dict(self) -> dict:
+        def num(x: float) -> float | None:
+            return float(x) if np.isfinite(x) else None
+
+        transform = np.eye(4)
+        transform[:3, :3] = self.rotation
+        return {"name": self.name, "transform": transform.tolist(), "score": num(self.score),
+                "runner_up_score": num(self.runner_up_score), "runner_up_angle": num(self.runner_up_angle),
+                "margin": num(self.margin), "ambiguous": bool(self.ambiguous), "template": bool(self.template)}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "CollectionShape":
+        def num(x: Any) -> float:
+            return math.inf if x is None else float(x)
+
+        return cls(str(data["name"]), np.asarray(data["transform"], dtype=np.float64)[:3, :3], num(data["score"]),
+                   num(data["runner_up_score"]), math.nan if data["runner_up_angle"] is None
+                   else float(data["runner_up_angle"]), num(data["margin"]), bool(data["ambiguous"]),
+                   bool(data.get("template", False)))
+
+
+class CollectionAlignment(NamedTuple):
+    """Result of :func:`align_collection`.
+
+    shapes : one :class:`CollectionShape` per input, in input order (the last round's results)
+    rotations : (S, 3, 3) float64, the same rotations stacked
+    templates : the template's name in each round (the first is the descriptor medoid)
+    changed : per round after the first, how many shapes turned by more than 10 degrees against the round before
+    converged : the re-estimated template was the one just used, or no shape turned by more than 10 degrees in the
+        last round (another round would change nothing that matters)
+    seconds : (S,) float64, each shape's orientation time summed over the rounds (as measured when it was done,
+        also in an earlier, resumed run)
+    """
+
+    shapes: list
+    rotations: np.ndarray
+    templates: list
+    changed: list
+    converged: bool
+    seconds: np.ndarray
+
+    @property
+    def ambiguous(self) -> np.ndarray:
+        """(S,) bool: the flagged shapes."""
+        return np.array([s.ambiguous for s in self.shapes], dtype=bool)
+
+    def to_dict(self) -> dict:
+        return {"templates": list(self.templates), "changed": list(self.changed), "converged": self.converged,
+                "rounds": len(self.templates), "count": len(self.shapes),
+                "seconds_per_shape": float(self.seconds.mean()),
+                "ambiguous": int(self.ambiguous.sum()), "shapes": [s.to_dict() for s in self.shapes]}
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the collection on disk
+
+
+def find_shapes(folder: str | os.PathLike) -> list[tuple[str, Path]]:
+    """The shapes of a collection folder: mesh or point files in it (named by their stem) and sub-folders holding
+    exactly one such file (named by the sub-folder, as ``gso_shoes/<name>/model.obj``), sorted by name.
+
+    Returns
+    -------
+    shapes : list of (name, path); DataError when there are none or two share a name.
+    """
+    from kpd.io import MESH_FORMATS, POINT_FORMATS
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder} is not a folder")
+    suffixes = set(MESH_FORMATS) | set(POINT_FORMATS)
+
+    def shape_files(where: Path) -> list[Path]:
+        return sorted(p for p in where.iterdir() if p.is_file() and p.suffix.lower() in suffixes
+                      and not p.name.startswith("."))
+
+    found: dict[str, Path] = {}
+    for path in shape_files(folder):
+        found.setdefault(path.stem, path)
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        files = shape_files(sub)
+        if len(files) == 1:
+            if sub.name in found:
+                raise DataError(f"{folder}: two shapes are named {sub.name!r} ({found[sub.name]} and {files[0]})")
+            found[sub.name] = files[0]
+    if not found:
+        raise DataError(f"no shapes (mesh or point files, or sub-folders with one each) in {folder}")
+    return sorted(found.items())
+
+
+def collection_points(shape: Any, n: int = 5000, *, seed: int = 0, outer: bool = True) -> np.ndarray:
+    """(n, 3) float64 points a shape is aligned by: area-weighted surface samples of a mesh (its outer surface by
+    default, :func:`kpd.geometry.sample_surface`), or at most ``n`` of a point set's points."""
+    triangles = np.asarray(getattr(shape, "triangles", np.zeros((0, 3))))
+    if hasattr(shape, "vertices") and len(triangles):
+        return sample_surface(shape.vertices, triangles, n, seed=seed, outer=outer).points
+    points = as_points(shape.points if hasattr(shape, "points") else shape, "shape", min_count=10)
+    if len(points) > n:
+        points = points[np.sort(as_rng(seed).choice(len(points), n, replace=False))]
+    return points
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# templates
+
+
+def _unit(points: np.ndarray) -> np.ndarray:
+    centred = points - points.mean(axis=0)
+    radius = math.sqrt(float((centred**2).sum(axis=1).mean()))
+    if not radius > 0:
+        raise InputError(f"a shape of {len(points)} points has zero extent")
+    return centred / radius
+
+
+def shape_descriptor(points: Any, *, pairs: int = 20000, bins: int = 32, seed: int = 0) -> np.ndarray:
+    """A rotation-invariant summary of a shape at unit RMS radius: the histogram of distances between random point
+    pairs (Osada et al.'s D2) followed by the square roots of the principal variances.
+
+    Returns
+    -------
+    descriptor : (bins + 3,) float64
+    """
+    unit = _unit(as_points(points, min_count=10))
+    rng = as_rng(seed)
+    i, j = rng.integers(len(unit), size=(2, pairs))
+    d = np.linalg.norm(unit[i] - unit[j], axis=1)  # (pairs,)
+    hist = np.histogram(d, bins=bins, range=(0.0, 4.0))[0] / pairs
+    extents = np.sqrt(np.maximum(np.linalg.eigvalsh(unit.T @ unit / len(unit)), 0.0))  # ascending
+    return np.concatenate([hist, extents])
+
+
+def descriptor_medoid(clouds: Sequence[np.ndarray], *, seed: int = 0) -> int:
+    """Index of the shape whose :func:`shape_descriptor` has the least total L1 distance to the others'."""
+    if len(clouds) == 0:
+        raise InputError("no shapes to choose a template from")
+    desc = np.stack([shape_descriptor(c, seed=seed) for c in clouds])  # (S, D)
+    total = np.abs(desc[:, None, :] - desc[None, :, :]).sum(axis=(1, 2))  # (S,)
+    return int(np.argmin(total))
+
+
+def chamfer_medoid(clouds: Sequence[np.ndarray], rotations: np.ndarray, candidates: Sequence[int], *,
+                   points: int = 512, others: int = 64, seed: int = 0) -> int:
+    """Index (among ``candidates``) of the shape nearest, by mean symmetric chamfer distance at unit RMS radius in
+    the shared frame, to a seeded sample of ``others`` of the candidates."""
+    candidates = list(candidates)
+    if not candidates:
+        raise InputError("no shapes to choose a template from")
+    rng = as_rng(seed)
+    turned = {}
+    for i in candidates:
+        c = clouds[i]
+        sub = c if len(c) <= points else c[rng.choice(len(c), points, replace=False)]
+        turned[i] = _unit(sub @ rotations[i].T)
+    trees = {i: cKDTree(p) for i, p in turned.items()}
+    pool = candidates if len(candidates) <= others else list(rng.choice(candidates, others, replace=False))
+    best, best_cost = candidates[0], math.inf
+    for i in candidates:
+        cost = 0.0
+        for j in pool:
+            if j != i:
+                cost += float((trees[j].query(turned[i])[0] ** 2).mean() + (trees[i].query(turned[j])[0] ** 2).mean())
+        if cost < best_cost:
+            best, best_cost = i, cost
+    return int(best)
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# the alignment
+
+_WORKER: dict = {}
+
+
+def _worker_fit(template: np.ndarray, params: dict) -> None:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    _WORKER["aligner"] = ScanAligner(**params).fit(template)
+
+
+def _worker_orient(item: tuple[str, np.ndarray]) -> dict:
+    import time
+
+    name, points = item
+    started = time.perf_counter()
+    o = _WORKER["aligner"].orient(points)
+    return {**CollectionShape(name, o.rotation, o.score, o.runner_up_score, o.runner_up_angle, o.margin,
+                              o.ambiguous).to_dict(), "seconds": time.perf_counter() - started}
+
+
+def _load_state(path: Path | None, names: list[str], settings: dict) -> dict:
+    if path is None or not path.is_file():
+        return {"version": STATE_VERSION, "names": names, "settings": settings, "rounds": []}
+    try:
+        state = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: unreadable alignment state ({exc}); delete it to start over") from exc
+    if state.get("version") != STATE_VERSION or state.get("names") != names or state.get("settings") != settings:
+        raise InputError(f"{path}: the alignment state is of other shapes or settings; delete it to start over")
+    return state
+
+
+def _save_state(path: Path | None, state: dict) -> None:
+    if path is None:
+        return
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(state))
+    os.replace(tmp, path)
+
+
+def align_collection(
+    clouds: Sequence[Any],
+    names: Sequence[str] | None = None,
+    *,
+    up: Any = None,
+    rounds: int = 3,
+    processes: int = 1,
+    state: str | os.PathLike | None = None,
+    progress: bool = False,
+    seed: int = 0,
+    **aligner_params: Any,
+) -> CollectionAlignment:
+    """Groupwise alignment of a collection (see the module docstring).
+
+    Parameters
+    ----------
+    clouds : S >= 2 arrays (N_i, 3), the shapes' points (e.g. :func:`collection_points`), each in its own pose.
+    names : S distinct names (default ``"0"``, ``"1"``, ...).
+    up : the up axis shared by every shape, if known (``'y'``, ``'-z'``, three numbers): only turns about it are
+        searched, and the shared frame keeps it.
+    rounds : at most this many registrations of the whole collection (>= 1); stops earlier when the re-estimated
+        template is the one just used.
+    processes : worker processes orienting shapes (1 = in this process).
+    state : a JSON file that keeps every result as it is found; a run given the same file (same shapes and
+        settings) continues where the previous one stopped.
+    seed : seeds the descriptor, the medoids and the aligner.
+    aligner_params : further :class:`kpd.scan.ScanAligner` parameters (``ambiguity_margin``, ``n_points``, ...).
+
+    Returns
+    -------
+    CollectionAlignment
+    """
+    clouds = [as_points(c, f"shape {i}", min_count=10) for i, c in enumerate(clouds)]
+    if len(clouds) < 2:
+        raise InputError(f"a collection needs at least 2 shapes; got {len(clouds)}")
+    names = [str(i) for i in range(len(clouds))] if names is None else [str(n) for n in names]
+    if len(names) != len(clouds) or len(set(names)) != len(names):
+        raise InputError(f"names must be {len(clouds)} distinct strings; got {len(names)} ({len(set(names))} distinct)")
+    if int(rounds) < 1 or int(processes) < 1:
+        raise InputError(f"rounds and processes must be at least 1; got {rounds}, {processes}")
+    if up is not None:
+        parse_axis(up)
+    params = {"seed": seed, **aligner_params}
+    if up is not None:
+        params.update(up=up, reference_up=up)
+    ScanAligner(**params)._check_params()
+    state_path = None if state is None else Path(state)
+    settings = {"up": None if up is None else str(up), "seed": seed,
+                "aligner": {k: v for k, v in sorted(aligner_params.items())}}
+    saved = _load_state(state_path, names, settings)
+    index = {n: i for i, n in enumerate(names)}
+    rotations = np.repeat(np.eye(3)[None], len(clouds), axis=0)
+    templates: list[str] = []
+    changed: list[int] = []
+    results: dict[str, dict] = {}
+    seconds = np.zeros(len(clouds))
+    converged = False
+    template = descriptor_medoid(clouds, seed=seed)
+    for k in range(int(rounds)):
+        name = names[template]
+        if k < len(saved["rounds"]):
+            record = saved["rounds"][k]
+            if record["template"] != name:
+                raise InputError(f"{state_path}: round {k + 1} used template {record['template']!r}, this run chose "
+                                 f"{name!r}; delete the state to start over")
+        else:
+            record = {"template": name, "results": {}}
+            saved["rounds"].append(record)
+            _save_state(state_path, saved)
+        templates.append(name)
+        reference = clouds[template] @ rotations[template].T  # in the shared frame
+        todo = [(n, clouds[index[n]]) for n in names if n not in record["results"]]
+        if todo:
+            log.info("round %d: orienting %d of %d shapes to template %s", k + 1, len(todo), len(names), name)
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(names), initial=len(names) - len(todo), desc=f"aligning, round {k + 1}",
+                       unit="shape", disable=not progress)
+            try:
+                if processes > 1 and len(todo) > 1:
+                    with ProcessPoolExecutor(max_workers=int(processes), mp_context=get_context("spawn"),
+                                             initializer=_worker_fit, initargs=(reference, params)) as pool:
+                        for result in pool.map(_worker_orient, todo, chunksize=1):
+                            record["results"][result["name"]] = result
+                            _save_state(state_path, saved)
+                            bar.update()
+                else:
+                    _worker_fit(reference, params)
+                    for item in todo:
+                        result = _worker_orient(item)
+                        record["results"][result["name"]] = result
+                        _save_state(state_path, saved)
+                        bar.update()
+            finally:
+                bar.close()
+                _WORKER.clear()
+        previous = rotations.copy()
+        results = record["results"]
+        for n in names:
+            rotations[index[n]] = np.asarray(results[n]["transform"])[:3, :3]
+            seconds[index[n]] += float(results[n].get("seconds", math.nan))
+        if k > 0:
+            changed.append(int(sum(rotation_angle(rotations[i], previous[i]) > 10.0 for i in range(len(names)))))
+        if k > 0 and changed[-1] == 0:  # no shape turned: another template would change nothing that matters
+            converged = True
+            break
+        decided = [i for i, n in enumerate(names) if not results[n]["ambiguous"]] or list(range(len(names)))
+        following = chamfer_medoid(clouds, rotations, decided, seed=seed)
+        if following == template:
+            converged = True
+            break
+        template = following
+    shapes = [CollectionShape.from_dict({**results[n], "template": n == templates[-1]}) for n in names]
+    return CollectionAlignment(shapes, rotations, templates, changed, converged, seconds)
+
+
+def pairwise_rotation_errors(estimated: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Angles (degrees) of ``(E_i T_i)(E_j T_j)^T`` over pairs i < j: 0 when shapes i and j, turned by the known
+    rotations ``truth`` (S, 3, 3) and back by the estimated ``estimated`` (S, 3, 3), end up in one frame.
+
+    Parameters
+    ----------
+    mask : (S,) bool, the shapes to pair (default all).
+
+    Returns
+    -------
+    errors : (S', S') float64, symmetric with a zero diagonal, over the masked shapes.
+    """
+    estimated, truth = np.asarray(estimated, float), np.asarray(truth, float)
+    if estimated.shape != truth.shape or estimated.ndim != 3 or estimated.shape[1:] != (3, 3):
+        raise InputError(f"estimated and truth must both be (S, 3, 3); got {estimated.shape} and {truth.shape}")
+    keep = np.ones(len(truth), bool) if mask is None else np.asarray(mask, bool)
+    net = np.einsum("sij,sjk->sik", estimated[keep], truth[keep])  # (S', 3, 3)
+    relative = np.einsum("aij,bkj->abik", net, net)  # (S', S', 3, 3): net_a @ net_b.T
+    cos = (np.trace(relative, axis1=2, axis2=3) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+# --------------------------------------------------------------------------------------------------------------------
+# a picture of the aligned collection
+
+
+def contact_sheet(clouds: Sequence[np.ndarray], alignment: CollectionAlignment, path: Any, *, up: Any = None,
+                  columns: int = 12, max_points: int = 600, seed: int = 0, title: str | None = None) -> None:
+    """Draw every shape turned into the shared frame, side by side, to a PNG (flagged ones titled in red).
+
+    Each cell shows the shape from the side, the same view for all: the template's longest principal axis
+    horizontal and ``up`` (if given; else its middle principal axis) vertical; colour is depth, so a shape turned
+    back to front or upside down stands out among the others.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rng = as_rng(seed)
+    template = next((i for i, s in enumerate(alignment.shapes) if s.template), 0)
+    ref = _unit(clouds[template] @ alignment.rotations[template].T)
+    if up is not None:  # vertical: up; horizontal: the template's longest direction across it
+        vertical = parse_axis(up)
+        flat = ref - np.outer(ref @ vertical, vertical)
+        horizontal = np.linalg.eigh(flat.T @ flat)[1][:, -1]
+    else:  # the template's principal axes: longest horizontal, middle vertical
+        basis = np.linalg.eigh(ref.T @ ref)[1]
+        horizontal, vertical = basis[:, 2], basis[:, 1]
+    depth = np.cross(horizontal, vertical)
+    view = np.stack([horizontal, vertical, depth])  # (3, 3) rows: screen x, screen y, depth
+    count = len(alignment.shapes)
+    columns = max(1, min(columns, count))
+    rows = int(math.ceil(count / columns))
+    figure, axes = plt.subplots(rows, columns, figsize=(1.6 * columns, 1.35 * rows + 0.6), dpi=100, squeeze=False)
+    for cell in axes.ravel():
+        cell.axis("off")
+    for i, shape in enumerate(alignment.shapes):
+        cloud = clouds[i]
+        if len(cloud) > max_points:
+            cloud = cloud[rng.choice(len(cloud), max_points, replace=False)]
+        seen = _unit(cloud @ alignment.rotations[i].T) @ view.T  # (n, 3) screen x, y, depth
+        cell = axes.ravel()[i]
+        cell.scatter(seen[:, 0], seen[:, 1], c=seen[:, 2], s=0.6, cmap="viridis", vmin=-1.0, vmax=1.0)
+        cell.set_xlim(-2.6, 2.6)
+        cell.set_ylim(-2.0, 2.0)
+        cell.set_aspect("equal")
+        label = shape.name if len(shape.name) <= 18 else shape.name[:17] + "…"
+        cell.set_title(("* " if shape.template else "") + label, fontsize=5.5,
+                       color="red" if shape.ambiguous else "black")
+    figure.suptitle(title or f"{count} shapes in the shared frame ({int(alignment.ambiguous.sum())} flagged "
+                             f"ambiguous, in red; * the template)", fontsize=9)
+    figure.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - 0.35 / (1.35 * rows + 0.6)))
+    figure.savefig(str(path))
+    plt.close(figure)
