@@ -114,12 +114,19 @@ class EditorApp:
     # --- windows ---------------------------------------------------------------------------------------------
 
     def run(self) -> int:
-        """Open the windows and run until the 3D view or the panel is closed; returns 0."""
-        self._build()
-        try:
-            self._loop()
-        finally:
-            self._close()
+        """Open the windows and run until the 3D view or the panel is closed; returns 0.
+
+        BLAS runs on one thread meanwhile: the editor's products are small ((V, K) by (K, 3)), and a multi-threaded
+        BLAS waiting for a core that another process holds makes each of them up to 100 times slower.
+        """
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1, user_api="blas"):
+            self._build()
+            try:
+                self._loop()
+            finally:
+                self._close()
         return 0
 
     def _build(self) -> None:
@@ -255,12 +262,13 @@ class EditorApp:
         """Draw the newest state: one frame, whatever number of inputs it answers."""
         started = time.perf_counter()
         serial = self._inputs
-        self._show(mesh=self._dirty_mesh)
+        gesture = self._drag is not None or self._orbit is not None  # large meshes: the stand-in while it lasts
+        self._show(mesh=self._dirty_mesh, fast=gesture)
         self._dirty = self._dirty_mesh = False
         self.view.draw()
         self._frames += 1
         self._emit("frame", serial=serial, draw_ms=round(1000 * (time.perf_counter() - started), 3),
-                   frame=self._frames)
+                   frame=self._frames, stand_in=self.drawing._proxy_shown)
 
     def _close(self) -> None:
         self._emit("close")
@@ -282,8 +290,8 @@ class EditorApp:
         vertices = self.rig.deform(keypoints, out=self._buffer)
         return Frame(vertices, keypoints, self.rig.deform_cage(keypoints), tuple(self.selection))
 
-    def _show(self, *, mesh: bool = True) -> None:
-        self.drawing.show(self._frame(), self.camera, mesh=mesh)
+    def _show(self, *, mesh: bool = True, fast: bool = False) -> None:
+        self.drawing.show(self._frame(), self.camera, mesh=mesh, fast=fast)
 
     def _changed(self, *, mesh: bool = True) -> None:
         self._dirty = True
@@ -421,6 +429,8 @@ class EditorApp:
                 self.session.end_gesture()
                 self._emit("release", moved=moved)
             self._orbit = None
+            if self.drawing.proxy is not None:
+                self._changed(mesh=True)  # the full mesh again, after the stand-in of the gesture
         return False
 
     def _on_mouse_move(self, _vis: Any, x: float, y: float) -> bool:

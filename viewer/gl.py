@@ -35,6 +35,8 @@ __all__ = ["GLView", "ShadedMesh", "RigDrawing", "Shot", "Layer", "render_shots"
 
 log = logging.getLogger(__name__)
 
+PROXY_TRIANGLES = 50000  # larger meshes are drawn by a coarse stand-in while a gesture is in progress
+
 
 class NoWindowError(KpdError):
     """No OpenGL window could be opened (no display, no GL driver)."""
@@ -49,18 +51,20 @@ class _Welding:
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
         import scipy.sparse as sp
 
-        _, inverse = np.unique(np.ascontiguousarray(vertices), axis=0, return_inverse=True)
+        rows = np.ascontiguousarray(vertices, dtype=np.float64)
+        rows = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).ravel()  # (V,) one key per row
+        _, inverse = np.unique(rows, return_inverse=True)
         self.inverse = inverse.reshape(-1)  # (V,) group of each vertex
         groups = int(self.inverse.max()) + 1 if len(vertices) else 0
         t = len(triangles)
         rows = self.inverse[triangles].reshape(-1)  # (3T,)
         cols = np.repeat(np.arange(t), 3)
-        self.incidence = sp.csr_matrix((np.ones(3 * t), (rows, cols)), shape=(groups, t))  # (G, T)
+        self.incidence = sp.csr_matrix((np.ones(3 * t, np.float32), (rows, cols)), shape=(groups, t))  # (G, T)
 
 
 def shading_normals(vertices: np.ndarray, triangles: np.ndarray, eye: np.ndarray | None = None, *,
                     welding: _Welding | None = None) -> np.ndarray:
-    """(V, 3) float64 unit vertex normals for drawing.
+    """(V, 3) float32 unit vertex normals for drawing.
 
     Parameters
     ----------
@@ -70,17 +74,22 @@ def shading_normals(vertices: np.ndarray, triangles: np.ndarray, eye: np.ndarray
         so a surface shades the same whichever way its triangles wind. None keeps the winding.
     welding : the vertex groups of these triangles (computed when not given): vertices at one position share a normal.
     """
-    vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
-    welding = welding or _Welding(vertices, triangles)
-    a, b, c = vertices[triangles[:, 0]], vertices[triangles[:, 1]], vertices[triangles[:, 2]]
-    face = np.cross(b - a, c - a)  # (T, 3), length = twice the area
-    if eye is not None:
-        towards = np.asarray(eye, dtype=np.float64) - (a + b + c) / 3
-        face *= np.where(np.einsum("ij,ij->i", face, towards) < 0, -1.0, 1.0)[:, None]
+    welding = welding or _Welding(np.asarray(vertices, dtype=np.float64), triangles)
+    corners = np.asarray(vertices, dtype=np.float32)[triangles]  # (T, 3, 3); float32 is plenty for shading
+    a = corners[:, 0]
+    u, v = corners[:, 1] - a, corners[:, 2] - a
+    face = np.empty_like(u)  # (T, 3) u x v, length = twice the area
+    face[:, 0] = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
+    face[:, 1] = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
+    face[:, 2] = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+    if eye is not None:  # the side of the triangle's plane the eye is on (any corner of it will do)
+        away = np.einsum("ij,ij->i", face, np.asarray(eye, dtype=np.float32) - a) < 0
+        face[away] *= -1.0
     grouped = welding.incidence @ face  # (G, 3)
-    length = np.linalg.norm(grouped, axis=1, keepdims=True)
-    grouped = np.where(length > 0, grouped / np.maximum(length, 1e-300), [[0.0, 0.0, 1.0]])
+    length = np.sqrt(np.einsum("ij,ij->i", grouped, grouped))
+    length[length == 0] = 1.0  # a vertex of degenerate triangles only: no normal
+    grouped /= length[:, None]
     return grouped[welding.inverse]
 
 
@@ -102,10 +111,12 @@ def shade(albedo: np.ndarray, normals: np.ndarray, camera: Any) -> np.ndarray:
 
     The renderer draws unlit (Open3D's legacy lights saturate on surfaces facing the camera and cannot be set from
     Python), so shading is computed here, the same for every picture and the editor."""
-    lights = camera_lights(camera)
-    lambert = np.clip(np.asarray(normals) @ lights.T, 0.0, None)  # (N, 2)
-    light = 0.38 + 0.52 * lambert[:, 0] + 0.22 * lambert[:, 1]
-    return np.clip(np.asarray(albedo) * light[:, None], 0.0, 1.0)
+    lights = camera_lights(camera).astype(np.float32)
+    lambert = np.einsum("ij,kj->ik", np.asarray(normals, dtype=np.float32), lights)  # (N, 2); no BLAS threads
+    np.maximum(lambert, 0.0, out=lambert)
+    light = 0.38 + 0.52 * lambert[:, 0] + 0.22 * lambert[:, 1]  # (N,), at most 1.12
+    colors = np.asarray(albedo, dtype=np.float32) * light[:, None]
+    return np.minimum(colors, 1.0, out=colors)
 
 
 class ShadedMesh:
@@ -149,9 +160,9 @@ class ShadedMesh:
                 part.triangle_material_ids = o3d.utility.IntVector(np.zeros(len(chosen), np.int32))
                 albedo = None
             elif mesh.vertex_colors is not None and not override:
-                albedo = np.asarray(mesh.vertex_colors if whole else mesh.vertex_colors[used], dtype=np.float64)
+                albedo = np.asarray(mesh.vertex_colors if whole else mesh.vertex_colors[used], dtype=np.float32)
             else:
-                albedo = np.tile(np.asarray(color, dtype=np.float64)[:3], (len(used), 1))
+                albedo = np.tile(np.asarray(color, dtype=np.float32)[:3], (len(used), 1))
             self.parts.append((None if whole else used, part))
             self._albedo.append(albedo)
 
@@ -168,9 +179,42 @@ class ShadedMesh:
         for (used, part), albedo in zip(self.parts, self._albedo):
             part.vertices = o3d.utility.Vector3dVector(vertices if used is None else vertices[used])
             n = normals if used is None else normals[used]
-            part.vertex_normals = o3d.utility.Vector3dVector(n)
+            # Vector3dVector copies float64 rows at memcpy speed, other dtypes element by element
+            part.vertex_normals = o3d.utility.Vector3dVector(n.astype(np.float64))
             if albedo is not None:
-                part.vertex_colors = o3d.utility.Vector3dVector(shade(albedo, n, camera))
+                part.vertex_colors = o3d.utility.Vector3dVector(shade(albedo, n, camera).astype(np.float64))
+
+
+def proxy_triangles(vertices: np.ndarray, triangles: np.ndarray, limit: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """A coarse stand-in of a large mesh for frames drawn during a gesture: vertices clustered on a grid, one
+    original vertex kept per cell, triangles that collapse dropped.
+
+    Returns None when the mesh has at most ``limit`` triangles, else ``(kept, faces)``: (P,) indices of the kept
+    original vertices and (Q, 3) triangles into ``kept`` with Q <= ``limit``. Its vertices are original vertices, so
+    the stand-in of a deformed mesh is the deformed mesh's rows ``kept``: no deformation of its own.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    if len(triangles) <= limit:
+        return None
+    lo = vertices.min(axis=0)
+    extent = float(np.ptp(vertices, axis=0).max()) or 1.0
+    size = extent / math.sqrt(limit)  # about sqrt(limit) cells across the largest side
+    for _ in range(12):
+        cells = np.floor((vertices - lo) / size).astype(np.int64)  # (V, 3)
+        span = cells.max(axis=0) + 1
+        key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # (V,) one number per cell
+        _, kept, cluster = np.unique(key, return_index=True, return_inverse=True)
+        faces = cluster.reshape(-1)[triangles]  # (T, 3)
+        faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+        n = len(kept)
+        ordered = np.sort(faces, axis=1)
+        _, unique = np.unique((ordered[:, 0] * n + ordered[:, 1]) * n + ordered[:, 2], return_index=True)
+        faces = faces[np.sort(unique)]
+        if len(faces) <= limit:
+            return kept, faces
+        size *= 1.1 * math.sqrt(len(faces) / limit)
+    return kept, faces[:limit]
 
 
 # --- the window ----------------------------------------------------------------------------------------------------
@@ -507,12 +551,23 @@ class RigDrawing:
         lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
         self.diagonal = float(np.linalg.norm(hi - lo)) or 1.0
         self.shaded = ShadedMesh(mesh, settings.mesh_color)
+        self.proxy: ShadedMesh | None = None
+        self._kept: np.ndarray | None = None
+        stand_in = proxy_triangles(mesh.vertices, mesh.triangles, PROXY_TRIANGLES)
+        if stand_in is not None:
+            from kpd.io import Mesh
+
+            self._kept, faces = stand_in
+            colors = None if mesh.vertex_colors is None else mesh.vertex_colors[self._kept]
+            self.proxy = ShadedMesh(Mesh(vertices=mesh.vertices[self._kept], triangles=faces, vertex_colors=colors),
+                                    settings.mesh_color)
         self.markers = Markers(self.colors, self.marker_radius)
         self.cage_edges = None if cage_faces is None else cage_edges(cage_faces)
         self._edges = None
         self.digits = Digits(self.colors, 1.5 * self.marker_radius) if digits else None
         self.frame: Any = None
         self._eye: np.ndarray | None = None
+        self._proxy_shown = False
 
     @property
     def marker_radius(self) -> float:
@@ -533,17 +588,28 @@ class RigDrawing:
             self._edges = mesh_edges(self.mesh.triangles)
         return self._edges
 
-    def show(self, frame: Any, camera: Any, *, mesh: bool = True) -> None:
-        """Put ``frame`` (a kpd.viewer.render.Frame) in the view as ``camera`` sees it."""
+    def show(self, frame: Any, camera: Any, *, mesh: bool = True, fast: bool = False) -> None:
+        """Put ``frame`` (a kpd.viewer.render.Frame) in the view as ``camera`` sees it.
+
+        ``fast``: a frame during a gesture; a mesh of more than :data:`PROXY_TRIANGLES` triangles is then drawn by its
+        coarse stand-in (:func:`proxy_triangles`), and in full again by the next frame that is not fast.
+        """
         s, view = self.settings, self.view
         view.camera = camera
         eye = np.asarray(camera.eye, dtype=np.float64)
         moved_eye = self._eye is None or not np.allclose(eye, self._eye)
-        if mesh or moved_eye or self.frame is None:
-            self.shaded.set_vertices(frame.vertices, camera)
+        use_proxy = fast and self.proxy is not None
+        if mesh or moved_eye or self.frame is None or use_proxy != self._proxy_shown:
+            shown, hidden = (self.proxy, self.shaded) if use_proxy else (self.shaded, self.proxy)
+            shown.set_vertices(frame.vertices[self._kept] if use_proxy else frame.vertices, camera)
             self._eye = eye.copy()
-            for i, part in enumerate(self.shaded.geometries):
-                view.put(f"mesh:{i}", part, show=not s.xray)
+            prefix, other = ("proxy", "mesh") if use_proxy else ("mesh", "proxy")
+            for i, part in enumerate(shown.geometries):
+                view.put(f"{prefix}:{i}", part, show=not s.xray)
+            if hidden is not None:
+                for i in range(len(hidden.geometries)):
+                    view.show(f"{other}:{i}", False)
+            self._proxy_shown = use_proxy
             if s.xray:
                 view.put("xray", line_set(frame.vertices, self._wire(), (0.45, 0.45, 0.5)))
             else:
@@ -635,7 +701,7 @@ def render_shots(shots: Sequence[Shot], settings: Any, *, view: GLView | None = 
                         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(12))
                         cloud.orient_normals_towards_camera_location(np.asarray(camera.eye, dtype=np.float64))
                         colors = shade(np.tile(color, (len(cloud.points), 1)), np.asarray(cloud.normals), camera)
-                        cloud.colors = o3d.utility.Vector3dVector(colors)
+                        cloud.colors = o3d.utility.Vector3dVector(colors.astype(np.float64))
                     else:
                         cloud.paint_uniform_color(color)
                     view.put(f"layer:{i}", cloud)

@@ -29,6 +29,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, user_api="blas"):  # small products: threads only wait for a busy core
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from kpd.commands.deform import parse_moves
     from kpd.commands.view import load_source, view_settings
     from kpd.io import Outputs
