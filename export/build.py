@@ -99,7 +99,7 @@ def export_model(
         raise InputError(f"output folder {out.parent} does not exist")
     model = model.eval().float().cpu()
     cfg = model.config
-    prior = template = template_source = None
+    prior = template = template_source = frame_check = None
     if shapes is not None:
         checks = shapes.points[:PARITY_SHAPES, 0]
         mean_keypoints = _shape_keypoints(model, shapes.points)  # (S, K, 3)
@@ -121,6 +121,7 @@ def export_model(
         pick = int(np.argmin(((mean_keypoints - centre) ** 2).sum(axis=(1, 2))))
         template = shapes.points[pick].reshape(-1, 3)
         template_source = shapes.names[pick]
+        frame_check = _calibrate_frame_check(model, template, up, shapes.points, pick)
     elif parity_points is not None:
         checks = np.asarray(parity_points, dtype=np.float32)
     else:
@@ -151,6 +152,7 @@ def export_model(
         cage=Cage(template_vertices, template_faces), shared_influence=model.influence_param.detach().double().numpy(),
         m=cfg.m, point_count=point_count, cage_fit=cage_fit, prior=prior, template_points=template,
         template_source=template_source, up=up, training=_json_safe(record), clamp=cfg.clamp,
+        frame_check=frame_check,
     )
     with Outputs(force=force) as outputs:  # validated where it is written, placed only when it passes
         target = outputs.file(out, None) if out.suffix == ".zip" else outputs.folder(out, None)
@@ -176,6 +178,27 @@ def _check_parity(measured: Parity, tolerance: float, what: str) -> None:
         raise BundleError(f"{what} differ from torch by {worst:.3g} (keypoints {measured.keypoints:.3g}, influence "
                           f"{measured.influence:.3g}) on {measured.shapes} shapes; tolerance {tolerance:g}; "
                           "nothing was written")
+
+
+FRAME_CHECK_SHAPES = 100  # training shapes the frame and category check is calibrated on
+
+
+def _calibrate_frame_check(model: KeypointDeformer, template: np.ndarray, up: str | None, points: np.ndarray,
+                           template_index: int) -> dict:
+    """kpd.frame's limits from up to FRAME_CHECK_SHAPES training shapes other than the template's (one sample each)."""
+    from kpd.frame import calibrate
+
+    others = np.delete(np.arange(len(points)), template_index)
+    chosen = others[:: max(1, len(others) // FRAME_CHECK_SHAPES)][:FRAME_CHECK_SHAPES]
+
+    def keypoints_of(p: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return model.keypoints(torch.from_numpy(np.asarray(p, dtype=np.float32)[None])).numpy()[0]
+
+    entry = calibrate(template, up, points[chosen, 0].astype(np.float64), keypoints_of)
+    log.info("frame check calibrated on %d training shapes: score limit %.4f, keypoint limit %.4f", entry["shapes"],
+             entry["score_limit"], entry["keypoint_limit"])
+    return entry
 
 
 @torch.no_grad()

@@ -302,6 +302,7 @@ def build_manifest(
     up: str | None = None,
     training: Mapping | None = None,
     clamp: bool = True,
+    frame_check: Mapping | None = None,
 ) -> tuple[dict, dict[str, bytes]]:
     """The manifest and the files of a bundle (not yet written).
 
@@ -319,6 +320,7 @@ def build_manifest(
     template_source : name of that shape.
     up : the up axis of the training data's frame ("+z" for ModelNet), if known.
     training : the training record (data, command, seed, iterations, metrics), JSON-safe.
+    frame_check : the limits of :func:`kpd.frame.calibrate` (the frame and category check), or None.
 
     Returns
     -------
@@ -362,6 +364,8 @@ def build_manifest(
         "files": {name: hashlib.sha256(data).hexdigest() for name, data in sorted(files.items())},
         "created_by": f"kpd {_version()}",
     }
+    if frame_check is not None:
+        manifest["frame_check"] = dict(frame_check)
     manifest[_CHECKSUM_KEY] = manifest_checksum(manifest)
     files[contract.MANIFEST_FILE] = (json.dumps(manifest, indent=1, allow_nan=False) + "\n").encode("utf-8")
     return manifest, files

@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from kpd.commands.keypoints import load_model
+    from kpd.commands.keypoints import load_model, warn_frame
     from kpd.io import MESH_FORMATS, Outputs, mesh_companions, read_mesh, read_shape, write_mesh
 
     with Outputs(force=args.force, inputs=(args.source, args.target)) as outputs:
@@ -35,6 +35,8 @@ def run(args: argparse.Namespace) -> int:
         source = read_mesh(args.source)
         outputs.companions(out, mesh_companions(out, source))
         target = read_shape(args.target)
+        warn_frame(model, source, args.seed, args.source)
+        warn_frame(model, target, args.seed, args.target)
         rig = model.rig(source, seed=args.seed)
         prediction = model.predict(target, seed=args.seed)
         target_keypoints = rig.normalizer.invert(prediction.keypoints)  # target's shape, source's frame

@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
 def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray], check=None):
     """The deformed mesh of ``kpd deform MODEL SHAPE``: rig the mesh, move keypoints (through the prior if asked).
     ``check(mesh)`` runs on the input mesh before the work (the output's companion files)."""
-    from kpd.commands.keypoints import ScanFrame, load_model
+    from kpd.commands.keypoints import ScanFrame, load_model, warn_frame
     from kpd.io import read_mesh
 
     model = load_model(args)
@@ -117,6 +117,7 @@ def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray], ch
         moves = {i: scan.vector_to_aligned(d) for i, d in moves.items()}
         work = mesh.with_vertices(scan.to_aligned(mesh.vertices))
     else:
+        warn_frame(model, mesh, args.seed, args.shape)
         work = mesh
     rig = model.rig(work, seed=args.seed)
     targets = rig.moved(moves)

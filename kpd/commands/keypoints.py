@@ -61,6 +61,16 @@ def ambiguity_advice(up_given: bool) -> str:
             "round object?); check the result (kpd scan --picture draws both), or pass --up")
 
 
+def warn_frame(model, shape, seed: int, name: str) -> None:
+    """Without --scan: one warning line if the shape sits turned in the model's frame or is probably not of the
+    category (kpd.frame.check_frame)."""
+    from kpd.frame import check_frame
+
+    result = check_frame(model, shape, seed=seed)
+    for line in [] if result is None else result.warnings(model.category, name):
+        print(f"warning: {line}", file=sys.stderr)
+
+
 def load_model(args: argparse.Namespace):
     from kpd.runtime import Model
 
@@ -131,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
             keypoints = scan.to_original(model.keypoints(scan.result.shape, seed=args.seed))
             meta["scan"] = scan.report()
         else:
+            warn_frame(model, shape, args.seed, args.shape)
             keypoints = model.keypoints(shape, seed=args.seed)
         if out is None:
             print(json.dumps({"keypoints": keypoints.tolist(), **meta}, indent=2))

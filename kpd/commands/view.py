@@ -118,6 +118,9 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False) -> Source
         aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
         rig = ScanRig(aligned, mesh, scan)
     else:
+        from kpd.commands.keypoints import warn_frame  # kpd view and kpd render: the frame and category check
+
+        warn_frame(model, mesh, args.seed, args.shape)
         rig = model.rig(mesh, seed=args.seed)
     return Source(rig, model.prior, Path(args.shape).name)
 

@@ -1,0 +1,227 @@
+"""Does a shape sit in the model's frame, and is it of the model's category? (the check behind ``kpd keypoints``,
+``deform``, ``align``, ``view`` and ``render`` without ``--scan``).
+
+A model predicts keypoints in the frame its training shapes shared (ModelNet: z up, backs toward +y). A chair given
+lying on its back or with y up still gets keypoints, but wrong ones (a third of its size off). The check runs the
+scan aligner (:class:`kpd.scan.ScanAligner`, the orientation search of ``--scan``) against the bundle's template
+and compares two of its scores, trimmed RMS distances in the template's [-1, 1] box:
+
+* the pose **as given**: the shape fitted to the template with its rotation held fixed (only the per-axis scale and
+  the translation fitted, as the aligner's ICP does), or the best refined hypothesis within ``NEAR_ANGLE`` degrees
+  of it, and
+* the **best** rotation the search finds.
+
+When the best is more than ``TURN_ANGLE`` degrees away and its score is better than the given pose's by more than
+``TURN_MARGIN`` (relative, the aligner's ambiguity margin), the shape is **turned**: the message names ``--scan``,
+and ``--scan --up AXIS`` with the input's axis that the best rotation turns up.
+
+Whether the shape is of the category at all is judged in its best pose by two fits, each against a limit calibrated
+at export on training shapes (:func:`calibrate`, the bundle's ``frame_check`` entry): the aligner's best score (how
+well the template's shape can be laid over it) and the **keypoint fit**, the mean distance from the model's
+keypoints to the shape's points (the model puts a chair's keypoints on its surface; on other shapes they float
+off it). A shape beyond either limit fits no pose of the category as well as its training shapes do and is flagged
+**foreign** (probably not a chair). Measured rates: ``benchmarks/bench_frame.py``.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from kpd.geometry import as_rng
+
+__all__ = ["FrameCheck", "check_frame", "calibrate", "keypoint_fit", "TURN_MARGIN", "TURN_ANGLE", "NEAR_ANGLE", "LIMIT_QUANTILE"]
+
+log = logging.getLogger(__name__)
+
+TURN_MARGIN = 0.15  # relative score margin for "another pose fits clearly better" (kpd.scan's ambiguity margin)
+TURN_ANGLE = 30.0  # degrees: the best rotation must be this far from the given pose
+NEAR_ANGLE = 15.0  # degrees: refined hypotheses this close to the given pose count as the given pose
+LIMIT_QUANTILE = 0.99  # the score limit: this quantile of the training shapes' best scores, times LIMIT_FACTOR
+LIMIT_FACTOR = 1.25
+# a lighter search than kpd scan's (no FPFH candidates, smaller subsets, fewer refined hypotheses): the check runs on
+# every command without --scan, on the point_count points the model sees; a few times faster, same decisions on the
+# shapes measured in bench_frame.py
+SEARCH = {"fpfh_runs": 0, "n_points": 500, "coarse_points": 200, "refine_top": 3, "iterations": 15}
+_AXES = ("x", "y", "z")
+
+
+class FrameCheck(NamedTuple):
+    """Result of :func:`check_frame`.
+
+    given_score : the aligner's score of the pose as given (template box units; lower fits better).
+    best_score : the score of the best rotation found.
+    best_rotation : (3, 3) float64, the best rotation (the input's frame -> the model's).
+    angle : degrees between the given pose and the best rotation.
+    turned : another pose fits clearly better than the given one.
+    up : the input's axis (``'y'``, ``'-x'``...) that the best rotation turns to the model's up axis, or None.
+    keypoint_fit : mean distance from the model's keypoints to the shape's points in its best pose (box units).
+    score_limit, keypoint_limit : the bundle's calibrated limits of ``best_score`` and ``keypoint_fit``, or None.
+    foreign : beyond a limit: probably not a shape of the category.
+    """
+
+    given_score: float
+    best_score: float
+    best_rotation: np.ndarray
+    angle: float
+    turned: bool
+    up: str | None
+    keypoint_fit: float
+    score_limit: float | None
+    keypoint_limit: float | None
+    foreign: bool
+
+    def warnings(self, category: str, name: str = "the input") -> list[str]:
+        """One line per finding, for the command line (empty when the shape sits in the model's frame)."""
+        out = []
+        if self.foreign:
+            out.append(f"{name} fits no pose of a {category} as well as the {category} training shapes do (shape "
+                       f"score {self.best_score:.3f}, limit {_text(self.score_limit)}; keypoint fit "
+                       f"{self.keypoint_fit:.3f}, limit {_text(self.keypoint_limit)}): probably not a {category}")
+        elif self.turned:
+            up = f" (or --scan --up {self.up})" if self.up else " (or --scan --up AXIS)"
+            out.append(f"{name} fits the {category} model's frame clearly better turned by {self.angle:.0f} degrees "
+                       f"(score {self.best_score:.3f} vs {self.given_score:.3f} as given), so its keypoints are "
+                       f"likely wrong: pass --scan to orient it first{up}")
+        return out
+
+    def to_dict(self) -> dict:
+        return {"given_score": self.given_score, "best_score": self.best_score, "angle": self.angle,
+                "turned": self.turned, "up": self.up, "keypoint_fit": self.keypoint_fit,
+                "score_limit": self.score_limit, "keypoint_limit": self.keypoint_limit, "foreign": self.foreign,
+                "best_rotation": self.best_rotation.tolist()}
+
+
+def _text(limit: float | None) -> str:
+    return "none" if limit is None else f"{limit:.3f}"
+
+
+def _aligner(template: np.ndarray, up: str | None, seed: int = 0):
+    from kpd.scan import ScanAligner
+
+    return ScanAligner(reference_up=up, seed=seed, **SEARCH).fit(template)
+
+
+def _given_score(aligner: Any, points: np.ndarray, iterations: int = 20) -> float:
+    """The aligner's score of ``points`` with their rotation held fixed (per-axis scale and translation fitted by
+    the same trimmed symmetric matching as its ICP), in the reference's box units."""
+    scan = aligner._cloud(points, as_rng(aligner.seed + 1))
+    ref = aligner.reference_
+    low, high = aligner._SCALE_RANGE
+    a, t = np.ones(3), np.zeros(3)
+    kept_s = max(3, int(aligner.trim * len(scan.points)))
+    kept_r = max(3, int(aligner.trim * len(ref.points)))
+    for _ in range(iterations):
+        d1, i1 = ref.tree3.query(scan.points * a + t)
+        d2, i2 = scan.tree3.query((ref.points - t) / a)
+        o1 = np.argpartition(d1, kept_s - 1)[:kept_s]
+        o2 = np.argpartition(d2, kept_r - 1)[:kept_r]
+        x = np.concatenate([scan.points[o1], scan.points[i2[o2]]])  # (k, 3)
+        y = np.concatenate([ref.points[i1[o1]], ref.points[o2]])  # (k, 3)
+        xc, yc = x - x.mean(axis=0), y - y.mean(axis=0)
+        a_new = np.clip((xc * yc).sum(axis=0) / np.maximum((xc * xc).sum(axis=0), 1e-12), low, high)
+        t_new = y.mean(axis=0) - a_new * x.mean(axis=0)
+        done = np.abs(a_new - a).max() < 1e-5 and np.abs(t_new - t).max() < 1e-5
+        a, t = a_new, t_new
+        if done:
+            break
+    unit = ref.radius / aligner.reference_box_scale_
+    return float(aligner._score(scan, a, np.eye(3), t) * unit)
+
+
+def _axis_name(vector: np.ndarray) -> str:
+    i = int(np.argmax(np.abs(vector)))
+    return ("-" if vector[i] < 0 else "") + _AXES[i]
+
+
+def keypoint_fit(keypoints_of: Any, points: np.ndarray) -> float:
+    """Mean distance from the keypoints ``keypoints_of(points)`` (K, 3) to the nearest of ``points`` (N, 3), both in
+    the model's [-1, 1] frame."""
+    from scipy.spatial import cKDTree
+
+    keypoints = np.asarray(keypoints_of(points), dtype=np.float64)
+    return float(cKDTree(points).query(keypoints)[0].mean())
+
+
+def _check(aligner: Any, keypoints_of: Any, points: np.ndarray, model_up: str | None,
+           limits: dict) -> FrameCheck:
+    from kpd.geometry import Normalizer
+    from kpd.scan import parse_axis, rotation_angle
+
+    orientation = aligner.orient(points)
+    given = _given_score(aligner, points)
+    near = [h.score for h in orientation.hypotheses if rotation_angle(h.rotation) < NEAR_ANGLE]
+    given = min([given, *near])
+    best = float(orientation.score)
+    rotation = orientation.rotation
+    angle = rotation_angle(rotation)
+    turned = bool(angle > TURN_ANGLE and given > best * (1.0 + TURN_MARGIN))
+    up = None
+    if turned and model_up is not None:
+        up = _axis_name(rotation.T @ parse_axis(model_up))
+    posed = points @ rotation.T if turned else points  # the shape in its best pose, back in the [-1, 1] box
+    posed = Normalizer().fit(posed).apply(posed)
+    fit = keypoint_fit(keypoints_of, posed)
+    score_limit, keypoint_limit = limits.get("score_limit"), limits.get("keypoint_limit")
+    foreign = bool((score_limit is not None and best > score_limit)
+                   or (keypoint_limit is not None and fit > keypoint_limit))
+    return FrameCheck(float(given), best, rotation, float(angle), turned, up, fit,
+                      None if score_limit is None else float(score_limit),
+                      None if keypoint_limit is None else float(keypoint_limit), foreign)
+
+
+def check_frame(model: Any, shape: Any, *, seed: int = 0) -> FrameCheck | None:
+    """Compare a shape's own pose with the model's frame, and its fit with the category's (module docstring).
+
+    Parameters
+    ----------
+    model : kpd.runtime.Model (its bundle's template cloud, up axis and ``frame_check`` calibration are used).
+    shape : Mesh, PointSet or (N, 3) points in the input's own frame and units.
+    seed : the surface-sampling seed (the points the model itself sees are checked).
+
+    Returns
+    -------
+    FrameCheck, or None when the bundle has no template cloud to compare with.
+    """
+    template = model.template_points
+    if template is None:
+        return None
+    _, points = model.sample(shape, seed=seed)
+    cache = getattr(model, "_frame_aligner", None)
+    if cache is None:
+        cache = _aligner(template, model.up)
+        model._frame_aligner = cache
+    limits = model.bundle.manifest.get("frame_check") or {}
+    result = _check(cache, lambda p: model.run(p)[0], points, model.up, limits)
+    log.info("frame check: given %.4f, best %.4f at %.0f deg%s%s", result.given_score, result.best_score,
+             result.angle, " (turned)" if result.turned else "", " (foreign)" if result.foreign else "")
+    return result
+
+
+def calibrate(template: Any, up: str | None, training_points: Any, keypoints_of: Any) -> dict:
+    """The bundle's ``frame_check`` entry: the limits of a category shape's fits, from training shapes.
+
+    Parameters
+    ----------
+    template : (P, 3) float64, the bundle's template cloud (model frame).
+    up : the model's up axis.
+    training_points : (S, N, 3) float64, model-frame point samples of training shapes (N = the model's point count).
+    keypoints_of : the model's keypoints of model-frame points, (N, 3) -> (K, 3).
+
+    Returns
+    -------
+    ``{"score_limit", "keypoint_limit"}``: LIMIT_FACTOR x the LIMIT_QUANTILE quantile of the training shapes' best
+    scores and keypoint fits, with ``"quantile"``, ``"factor"``, ``"shapes"`` and the medians.
+    """
+    aligner = _aligner(np.asarray(template, dtype=np.float64), up)
+    scores, fits = [], []
+    for p in training_points:
+        p = np.asarray(p, dtype=np.float64)
+        scores.append(aligner.orient(p).score)
+        fits.append(keypoint_fit(keypoints_of, p))
+    return {"score_limit": float(LIMIT_FACTOR * np.quantile(scores, LIMIT_QUANTILE)),
+            "keypoint_limit": float(LIMIT_FACTOR * np.quantile(fits, LIMIT_QUANTILE)),
+            "quantile": LIMIT_QUANTILE, "factor": LIMIT_FACTOR, "shapes": int(len(scores)),
+            "median_score": float(np.median(scores)), "median_keypoint_fit": float(np.median(fits))}
