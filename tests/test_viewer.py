@@ -306,6 +306,22 @@ def test_shading_normals_turn_double_sided_triangles_towards_the_camera():
     np.testing.assert_allclose(normals[1], normals[3])  # welded: the copies shade alike
 
 
+def test_stand_in_of_a_large_mesh_is_coarse_and_made_of_its_vertices():
+    import open3d as o3d
+
+    from kpd.viewer.gl import proxy_triangles
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=120)
+    vertices, triangles = np.asarray(sphere.vertices), np.asarray(sphere.triangles).astype(np.int64)
+    assert proxy_triangles(vertices, triangles, len(triangles)) is None  # small enough: drawn whole
+    kept, faces = proxy_triangles(vertices, triangles, 5000)
+    assert 1000 < len(faces) <= 5000 < len(triangles)
+    assert faces.min() >= 0 and faces.max() < len(kept) and len(np.unique(kept)) == len(kept)
+    assert (np.diff(np.sort(faces, axis=1), axis=1) > 0).all()  # no collapsed triangles
+    radii = np.linalg.norm(vertices[kept], axis=1)
+    np.testing.assert_allclose(radii, 1.0, atol=1e-9)  # original vertices: the deformed mesh's rows give its stand-in
+
+
 def test_open3d_plotly_helpers_load_on_first_use():
     code = ("import sys, kpd, open3d, numpy as np\n"
             "assert 'dash' not in sys.modules and 'plotly' not in sys.modules\n"

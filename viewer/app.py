@@ -8,7 +8,9 @@ buttons, the PCA sliders). Callbacks are ``_on_<event>`` methods, the UI state i
 
 Input is never blocked behind drawing. The loop takes every pending input first (window system events of both
 windows), then draws at most one frame of the newest state: mouse moves of a drag are coalesced to the latest
-position, keys are applied as they arrive, and nothing is drawn while nothing changed.
+position, keys are applied as they arrive, and nothing is drawn while nothing changed. A mesh of more than
+:data:`kpd.viewer.gl.PROXY_TRIANGLES` triangles is drawn by a coarse stand-in while input flows, and whole again
+0.3 s after it pauses.
 
 Mouse and keys (also listed in the panel):
 
@@ -48,6 +50,7 @@ log = logging.getLogger(__name__)
 PANEL_WIDTH = 300  # pixels
 _PICK_PIXELS = 14.0  # a click this close to a marker's centre picks it
 _MAX_SLIDERS = 8
+_REFINE_AFTER = 0.3  # s without input before a large mesh's stand-in is replaced by the whole mesh
 _LEFT, _TOP = 0, 0  # where the 3D view opens on the screen; the panel opens to its right
 
 # GLFW key codes and modifiers (https://www.glfw.org/docs/latest/group__keys.html)
@@ -103,6 +106,7 @@ class EditorApp:
         self._quiet_sliders = False
         self._buffer = np.empty_like(rig.mesh.vertices)
         self._inputs = 0  # input events received
+        self._last_input = -math.inf  # time.monotonic() of the newest one
         self._dirty_mesh = True
         self._dirty = True
         self._frames = 0
@@ -240,6 +244,7 @@ class EditorApp:
 
     def _input_then(self, action: Any) -> None:
         self._inputs += 1
+        self._last_input = time.monotonic()
         self._emit("input", kind="panel")
         action()
 
@@ -255,6 +260,9 @@ class EditorApp:
             self._apply_pending()
             if self._dirty:
                 self._draw()
+            elif self.drawing._proxy_shown and time.monotonic() - self._last_input > _REFINE_AFTER:
+                self._changed(mesh=True)  # input has paused: the whole mesh in place of its stand-in
+                self._draw()
             else:
                 time.sleep(0.004)
 
@@ -262,8 +270,8 @@ class EditorApp:
         """Draw the newest state: one frame, whatever number of inputs it answers."""
         started = time.perf_counter()
         serial = self._inputs
-        gesture = self._drag is not None or self._orbit is not None  # large meshes: the stand-in while it lasts
-        self._show(mesh=self._dirty_mesh, fast=gesture)
+        busy = time.monotonic() - self._last_input < _REFINE_AFTER  # large meshes: the stand-in while input flows
+        self._show(mesh=self._dirty_mesh, fast=busy)
         self._dirty = self._dirty_mesh = False
         self.view.draw()
         self._frames += 1
@@ -382,6 +390,7 @@ class EditorApp:
 
     def _count_input(self, kind: str, **data: Any) -> None:
         self._inputs += 1
+        self._last_input = time.monotonic()
         self._emit("input", kind=kind, **data)
 
     def pick(self, x: float, y: float) -> int | None:
@@ -429,8 +438,6 @@ class EditorApp:
                 self.session.end_gesture()
                 self._emit("release", moved=moved)
             self._orbit = None
-            if self.drawing.proxy is not None:
-                self._changed(mesh=True)  # the full mesh again, after the stand-in of the gesture
         return False
 
     def _on_mouse_move(self, _vis: Any, x: float, y: float) -> bool:
