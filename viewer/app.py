@@ -174,7 +174,7 @@ class EditorApp:
             raise NoWindowError(f"could not open the editor's panel window: {exc}") from exc
         self.root = root
         root.title(f"{self.title} - panel")
-        root.geometry(f"{PANEL_WIDTH}x{max(s.height, 520)}+{_LEFT + s.width + 8}+{_TOP}")
+        root.geometry(f"+{_LEFT + s.width + 8}+{_TOP}")  # beside the 3D view, as tall as its widgets need
         root.protocol("WM_DELETE_WINDOW", self._on_panel_close)
         pad = {"padx": 6, "pady": 1, "anchor": "w"}
         tk.Label(root, text=f"{self.title}\n{self.rig.num_keypoints} keypoints, {len(self.rig.mesh.vertices)} vertices",

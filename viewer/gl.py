@@ -573,14 +573,15 @@ class RigDrawing:
     def marker_radius(self) -> float:
         return self.settings.keypoint_size * self.diagonal
 
-    def label_anchors(self, keypoints: np.ndarray, camera: Any) -> np.ndarray:
-        """(K, 3) lower-left corners of the numbers: up and to the right of each marker as the camera sees it."""
+    def label_anchors(self, keypoints: np.ndarray, camera: Any, scales: Any = 1.0) -> np.ndarray:
+        """(K, 3) lower-left corners of the numbers: up and to the right of each marker (of ``scales`` times the
+        marker radius) as the camera sees it."""
         forward = camera.center - camera.eye
         forward = forward / np.linalg.norm(forward)
         right = np.cross(forward, camera.up)
         right /= max(np.linalg.norm(right), 1e-12)
         up = np.cross(right, forward)
-        r = self.marker_radius
+        r = self.marker_radius * np.broadcast_to(np.asarray(scales, dtype=np.float64), (len(keypoints),))[:, None]
         return np.asarray(keypoints) + 1.1 * r * right + 0.9 * r * up
 
     def _wire(self) -> np.ndarray:
@@ -617,10 +618,11 @@ class RigDrawing:
         keypoints = np.asarray(frame.keypoints, dtype=np.float64)
         selected = np.zeros(self.num_keypoints, bool)
         selected[[i for i in frame.selection if 0 <= i < self.num_keypoints]] = True
-        self.markers.set(keypoints, np.where(selected, 1.6, 1.0), camera)
+        scales = np.where(selected, 1.6, 1.0)
+        self.markers.set(keypoints, scales, camera)
         view.put("keypoints", self.markers.geometry, show=s.show_keypoints)
         if self.digits is not None:
-            self.digits.set(self.label_anchors(keypoints, camera), camera)
+            self.digits.set(self.label_anchors(keypoints, camera, scales), camera)
             view.put("numbers", self.digits.geometry, show=s.show_keypoints and s.show_labels)
         if self.cage_edges is not None and frame.cage is not None and s.show_cage:
             view.put("cage", line_set(frame.cage, self.cage_edges, s.cage_color))

@@ -1,0 +1,193 @@
+"""Make the README's pictures (``docs/*.png``) again, from the shipped models and the data in ``../shared/data``.
+
+Every picture comes from a kpd command, as a user would run it (the editor in a real window on a private Xvfb,
+driven with xdotool and read off the X server's screen):
+
+    .venv/bin/python docs/pictures.py                   # all of them
+    .venv/bin/python docs/pictures.py editor_chair demo  # some
+    .venv/bin/python docs/pictures.py --runs runs        # also the alignment galleries from trained runs/chair...
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+DOCS = Path(__file__).resolve().parent
+REPO = DOCS.parent
+DATA = Path(os.environ.get("KPD_DATA", REPO.parent / "shared" / "data"))
+CHAIR = DATA / "modelnet10" / "chair" / "test" / "chair_0890.ply"
+STOOL = DATA / "modelnet10" / "chair" / "test" / "chair_0891.ply"
+SNEAKER = DATA / "scans" / "sneaker.ply"
+
+
+def kpd(*args: object, cwd: Path | None = None, env: dict | None = None) -> str:
+    done = subprocess.run([sys.executable, "-m", "kpd.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, env=env)
+    if done.returncode:
+        raise SystemExit(f"kpd {' '.join(map(str, args))} failed: {done.stderr.strip()}")
+    return done.stdout
+
+
+def demo(tmp: Path) -> None:
+    kpd("demo", "--out", tmp / "demo")
+    shutil.copy(tmp / "demo" / "demo.png", DOCS / "demo.png")
+
+
+def render_chair(tmp: Path) -> None:
+    """The taller-back edit of a ModelNet10 chair, over its original shape (the ghost)."""
+    from kpd.io import read_mesh
+    from kpd.runtime import Model
+
+    rig = Model.load("chair").rig(read_mesh(CHAIR))
+    height = float(np.ptp(rig.mesh.vertices[:, 2]))
+    tops = np.argsort(rig.keypoints[:, 2])[-2:]
+    moves = [a for i in sorted(tops) for a in ("--move", f"{i}:0,0,{0.4 * height:.2f}")]
+    kpd("render", "chair", CHAIR, *moves, "--ghost", "--out", DOCS / "render_chair.png", "--force")
+
+
+def sample_chair(tmp: Path) -> None:
+    kpd("sample", "chair", STOOL, "--n", "8", "--out", tmp / "sample")
+    shutil.copy(tmp / "sample" / "contact_sheet.png", DOCS / "sample_chair.png")
+
+
+def scan_chair_ambiguous(tmp: Path) -> None:
+    kpd("scan", STOOL, "--model", "chair", "--out", tmp / "stool.ply", "--report", tmp / "stool.json", "--picture",
+        DOCS / "scan_chair_ambiguous.png", "--force")
+
+
+def scan_sneaker(tmp: Path) -> None:
+    """The sneaker scan turned at random, with noise, 10% outliers and a cap cut away, against the sneaker itself
+    (sampled independently), as benchmarks/bench_scan.py does."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from bench_scan import corrupt
+    from scipy.spatial.transform import Rotation
+
+    from kpd.geometry import sample_surface
+    from kpd.io import read_mesh, write_points
+
+    mesh = read_mesh(SNEAKER)
+    rng = np.random.default_rng(7)
+    scan = corrupt(sample_surface(mesh.vertices, mesh.triangles, 20000, rng).points, rng)
+    turned = scan @ Rotation.random(random_state=3).as_matrix().T * 40.0 + [100.0, -20.0, 5.0]  # another pose, in mm
+    write_points(tmp / "sneaker_scan.ply", turned)
+    write_points(tmp / "sneaker_reference.ply", sample_surface(mesh.vertices, mesh.triangles, 8000, 11).points)
+    kpd("scan", tmp / "sneaker_scan.ply", "--reference", tmp / "sneaker_reference.ply", "--out", tmp / "aligned.ply",
+        "--report", tmp / "sneaker.json", "--picture", DOCS / "scan_sneaker.png", "--force")
+
+
+def _editor_shot(tmp: Path, out: Path, args: list, *, drag: bool = True, keys: tuple = ()) -> None:
+    """Open ``kpd view ARGS`` on a private Xvfb, drag its clearest keypoint up, press ``keys``, and save the screen
+    (both windows) cropped to them."""
+    from kpd.viewer.render import grab_screen, private_display, project, write_png
+
+    events = tmp / f"{out.stem}.jsonl"
+    fb = tmp / f"{out.stem}_fb"
+    fb.mkdir()
+    with private_display(1300, 760, fbdir=fb) as display:
+        env = dict(os.environ, DISPLAY=display)
+        window = subprocess.Popen([sys.executable, "-m", "kpd.cli", "view", *map(str, args), "--events", str(events)],
+                                  env=env, cwd=tmp, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            ready = None
+            deadline = time.monotonic() + 120
+            while ready is None and time.monotonic() < deadline:
+                time.sleep(0.2)
+                if events.exists():
+                    found = [json.loads(x) for x in events.read_text().splitlines() if '"ready"' in x]
+                    ready = found[0] if found else None
+            if ready is None:
+                raise SystemExit("the editor did not open")
+
+            def xdo(*xargs: object) -> None:
+                subprocess.run(["xdotool", *map(str, xargs)], env=env, check=True)
+
+            if drag:
+                _, _, w, h = ready["viewport"]
+                pixels, _ = project(np.array(ready["keypoints"]), np.array(ready["view"]),
+                                    np.array(ready["projection"]), w, h)
+                top = int(np.argmin(np.where((pixels[:, 0] > 40) & (pixels[:, 0] < w - 40), pixels[:, 1], np.inf)))
+                x, y = np.rint(pixels[top]).astype(int)
+                xdo("mousemove", x, y)
+                xdo("mousedown", 1)
+                for step in range(1, 9):
+                    xdo("mousemove", x, y - 6 * step)
+                    time.sleep(0.05)
+                xdo("mouseup", 1)
+            for key in keys:
+                xdo("key", key)
+            time.sleep(2.0)
+            screen = grab_screen(fb)
+        finally:
+            window.terminate()
+            window.wait(10)
+    used = np.flatnonzero((screen != 0).any(axis=2).any(axis=0))
+    rows = np.flatnonzero((screen != 0).any(axis=2).any(axis=1))
+    write_png(out, np.ascontiguousarray(screen[: rows.max() + 1, : used.max() + 1]))
+
+
+def editor_chair(tmp: Path) -> None:
+    from kpd.io import read_mesh
+    from kpd.runtime import Model
+
+    Model.load("chair").rig(read_mesh(CHAIR)).save(tmp / "chair_rig.npz")
+    _editor_shot(tmp, DOCS / "editor_chair.png", ["--rig", tmp / "chair_rig.npz", "--model", "chair", "--prior",
+                                                  "--cage"])
+
+
+def editor_sneaker(tmp: Path) -> None:
+    from kpd.bundle import shipped_bundles
+
+    if "shoe" in shipped_bundles():
+        _editor_shot(tmp, DOCS / "editor_sneaker.png", ["shoe", SNEAKER, "--scan", "--view-up", "+y"])
+        return
+    from kpd.geometry import farthest_point_sampling, sample_surface
+    from kpd.io import read_mesh
+    from kpd.rig import Rig
+
+    mesh = read_mesh(SNEAKER)
+    points = sample_surface(mesh.vertices, mesh.triangles, 4000, 0).points
+    Rig.bind(mesh, points[farthest_point_sampling(points, 8, seed=0)]).save(tmp / "sneaker_rig.npz")
+    _editor_shot(tmp, DOCS / "editor_sneaker.png", ["--rig", tmp / "sneaker_rig.npz", "--view-up", "+y"])
+
+
+def galleries(tmp: Path, runs: Path) -> None:
+    for category in ("chair", "table"):
+        run, baseline = runs / category, runs / f"{category}-fps"
+        if run.is_dir() and baseline.is_dir():
+            kpd("eval", "alignment", run, "--baseline", baseline, "--out", tmp / f"{category}.json", "--gallery",
+                DOCS / f"{category}_alignment.png", "--gallery-pairs", "3", "--quiet")
+
+
+PICTURES = {"demo": demo, "render_chair": render_chair, "sample_chair": sample_chair,
+            "scan_chair_ambiguous": scan_chair_ambiguous, "scan_sneaker": scan_sneaker, "editor_chair": editor_chair,
+            "editor_sneaker": editor_sneaker}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("names", nargs="*", metavar="NAME", help=f"pictures to make: {', '.join(PICTURES)}")
+    parser.add_argument("--runs", type=Path, default=None, help="a folder with chair, chair-fps, table, table-fps runs")
+    args = parser.parse_args()
+    unknown = sorted(set(args.names) - set(PICTURES))
+    if unknown:
+        parser.error(f"no picture called {', '.join(unknown)}")
+    with tempfile.TemporaryDirectory(prefix="kpd-docs-") as tmp:
+        for name in args.names or PICTURES:
+            print(f"docs/{name}.png")
+            PICTURES[name](Path(tmp))
+        if args.runs is not None:
+            galleries(Path(tmp), args.runs)
+
+
+if __name__ == "__main__":
+    main()
