@@ -379,7 +379,7 @@ def test_recipe_flags_map_to_the_paper_values(tmp_path):
     paper = cmd.recipe(parser.parse_args([str(tmp_path), "--out", "x", "--paper"]))
     assert (paper.alpha_kpt, paper.alpha_inf, paper.inf_reg, paper.warmup, paper.wc_lr, paper.clamp,
             paper.paper_m) == (1.0, 1e-6, "paper", 0, 1e-3, False, True)
-    mixed = cmd.recipe(parser.parse_args(["data", "--out", "x", "--inf-reg", "paper", "--warmup", "0",
+    mixed = cmd.recipe(parser.parse_args([str(tmp_path), "--out", "x", "--inf-reg", "paper", "--warmup", "0",
                                           "--no-clamp", "--paper-m", "--keypoint-source", "fps"]))
     assert (mixed.alpha_inf, mixed.warmup, mixed.clamp, mixed.paper_m, mixed.keypoint_source, mixed.alpha_kpt) == (
         1e-6, 0, False, True, "fps", 2.0)

@@ -93,14 +93,14 @@ def folder(text: str) -> str:
     if p.is_file():
         raise argparse.ArgumentTypeError(f"must be a folder; {text} is a file")
     if not p.exists():
-        raise argparse.ArgumentTypeError(f"no such folder {text}")
+        raise argparse.ArgumentTypeError(f"folder {text} does not exist")
     return text
 
 
 def existing(text: str) -> str:
     """An argparse ``type`` for an input path (file or folder) that must exist."""
     if not os.path.exists(text):
-        raise argparse.ArgumentTypeError(f"no such file or folder {text}")
+        raise argparse.ArgumentTypeError(f"{text} does not exist")
     return text
 
 

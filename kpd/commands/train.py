@@ -8,6 +8,7 @@ import shlex
 import sys
 from pathlib import Path
 
+from kpd.commands import existing, folder, integer, number
 from kpd.errors import InputError
 
 HELP = "train KeypointDeformer on a shape category (PyTorch; cuda when available)"
@@ -19,30 +20,30 @@ PAPER = {"alpha_kpt": 1.0, "inf_reg": "paper", "alpha_inf": 1e-6, "warmup": 0, "
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("data", help="dataset folder (ModelNet, ShapeNet v1/v2, or a flat folder of meshes)")
+    parser.add_argument("data", type=folder, help="dataset folder (ModelNet, ShapeNet v1/v2, or a flat folder of meshes)")
     parser.add_argument("--category", help="class folder, ShapeNet synset id or name (e.g. chair)")
-    parser.add_argument("--keypoints", type=int, default=12, help="K, keypoints to discover (default 12)")
+    parser.add_argument("--keypoints", type=integer(1), default=12, help="K, keypoints to discover (default 12)")
     parser.add_argument("--out", required=True, help="run folder for checkpoints, curves and the record")
     g = parser.add_argument_group("run")
-    g.add_argument("--iterations", type=int, default=2000, help="optimisation steps (default 2000)")
-    g.add_argument("--batch", type=int, default=16, help="source/target pairs per step (default 16)")
-    g.add_argument("--seed", type=int, default=0, help="seed of everything random (default 0)")
+    g.add_argument("--iterations", type=integer(1), default=2000, help="optimisation steps (default 2000)")
+    g.add_argument("--batch", type=integer(1), default=16, help="source/target pairs per step (default 16)")
+    g.add_argument("--seed", type=integer(0), default=0, help="seed of everything random (default 0)")
     g.add_argument("--device", default="auto", help="auto (cuda if available), cpu, cuda, cuda:N")
-    g.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: all cores)")
+    g.add_argument("--threads", type=integer(1), default=None, help="torch CPU threads (default: all cores)")
     g.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     g.add_argument("--force", action="store_true", help="start over in an existing --out")
-    g.add_argument("--save-every", type=int, default=200, help="checkpoint interval in iterations (default 200)")
-    g.add_argument("--val-pairs", type=int, default=64, help="validation pairs scored at each checkpoint")
+    g.add_argument("--save-every", type=integer(1), default=200, help="checkpoint interval in iterations (default 200)")
+    g.add_argument("--val-pairs", type=integer(0), default=64, help="validation pairs scored at each checkpoint")
     g.add_argument("--quiet", action="store_true", help="no progress bars")
     g = parser.add_argument_group("data")
-    g.add_argument("--points", type=int, default=1024, help="N, surface points per sample (default 1024)")
-    g.add_argument("--samples", type=int, default=4, help="independent cached samples per mesh (default 4)")
+    g.add_argument("--points", type=integer(16), default=1024, help="N, surface points per sample (default 1024)")
+    g.add_argument("--samples", type=integer(1), default=4, help="independent cached samples per mesh (default 4)")
     g.add_argument("--cache", default=None, help="sample cache folder (default $KPD_CACHE or ~/.cache/kpd)")
-    g.add_argument("--split-file", default=None, help="split file (ShapeNet all.csv, JSON, train/val/test.txt)")
-    g.add_argument("--val-fraction", type=float, default=0.1, help="share of train held out for validation")
-    g.add_argument("--processes", type=int, default=2, help="processes for sampling meshes (default 2)")
-    g.add_argument("--cage-distance", type=float, default=0.4, help="cage stop distance (default 0.4)")
-    g.add_argument("--cage-level", type=int, default=1, help="icosphere level of the cage (1: 42 vertices)")
+    g.add_argument("--split-file", type=existing, default=None, help="split file (ShapeNet all.csv, JSON, train/val/test.txt)")
+    g.add_argument("--val-fraction", type=number(0, 0.9), default=0.1, help="share of train held out for validation")
+    g.add_argument("--processes", type=integer(1), default=2, help="processes for sampling meshes (default 2)")
+    g.add_argument("--cage-distance", type=number(positive=True), default=0.4, help="cage stop distance (default 0.4)")
+    g.add_argument("--cage-level", type=integer(0, 4), default=1, help="icosphere level of the cage (1: 42 vertices)")
     g.add_argument("--enclose-cage", action="store_true", help="grow the cage until it encloses every point")
     g.add_argument("--outer-surface", action="store_true",
                    help="sample the outer surface only: drop points inside the shape where overlapping or touching "
@@ -50,18 +51,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("recipe (defaults: the authors' code; REFERENCE §11)")
     g.add_argument("--keypoint-source", choices=("learned", "fps"), default="learned",
                    help="fps: farthest-point keypoints of each shape, only the deformer is trained (baseline)")
-    g.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate of Φ and Γ (default 1e-3)")
-    g.add_argument("--wc-lr", type=float, default=None, help="learning rate of W_C (code 1e-2; --paper: = --lr)")
-    g.add_argument("--alpha-kpt", type=float, default=None, help="keypoint regulariser weight (code 2; paper 1)")
+    g.add_argument("--lr", type=number(positive=True), default=1e-3, help="Adam learning rate of Φ and Γ (default 1e-3)")
+    g.add_argument("--wc-lr", type=number(0), default=None, help="learning rate of W_C (code 1e-2; --paper: = --lr)")
+    g.add_argument("--alpha-kpt", type=number(0), default=None, help="keypoint regulariser weight (code 2; paper 1)")
     g.add_argument("--inf-reg", choices=("code", "paper"), default=None,
                    help="influence regulariser: code = mean(W_I²), paper = ‖W_I‖_F")
-    g.add_argument("--alpha-inf", type=float, default=None,
+    g.add_argument("--alpha-inf", type=number(0), default=None,
                    help="influence regulariser weight (default 1e6 for code, 1e-6 for paper)")
-    g.add_argument("--warmup", type=int, default=None, help="keypoint-only iterations first (code 200; paper 0)")
+    g.add_argument("--warmup", type=integer(0), default=None, help="keypoint-only iterations first (code 200; paper 0)")
     g.add_argument("--no-clamp", action="store_true", help="do not clamp keypoints to [-1, 1] (paper)")
     g.add_argument("--paper-m", action="store_true", help="M = floor(C/K) (paper) instead of max(5, floor(C/K))")
-    g.add_argument("--m", type=int, default=None, help="M, nearest cage vertices per keypoint (overrides both)")
-    g.add_argument("--fps-factor", type=int, default=2, help="J = factor * K farthest points (default 2)")
+    g.add_argument("--m", type=integer(1), default=None, help="M, nearest cage vertices per keypoint (overrides both)")
+    g.add_argument("--fps-factor", type=integer(1), default=2, help="J = factor * K farthest points (default 2)")
     g.add_argument("--paper", action="store_true",
                    help="all paper values: alpha-kpt 1, inf-reg paper 1e-6, warmup 0, wc-lr = lr, no clamp, paper M")
 
@@ -83,18 +84,34 @@ def recipe(args: argparse.Namespace):
         keypoint_source=args.keypoint_source, save_every=args.save_every, val_pairs=args.val_pairs)
 
 
+# A validation split smaller than this gives no validation score (pairs of one shape score 0); fewer than
+# FEW_VAL shapes are flagged.
+MIN_VAL, FEW_VAL = 2, 5
+
+
+def _score(value) -> bool:
+    """A validation chamfer was computed (not absent, not NaN)."""
+    return value is not None and value == value
+
+
 def run(args: argparse.Namespace) -> int:
+    from kpd.io import check_output as check_folder
+    from kpd.io import remove_stale_temporaries
+
     out = Path(args.out)
     if args.resume and args.force:
         raise InputError("--resume and --force contradict each other; choose one")
     if args.resume and not (out / "checkpoint.pt").is_file():
         raise InputError(f"--resume: no checkpoint in {out}")
-    if not args.resume and out.exists() and any(out.iterdir()) and not args.force:
+    if not args.resume and out.is_dir() and any(out.iterdir()) and not args.force:
         raise InputError(f"output {out} exists and is not empty; pass --resume to continue or --force to start over")
     if not out.parent.exists():
         raise InputError(f"output folder {out.parent} does not exist")
-    if args.threads is not None and args.threads < 1:
-        raise InputError(f"--threads must be at least 1; got {args.threads}")
+    # the run folder is not replaced as a whole (checkpoints go into it as training runs), but it is checked like
+    # every output: writable, and neither the data, the split file nor the cache nor a folder holding them
+    check_folder(out, option="--out", force=True, kind="folder", inputs=(args.data, args.split_file, args.cache))
+    if args.points < args.keypoints:
+        raise InputError(f"--points must be at least --keypoints ({args.keypoints}); got {args.points}")
     config = recipe(args)
     config.check()
     import time
@@ -117,13 +134,32 @@ def run(args: argparse.Namespace) -> int:
         print(f"skipped {s.path}: {s.reason}", file=sys.stderr)
     counts = ", ".join(f"{k} {len(v)}" for k, v in data.samples.items())
     print(f"{data.category.category} ({data.category.layout}): {counts} shapes; {len(data.skipped)} skipped")
+    val = len(data.samples["val"]) if "val" in data.samples else 0
+    if config.val_pairs and val < MIN_VAL:
+        print(f"warning: the validation split has {val} shape(s): no validation score (it needs pairs of distinct "
+              f"shapes); give more data, a split file with a val list, or a larger --val-fraction", file=sys.stderr)
+        import dataclasses
+
+        config = dataclasses.replace(config, val_pairs=0)
+    elif config.val_pairs and val < FEW_VAL:
+        print(f"warning: the validation split has only {val} shapes; its chamfer says little", file=sys.stderr)
     command = "kpd " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if "train" in sys.argv[1:] else None
+    created = not out.exists()
     out.mkdir(exist_ok=True)
-    record = train(data, config, out, device=args.device, resume=args.resume, progress=not args.quiet,
-                   command=command)
+    if args.resume:
+        for path in remove_stale_temporaries(out):
+            print(f"removed {path.name}, left by the interrupted run", file=sys.stderr)
+    try:
+        record = train(data, config, out, device=args.device, resume=args.resume, progress=not args.quiet,
+                       command=command)
+    except BaseException:
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()  # a refused or failed start leaves no empty run folder
+        raise
     metrics = record["metrics"]
+    score = (f"val chamfer {metrics['val_chamfer']:.5f} (undeformed {metrics['val_chamfer_undeformed']:.5f})"
+             if _score(metrics.get("val_chamfer")) else "no validation score (the validation split is too small)")
     print(f"done: {record['metrics']['iterations_done']} iterations; {record['train_seconds']:.0f} s in steps, "
           f"{record['run_seconds']:.0f} s training loop, {time.perf_counter() - started:.0f} s in this command; "
-          f"val chamfer {metrics.get('val_chamfer', float('nan')):.5f} "
-          f"(undeformed {metrics.get('val_chamfer_undeformed', float('nan')):.5f}); {out}")
+          f"{score}; {out}")
     return 0

@@ -560,14 +560,14 @@ def _input_path(path: str | os.PathLike, formats: tuple, kind: str) -> tuple[Pat
     except TypeError as exc:
         raise InputError(f"{kind} path must be a string or path; got {type(path).__name__}") from exc
     ext = p.suffix.lower()
+    if p.is_dir():
+        raise InputError(f"{p}: is a folder, not a {kind} file")
     if ext not in formats:
         raise InputError(
             f"{p}: unknown {kind} format {ext or '(no extension)'!r}; expected one of {' '.join(formats)}"
         )
     if not p.exists():
         raise InputError(f"{p}: no such file")
-    if p.is_dir():
-        raise InputError(f"{p}: is a folder, not a {kind} file")
     if not p.is_file():
         raise InputError(f"{p}: not a regular file")
     if p.stat().st_size == 0:
@@ -849,7 +849,7 @@ def _open3d_write(write: Callable[[], bool], p: Path, tmp: Path | None = None) -
     failed = _failures(messages) + [s for s in c_lines if _FAILURE.search(s)]
     if not ok or failed:
         written = tmp if tmp is not None else p
-        if written.exists() and disk_full(written.parent):
+        if disk_full(written.parent):
             raise WriteError(f"cannot write {p}: the disk is full (no space left on device)")
         raise WriteError(f"cannot write {p}: Open3D failed ({'; '.join(dict.fromkeys(failed)) or 'no reason given'})")
 

@@ -162,10 +162,10 @@ def check_output(path: str | os.PathLike, *, option: str | None = "--out", force
     """
     p = Path(path)
     named = _named(option, p)
-    if formats is not None and p.suffix.lower() not in formats:
-        raise InputError(f"{named}: a {what or 'output'} file must end in one of {' '.join(formats)}")
     if kind == "file" and p.is_dir():
         raise InputError(f"{named} is a folder; give a file name")
+    if formats is not None and p.suffix.lower() not in formats:
+        raise InputError(f"{named}: a {what or 'output'} file must end in one of {' '.join(formats)}")
     if kind == "folder" and p.exists() and not p.is_dir():
         raise InputError(f"{named} is a file; this command writes a folder")
     check_folder_writable(p.parent, named)
@@ -179,6 +179,9 @@ def check_output(path: str | os.PathLike, *, option: str | None = "--out", force
         if p.is_dir() and resolved in source_resolved.parents:
             raise InputError(f"{named} holds the input {source}; replacing it would delete that input, so choose "
                              f"another {option or 'output'}")
+        if p.exists() and Path(source).is_dir() and source_resolved in resolved.parents:
+            raise InputError(f"{named} lies inside the input {source}; replacing it would change that input, so "
+                             f"choose another {option or 'output'}")
     if p.exists() and not force:
         raise InputError(f"{named} exists; pass --force to replace it")
     remove_stale_temporaries(p.parent)
@@ -499,7 +502,18 @@ class Outputs:
         if kind is None:
             self.commit()
             return
+        staging = dict(self._staging)
         self.discard()
         if isinstance(value, OSError):  # a writer inside the block failed: one line naming the file and the cause
             where = value.filename or next(iter(self._options), "an output")
-            raise WriteError(describe_os_error(value, where)) from value
+            raise WriteError(self._final_names(describe_os_error(value, where), staging)) from value
+        if isinstance(value, WriteError):  # name the outputs by their final paths, not the staging folder's
+            message = self._final_names(str(value), staging)
+            if message != str(value):
+                raise WriteError(message) from value
+
+    @staticmethod
+    def _final_names(message: str, staging: dict) -> str:
+        for folder, stage in staging.items():
+            message = message.replace(str(stage), str(folder))
+        return message

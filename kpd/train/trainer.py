@@ -21,6 +21,7 @@ Output folder::
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import math
@@ -394,7 +395,9 @@ class Trainer:
 
         state = self.state()
         state[HASH_KEY] = content_hash(state)  # checked by load_checkpoint
-        _atomic_write(self.out_dir / CHECKPOINT_NAME, lambda tmp: torch.save(state, tmp))
+        buffer = io.BytesIO()  # serialised in memory, written by Python: a full disk is an OSError, not torch's
+        torch.save(state, buffer)  # RuntimeError from a stream it cannot report on
+        _atomic_write(self.out_dir / CHECKPOINT_NAME, lambda tmp: Path(tmp).write_bytes(buffer.getvalue()))
         _write_json(self.out_dir / "model.json", {
             "model_config": self.model_config.to_dict(), "train_config": self.config.to_dict(),
             "sample_settings": self.settings.to_dict()})

@@ -1,0 +1,662 @@
+"""Fault injection for every command that writes: failing disks, races, --force, damaged files and bad options.
+
+Every fault case (:func:`assert_fault`) asserts exit status 2, exactly one line on stderr, no traceback, nothing left
+behind in the folders involved (no partial output, no temporary file or folder) and every file that existed before
+byte for byte unchanged. The environments are real where the machine allows it:
+
+- a **full disk** is a small tmpfs filled to its last byte (as root; where mounting is not allowed, the one writer's
+  fsync is patched to fail with ENOSPC);
+- a **read-only folder** is a tmpfs remounted read-only (else a folder without write permission);
+- **permission denied** is a folder without write permission (as root, the command runs without the capability to
+  ignore permissions: ``setpriv --bounding-set -dac_override``);
+- **races** are two real processes writing one output, and a file created at the output path while a command runs;
+- **SIGKILL** kills a process in the middle of a write; the next command in that folder cleans up after it.
+
+Commands run in-process through :func:`kpd.cli.main` (seconds each) on tiny procedural meshes, the torch-free toy
+bundle of test_bundle and one tiny training run. Run them alone with ``pytest tests/test_faults.py``.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_bundle import make_toy_bundle
+
+from kpd.cli import main
+from kpd.errors import InputError
+from kpd.io import Mesh, write_mesh, write_points
+
+REPO = Path(__file__).resolve().parents[1]
+KPD = str(Path(sys.executable).with_name("kpd"))
+
+
+# --- the contract -------------------------------------------------------------------------------------------------
+
+
+def snapshot(*folders: Path) -> dict[str, str]:
+    """sha256 of every file under the folders (hidden ones included), and every folder, by path."""
+    state = {}
+    for folder in folders:
+        for root, dirs, files in os.walk(folder):
+            for d in dirs:
+                state[os.path.join(root, d)] = "folder"
+            for f in files:
+                p = os.path.join(root, f)
+                with open(p, "rb") as fh:
+                    state[p] = hashlib.sha256(fh.read()).hexdigest()
+    return state
+
+
+def kpd(capfd, *argv) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capfd.readouterr()
+    return code, out, err
+
+
+def error_lines(err: str) -> list[str]:
+    """The lines of stderr, progress bars (carriage-return redraws) reduced to what they end with."""
+    return [s.rsplit("\r", 1)[-1] for s in err.split("\n") if s.rsplit("\r", 1)[-1].strip()]
+
+
+def assert_fault(result: tuple[int, str, str], before: dict, *folders: Path, match: str) -> str:
+    """Exit 2, one stderr line containing ``match``, no traceback, the folders exactly as ``before``."""
+    code, _, err = result
+    lines = error_lines(err)
+    assert code == 2, err
+    assert len(lines) == 1 and lines[0].startswith("kpd "), err
+    assert "Traceback" not in err
+    assert match in lines[0], lines[0]
+    assert snapshot(*folders) == before, "files were left behind or changed"
+    return lines[0]
+
+
+# --- environments -------------------------------------------------------------------------------------------------
+
+
+def _mount(folder: Path, options: str) -> bool:
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        return False
+    result = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True)
+    return result.returncode == 0
+
+
+def _umount(folder: Path) -> None:
+    subprocess.run(["umount", "-l", str(folder)], capture_output=True)
+
+
+@pytest.fixture
+def full_disk(tmp_path, monkeypatch):
+    """A folder on a file system with no free byte, holding ``keep.txt`` (written before it filled up)."""
+    folder = tmp_path / "full"
+    folder.mkdir()
+    mounted = _mount(folder, "size=512k")
+    (folder / "keep.txt").write_text("kept\n")
+    if mounted:
+        with open(folder / "filler", "wb", buffering=0) as fh:  # fill the file system to its last byte
+            for size in (1 << 16, 1 << 12, 1):
+                try:
+                    while True:
+                        fh.write(b"\0" * size)
+                except OSError as exc:
+                    assert exc.errno == errno.ENOSPC
+    else:  # no tmpfs: the one writer's fsync fails as on a full disk
+        import kpd.io.atomic as atomic
+
+        def no_space(path):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+        monkeypatch.setattr(atomic, "_fsync", no_space)
+    try:
+        yield folder
+    finally:
+        if mounted:
+            _umount(folder)
+
+
+@pytest.fixture
+def read_only(tmp_path, monkeypatch):
+    """A read-only folder holding ``keep.txt``."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    if _mount(folder, "size=64k"):
+        (folder / "keep.txt").write_text("kept\n")
+        subprocess.run(["mount", "-o", "remount,ro", str(folder)], check=True)
+        try:
+            yield folder
+        finally:
+            _umount(folder)
+        return
+    (folder / "keep.txt").write_text("kept\n")
+    folder.chmod(0o555)
+    if os.geteuid() == 0:  # root ignores permission bits: the writer's folder check sees the folder as read-only
+        import kpd.io.atomic as atomic
+
+        real = os.access
+        monkeypatch.setattr(atomic.os, "access", lambda p, mode: real(p, mode) and Path(p) != folder)
+    yield folder
+    folder.chmod(0o755)
+
+
+# --- inputs -------------------------------------------------------------------------------------------------------
+
+
+def textured(mesh: Mesh) -> Mesh:
+    """The mesh with per-corner UVs from its x, z position and a 4x4 checker texture."""
+    v = mesh.vertices[mesh.triangles.reshape(-1)]
+    uv = (v[:, [0, 2]] - v[:, [0, 2]].min(0)) / np.ptp(v[:, [0, 2]], axis=0)
+    checker = np.kron(np.indices((2, 2)).sum(0) % 2, np.ones((2, 2)))[..., None] * np.array([200, 60, 30])
+    return Mesh(vertices=mesh.vertices, triangles=mesh.triangles, triangle_uvs=uv,
+                textures=[checker.astype(np.uint8) + 40])
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory) -> Path:
+    """chair.ply (432 vertices), tex.obj (textured, with .mtl and PNG), toy.kpd, rig.npz, data/chair/ (8 chairs,
+    for training: ``data --category chair``), flat/ (15 chairs: a flat folder whose carved test split has 2)."""
+    from kpd.commands.demo import procedural_chair
+    from kpd.runtime import Model
+
+    root = tmp_path_factory.mktemp("inputs")
+    os.chmod(root, 0o755)
+    chair = procedural_chair(edge=4.0)
+    write_mesh(root / "chair.ply", chair)
+    write_mesh(root / "tex.obj", textured(chair))
+    make_toy_bundle(root / "toy.kpd", template=False)  # no template: no frame warning for these chairs
+    model = Model.load(root / "toy.kpd")
+    model.rig(chair).save(root / "rig.npz")
+    (root / "data" / "chair").mkdir(parents=True)
+    (root / "flat").mkdir()
+    for i in range(15):
+        stretch = 1 + 0.05 * i * np.array([1.0, 0.5, -0.3])
+        for folder in ("data/chair", "flat") if i < 8 else ("flat",):
+            write_mesh(root / folder / f"c{i}.ply", chair.with_vertices(chair.vertices * stretch))
+    return root
+
+
+TINY_TRAIN = ("--category", "chair", "--keypoints", "4", "--iterations", "2", "--batch", "2", "--points", "64", "--samples", "1",
+              "--save-every", "1", "--val-pairs", "0", "--processes", "1", "--threads", "1", "--quiet",
+              "--warmup", "0")
+
+
+@pytest.fixture(scope="module")
+def tiny_run(inputs, tmp_path_factory) -> Path:
+    """A two-iteration training run on the 8 chairs of ``inputs/data`` (its sample cache in ``inputs/cache``)."""
+    run = tmp_path_factory.mktemp("runs") / "run"
+    assert main(["train", str(inputs / "data"), "--out", str(run), "--cache", str(inputs / "cache"),
+                 *TINY_TRAIN]) == 0
+    return run
+
+
+# --- failing writes: a full disk, for every command that writes ----------------------------------------------------
+
+
+def _full_disk_cases(i: Path, f: Path, run: Path) -> dict:
+    return {
+        "keypoints": ["keypoints", i / "toy.kpd", i / "chair.ply", "--out", f / "kp.json"],
+        "deform ply": ["deform", i / "toy.kpd", i / "chair.ply", "--move", "0:0,0,1", "--out", f / "d.ply"],
+        "deform obj+mtl+png": ["deform", i / "toy.kpd", i / "tex.obj", "--move", "0:0,0,1", "--out", f / "d.obj"],
+        "deform glb": ["deform", i / "toy.kpd", i / "tex.obj", "--out", f / "d.glb"],
+        "deform --rig": ["deform", "--rig", i / "rig.npz", "--move", "1:1,0,0", "--out", f / "r.off"],
+        "align": ["align", i / "toy.kpd", i / "chair.ply", i / "flat" / "c3.ply", "--out", f / "a.ply",
+                  "--keypoints", f / "a.json"],
+        "sample": ["sample", i / "toy.kpd", i / "chair.ply", "--n", "2", "--out", f / "variants"],
+        "demo": ["demo", "--model", i / "toy.kpd", "--mesh", i / "chair.ply", "--out", f / "demo"],
+        "scan": ["scan", i / "chair.ply", "--out", f / "s.ply", "--report", f / "s.json", "--no-pieces"],
+        "bench": ["bench", i / "toy.kpd", "--vertices", "1000", "--repeats", "1", "--out", f / "b.json"],
+        "eval chamfer": ["eval", "chamfer", i / "flat", "--model", i / "toy.kpd", "--pairs", "4", "--quiet",
+                         "--out", f / "e.json"],
+        "export": ["export", run, "--out", f / "run.kpd", "--no-prior"],
+        "train": ["train", i / "data", "--out", f / "run", "--cache", i / "cache", *TINY_TRAIN],
+    }
+
+
+FULL_DISK = ["keypoints", "deform ply", "deform obj+mtl+png", "deform glb", "deform --rig", "align", "sample", "demo",
+             "scan", "bench", "eval chamfer", "export", "train"]
+
+
+@pytest.mark.parametrize("case", FULL_DISK)
+def test_full_disk(case, inputs, tiny_run, full_disk, capfd):
+    argv = _full_disk_cases(inputs, full_disk, tiny_run)[case]
+    before = snapshot(full_disk, inputs, tiny_run)
+    line = assert_fault(kpd(capfd, *argv), before, full_disk, inputs, tiny_run, match="cannot write")
+    assert "disk is full" in line
+
+
+def test_full_disk_library_writers(full_disk):
+    """The library writers themselves (what every command calls) end in WriteError and leave nothing."""
+    from kpd.errors import WriteError
+    from kpd.io import write_keypoints
+    from kpd.viewer.session import EditSession
+
+    before = snapshot(full_disk)
+    points = np.random.default_rng(0).uniform(size=(5000, 3))
+    for write in (lambda: write_points(full_disk / "p.pcd", points), lambda: write_points(full_disk / "p.xyz", points),
+                  lambda: write_keypoints(full_disk / "k.txt", points[:4]),
+                  lambda: EditSession(points[:4]).save(full_disk / "session.json")):
+        with pytest.raises(WriteError, match="disk is full"):
+            write()
+        assert snapshot(full_disk) == before
+
+
+# --- read-only and forbidden folders ------------------------------------------------------------------------------
+
+
+def _folder_cases(i: Path, f: Path) -> dict:
+    return {
+        "keypoints": ["keypoints", i / "toy.kpd", i / "chair.ply", "--out", f / "kp.json"],
+        "deform": ["deform", i / "toy.kpd", i / "chair.ply", "--out", f / "d.obj"],
+        "sample": ["sample", i / "toy.kpd", i / "chair.ply", "--n", "2", "--out", f / "variants"],
+        "scan": ["scan", i / "chair.ply", "--out", i / "never.ply", "--report", f / "r.json"],
+        "train": ["train", i / "data", "--out", f / "run", "--cache", i / "cache", *TINY_TRAIN],
+    }
+
+
+@pytest.mark.parametrize("case", ["keypoints", "deform", "sample", "scan", "train"])
+def test_read_only_folder(case, inputs, read_only, capfd):
+    before = snapshot(read_only, inputs)
+    line = assert_fault(kpd(capfd, *_folder_cases(inputs, read_only)[case]), before, read_only, inputs,
+                        match=f"cannot write in folder {read_only}")
+    assert "--out" in line or "--report" in line
+
+
+def test_permission_denied(inputs, tmp_path, capfd, monkeypatch):
+    """A folder without write permission (as root: the command runs without CAP_DAC_OVERRIDE, so the permission
+    bits apply to it as to any user): refused before any work, in one line."""
+    denied = tmp_path / "denied"
+    denied.mkdir()
+    (denied / "keep.txt").write_text("kept\n")
+    argv = ["keypoints", inputs / "toy.kpd", inputs / "chair.ply", "--out", denied / "kp.json"]
+    before = snapshot(denied, inputs)
+    denied.chmod(0o555)
+    try:
+        if os.geteuid() == 0 and shutil.which("setpriv"):  # root without the capability to ignore permissions
+            drop = "-dac_override,-dac_read_search"
+            proc = subprocess.run(["setpriv", "--bounding-set", drop, "--inh-caps", drop, KPD, *map(str, argv)],
+                                  capture_output=True, text=True, timeout=120)
+            result = (proc.returncode, proc.stdout, proc.stderr)
+        else:
+            if os.geteuid() == 0:  # root with no way to drop the capability: the folder check sees it as denied
+                import kpd.io.atomic as atomic
+
+                real = os.access
+                monkeypatch.setattr(atomic.os, "access", lambda p, mode: real(p, mode) and Path(p) != denied)
+            result = kpd(capfd, *argv)
+    finally:
+        denied.chmod(0o755)
+    assert_fault(result, before, denied, inputs, match="permission denied")
+
+
+# --- companion files ----------------------------------------------------------------------------------------------
+
+
+def test_companion_file_is_refused_without_force(inputs, tmp_path, capfd):
+    (tmp_path / "out.mtl").write_text("newmtl mine\n")
+    before = snapshot(tmp_path, inputs)
+    assert_fault(kpd(capfd, "deform", inputs / "toy.kpd", inputs / "tex.obj", "--out", tmp_path / "out.obj"),
+                 before, tmp_path, inputs, match="companion file")
+
+
+def test_companions_written_together_under_final_names(inputs, tmp_path, capfd):
+    """Not a fault: a textured OBJ names its .mtl and texture by their final names, and nothing else is left."""
+    code, _, _ = kpd(capfd, "deform", inputs / "toy.kpd", inputs / "tex.obj", "--out", tmp_path / "out.obj")
+    assert code == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mtl", "out.obj", "out_0.png"]
+    assert "mtllib out.mtl" in (tmp_path / "out.obj").read_text()
+    assert "out_0.png" in (tmp_path / "out.mtl").read_text()
+    # --force replaces the output and its companions, nothing else
+    (tmp_path / "other.txt").write_text("mine\n")
+    assert kpd(capfd, "deform", inputs / "toy.kpd", inputs / "tex.obj", "--move", "0:0,0,2", "--out",
+               tmp_path / "out.obj", "--force")[0] == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.txt", "out.mtl", "out.obj", "out_0.png"]
+
+
+# --- --force never touches an input -------------------------------------------------------------------------------
+
+
+def test_force_never_deletes_inputs(inputs, tiny_run, tmp_path, capfd):
+    work = tmp_path / "W"
+    work.mkdir()
+    shutil.copy(inputs / "chair.ply", work / "chair.ply")
+    cases = [
+        (["sample", inputs / "toy.kpd", work / "chair.ply", "--out", work, "--force"], "holds the input"),
+        (["demo", "--model", inputs / "toy.kpd", "--mesh", work / "chair.ply", "--out", work, "--force"],
+         "holds the input"),
+        (["export", tiny_run / "checkpoint.pt", "--out", tiny_run, "--force"], "holds the input"),
+        (["deform", inputs / "toy.kpd", work / "chair.ply", "--out", work / "chair.ply", "--force"],
+         "is also an input"),
+        (["scan", work / "chair.ply", "--reference", inputs / "chair.ply", "--out", inputs / "chair.ply",
+          "--report", work / "r.json", "--force"], "is also an input"),
+        (["train", inputs / "data", "--out", inputs / "data", "--force", *TINY_TRAIN], "is also an input"),
+        (["eval", "alignment", tiny_run, "--out", tiny_run / "record.json", "--force"], "lies inside the input"),
+    ]
+    for argv, message in cases:
+        before = snapshot(work, inputs, tiny_run)
+        assert_fault(kpd(capfd, *argv), before, work, inputs, tiny_run, match=message)
+
+
+# --- concurrent writers -------------------------------------------------------------------------------------------
+
+
+def test_two_processes_writing_one_output(inputs, tmp_path):
+    """Both start before the output exists: one wins, the other ends with one line; the file is the winner's."""
+    out = tmp_path / "kp.json"
+    argv = [KPD, "keypoints", str(inputs / "toy.kpd"), str(inputs / "chair.ply"), "--out", str(out)]
+    procs = [subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    results = [(p.wait(timeout=120), *p.communicate()) for p in procs]
+    codes = sorted(code for code, _, _ in results)
+    assert codes == [0, 2], results
+    loser = next(err for code, _, err in results if code == 2)
+    assert len(error_lines(loser)) == 1 and ("appeared while kpd was running" in loser or "exists" in loser)
+    assert json.loads(out.read_text())["keypoints"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kp.json"]
+
+
+@pytest.mark.parametrize("kind", ["file", "folder"])
+def test_output_appearing_during_the_run_is_not_clobbered(kind, inputs, tmp_path, capfd, monkeypatch):
+    from kpd.runtime import Model
+
+    out = tmp_path / ("kp.json" if kind == "file" else "variants")
+    real = Model.rig
+
+    def rig_and_intrude(self, *args, **kwargs):  # another process creates the output while kpd works
+        if kind == "file":
+            out.write_text("someone else's\n")
+        else:
+            out.mkdir()
+            (out / "theirs.txt").write_text("someone else's\n")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Model, "rig", rig_and_intrude)
+    monkeypatch.setattr(Model, "keypoints", lambda self, shape, seed=0: (out.write_text("someone else's\n"),
+                                                                         np.zeros((4, 3)))[1])
+    argv = (["keypoints", inputs / "toy.kpd", inputs / "chair.ply", "--out", out] if kind == "file" else
+            ["sample", inputs / "toy.kpd", inputs / "chair.ply", "--n", "2", "--out", out])
+    code = main([str(a) for a in argv])
+    _, err = capfd.readouterr()
+    assert code == 2 and len(error_lines(err)) == 1 and "appeared while kpd was running" in err
+    theirs = out if kind == "file" else out / "theirs.txt"
+    assert theirs.read_text() == "someone else's\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name]
+
+
+# --- SIGKILL during a write ---------------------------------------------------------------------------------------
+
+
+def test_sigkill_during_a_write_is_cleaned_by_the_next_run(inputs, tmp_path, capfd):
+    script = textwrap.dedent(f"""
+        import os, signal
+        from kpd.io import Outputs
+        outputs = Outputs()
+        out = outputs.file({str(tmp_path / 'kp.json')!r})
+        with open(outputs.stage(out), "w") as fh:
+            fh.write('{{"keypoints": [[0, 0')
+            fh.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=60)
+    assert proc.returncode == -signal.SIGKILL
+    left = [p.name for p in tmp_path.iterdir()]
+    assert len(left) == 1 and ".kpd-tmp-" in left[0]  # the killed write left its staging folder
+    code, out, _ = kpd(capfd, "keypoints", inputs / "toy.kpd", inputs / "chair.ply", "--out", tmp_path / "kp.json")
+    assert code == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kp.json"]
+    assert len(json.loads((tmp_path / "kp.json").read_text())["keypoints"]) == 4
+
+
+def test_resume_removes_temporaries_of_a_killed_run(inputs, tiny_run, tmp_path, capfd):
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    stale = run / f".checkpoint.pt.kpd-tmp-{2 ** 22 + 12345}-0badc0de.pt"  # no such process
+    stale.write_bytes(b"half a checkpoint")
+    code, _, err = kpd(capfd, "train", inputs / "data", "--out", run, "--cache", inputs / "cache", "--resume",
+                       *TINY_TRAIN)
+    assert code == 0, err
+    assert not stale.exists() and "removed" in err
+    assert not [p for p in run.iterdir() if ".kpd-tmp-" in p.name]
+
+
+# --- integrity: hashes and damaged files --------------------------------------------------------------------------
+
+
+def _flip(path: Path, offset: int) -> None:
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0x01
+    path.write_bytes(bytes(data))
+
+
+def _tensor_offset(checkpoint: Path) -> int:
+    """An offset inside the largest tensor's bytes of a torch zip (stored uncompressed, so torch reads it as is)."""
+    with zipfile.ZipFile(checkpoint) as archive:
+        info = max(archive.infolist(), key=lambda i: i.file_size)
+    with open(checkpoint, "rb") as fh:
+        fh.seek(info.header_offset + 26)
+        name_length, extra_length = np.frombuffer(fh.read(4), dtype="<u2")
+    return info.header_offset + 30 + int(name_length) + int(extra_length) + info.file_size // 2
+
+
+@pytest.mark.parametrize("command", ["export", "eval", "resume"])
+def test_checkpoint_with_a_flipped_byte_is_refused(command, inputs, tiny_run, tmp_path, capfd):
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    _flip(run / "checkpoint.pt", _tensor_offset(run / "checkpoint.pt"))
+    argv = {"export": ["export", run, "--out", tmp_path / "x.kpd", "--no-prior"],
+            "eval": ["eval", "keypoints", run, "--out", tmp_path / "e.json", "--cache", inputs / "cache", "--quiet"],
+            "resume": ["train", inputs / "data", "--out", run, "--cache", inputs / "cache", "--resume",
+                       *TINY_TRAIN]}[command]
+    before = snapshot(tmp_path, inputs)
+    assert_fault(kpd(capfd, *argv), before, tmp_path, inputs, match="damaged")
+
+
+def test_rig_with_a_flipped_byte_or_changed_content_is_refused(inputs, tmp_path, capfd):
+    flipped = tmp_path / "flipped.npz"
+    shutil.copy(inputs / "rig.npz", flipped)
+    _flip(flipped, flipped.stat().st_size // 2)
+    changed = tmp_path / "changed.npz"  # valid zip, one keypoint moved, the stored hash kept
+    with np.load(inputs / "rig.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    arrays["keypoints"] = arrays["keypoints"] + np.eye(len(arrays["keypoints"]), 3) * 1e-3
+    np.savez_compressed(changed, **arrays)
+    for rig, message in ((flipped, "damaged"), (changed, "does not match its sha256")):
+        for argv in (["deform", "--rig", rig, "--move", "0:0,0,1", "--out", tmp_path / "d.ply"],
+                     ["render", "--rig", rig, "--out", tmp_path / "r.png"]):
+            before = snapshot(tmp_path)
+            assert_fault(kpd(capfd, *argv), before, tmp_path, match=message)
+
+
+def test_session_with_a_changed_value_is_refused(tmp_path):
+    from kpd.viewer.session import EditSession, read_session_file
+
+    session = EditSession(np.eye(4, 3))
+    session.save(tmp_path / "s.json")
+    assert read_session_file(tmp_path / "s.json")["sha256"]
+    text = (tmp_path / "s.json").read_text()
+    (tmp_path / "s.json").write_text(text.replace("1.0", "1.5", 1))
+    with pytest.raises(InputError, match="damaged"):
+        read_session_file(tmp_path / "s.json")
+
+
+def _damaged_npz(tmp_path: Path) -> dict[str, Path]:
+    good = tmp_path / "good.npz"
+    np.savez_compressed(good, points=np.random.default_rng(0).uniform(-1, 1, (2000, 3)))
+    data = good.read_bytes()
+    files = {"empty": b"", "truncated": data[: len(data) // 2], "text": b"0 0 0\n1 1 1\n"}
+    crc = bytearray(data)
+    crc[60] ^= 0xFF  # inside the compressed member: zlib or the CRC check fails
+    files["bad crc"] = bytes(crc)
+    paths = {}
+    for name, content in files.items():
+        paths[name] = tmp_path / f"{name.replace(' ', '_')}.npz"
+        paths[name].write_bytes(content)
+    good.unlink()
+    return paths
+
+
+@pytest.mark.parametrize("damage, message", [("empty", "empty"), ("truncated", "damaged .npz"),
+                                             ("text", "a text file, not a point file"),
+                                             ("bad crc", "damaged .npz")])
+def test_damaged_npz_points_and_rigs(damage, message, inputs, tmp_path, capfd):
+    path = _damaged_npz(tmp_path)[damage]
+    before = snapshot(tmp_path)
+    line = assert_fault(kpd(capfd, "keypoints", inputs / "toy.kpd", path, "--out", tmp_path / "kp.json"), before,
+                        tmp_path, match=message)
+    assert "pickle" not in line
+    assert_fault(kpd(capfd, "deform", "--rig", path, "--out", tmp_path / "d.ply"), before, tmp_path,
+                 match="" if damage != "text" else "a text file")
+
+
+def test_damaged_bundle_zip(inputs, tmp_path, capfd):
+    files = {p.name: p.read_bytes() for p in (inputs / "toy.kpd").iterdir()}
+    from kpd.bundle import write_bundle
+
+    write_bundle(tmp_path / "toy.zip", files)
+    data = (tmp_path / "toy.zip").read_bytes()
+    (tmp_path / "toy.zip").write_bytes(data[: len(data) * 2 // 3])
+    before = snapshot(tmp_path)
+    assert_fault(kpd(capfd, "keypoints", tmp_path / "toy.zip", inputs / "chair.ply", "--out", tmp_path / "k.json"),
+                 before, tmp_path, match="toy.zip")
+
+
+# --- options checked before any work ------------------------------------------------------------------------------
+
+
+def _option_cases(i: Path, t: Path) -> list:
+    data, toy, chair = i / "data", i / "toy.kpd", i / "chair.ply"
+    return [
+        (["keypoints", toy, chair, "--seed", "-1"], "--seed"),
+        (["deform", toy, chair, "--threads", "0", "--out", t / "d.ply"], "--threads"),
+        (["train", data, "--out", t / "run", "--samples", "0"], "--samples"),
+        (["train", data, "--out", t / "run", "--points", "0"], "--points"),
+        (["train", data, "--out", t / "run", "--cage-level", "-1"], "--cage-level"),
+        (["train", data, "--out", t / "run", "--cage-distance", "nan"], "--cage-distance"),
+        (["train", data, "--out", t / "run", "--lr", "inf"], "--lr"),
+        (["train", data, "--out", t / "run", "--val-fraction", "2"], "--val-fraction"),
+        (["train", chair, "--out", t / "run"], "is a file"),
+        (["train", data, "--out", t / "run", "--split-file", t / "none.txt"], "--split-file"),
+        (["export", "--from-authors", chair, "--points", "0", "--out", t / "x.kpd"], "--points"),
+        (["export", t, "--data", chair, "--out", t / "x.kpd"], "--data"),
+        (["eval", "pck", data, "--category", "chair", "--model", toy, "--threshold", "nan", "--out", t / "e.json"],
+         "--threshold"),
+        (["eval", "chamfer", data, "--model", toy, "--pairs", "0", "--out", t / "e.json"], "--pairs"),
+        (["eval", "chamfer", chair, "--model", toy, "--out", t / "e.json"], "is a file"),
+        (["sample", toy, chair, "--n", "0", "--out", t / "s"], "--n"),
+        (["sample", toy, chair, "--scale", "nan", "--out", t / "s"], "--scale"),
+        (["scan", chair, "--reference-points", "5", "--out", t / "s.ply", "--report", t / "r.json"],
+         "--reference-points"),
+        (["bench", toy, "--vertices", "10"], "--vertices"),
+        (["demo", "--amount", "nan", "--out", t / "demo"], "--amount"),
+        (["keypoints", toy, chair, "--up", "z"], "--up goes with --scan"),
+        (["deform", toy, chair, "--up", "z", "--out", t / "d.ply"], "--up goes with --scan"),
+        (["render", toy, chair, "--up", "z", "--out", t / "r.png"], "--up goes with --scan"),
+        (["view", toy, chair, "--up", "z"], "--up goes with --scan"),
+        (["keypoints", toy, chair, "--scan", "--up", "sideways"], "--up"),
+        (["align", toy, chair, chair, "--out", t / "a.ply", "--keypoints", t / "a.txt"], "--keypoints"),
+        (["keypoints", toy, i / "toy.kpd" / "keypoints.onnx", "--out", t / "k.json"], "unknown"),
+        (["keypoints", toy, i / "flat" / "c0.ply", "--out", data], "is a folder"),
+        (["deform", toy, t, "--out", t / "d.ply"], "is a folder"),
+    ]
+
+
+def test_options_checked_before_any_work(inputs, tmp_path, capfd):
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "keep.txt").write_text("kept\n")
+    for argv, option in _option_cases(inputs, work):
+        before = snapshot(work, inputs)
+        assert_fault(kpd(capfd, *argv), before, work, inputs, match=option)
+
+
+# --- training -----------------------------------------------------------------------------------------------------
+
+
+def test_diverging_run_keeps_its_last_good_checkpoint(inputs, tmp_path, capfd):
+    from kpd.train.trainer import load_checkpoint
+
+    run = tmp_path / "run"
+    argv = ["train", inputs / "data", "--out", run, "--cache", inputs / "cache", *TINY_TRAIN]
+    argv[argv.index("--iterations") + 1] = "30"
+    code, _, err = kpd(capfd, *argv, "--lr", "1e30")
+    line = error_lines(err)[-1]
+    assert code == 2 and "Traceback" not in err and "diverged" in line and "keeps the last good checkpoint" in line
+    assert [s for s in error_lines(err) if s.startswith("kpd ")] == [line]
+    kept = load_checkpoint(run)  # hash checked: a whole, good checkpoint
+    assert 1 <= kept["iteration"] < 30
+    assert not [p for p in run.iterdir() if ".kpd-tmp-" in p.name]
+
+
+def test_refused_start_leaves_no_run_folder(inputs, tmp_path, capfd):
+    before = snapshot(tmp_path, inputs)
+    assert_fault(kpd(capfd, "train", inputs / "data", "--out", tmp_path / "new", "--cache", inputs / "cache",
+                     "--device", "cuda", *TINY_TRAIN), before, tmp_path, inputs, match="cuda")
+
+
+# --- honest evaluation (behaviour, not faults) --------------------------------------------------------------------
+
+
+def test_tiny_validation_split_is_flagged_not_scored(inputs, tmp_path, capfd):
+    """8 meshes leave 1 for validation: no "val chamfer 0.00000" from pairs of one shape, and it is said."""
+    argv = ["train", inputs / "data", "--out", tmp_path / "run", "--cache", inputs / "cache", *TINY_TRAIN]
+    argv[argv.index("--val-pairs") + 1] = "8"
+    argv[argv.index("--iterations") + 1] = "1"
+    code, out, err = kpd(capfd, *argv)
+    assert code == 0, err
+    assert "the validation split has 1 shape(s): no validation score" in err
+    assert "no validation score" in out and "val chamfer 0.0" not in out
+    record = json.loads((tmp_path / "run" / "record.json").read_text())
+    score = record["metrics"].get("val_chamfer")
+    assert record["data"]["counts"]["val"] == 1 and (score is None or score != score)  # absent or NaN, never 0
+
+
+def test_flat_folder_chamfer_names_its_test_shapes_and_repeats_no_pair(inputs, tmp_path, capfd):
+    code, out, err = kpd(capfd, "eval", "chamfer", inputs / "flat", "--model", inputs / "toy.kpd", "--pairs", "100",
+                         "--quiet", "--out", tmp_path / "e.json")
+    assert code == 0, err
+    result = json.loads((tmp_path / "e.json").read_text())
+    test = result["data"]["test_names"]
+    assert len(test) == 2 and all(name in out for name in test)  # 10% of 15 carved, and said so
+    pairs = [(p["source"], p["target"]) for p in result["results"]["per_pair"]]
+    assert len(pairs) == len(set(pairs)) == 2 == result["settings"]["pairs"]
+    assert result["settings"]["requested_pairs"] == 100
+    assert "only 2 distinct pairs" in err and "only 2 test shapes" in err
+
+
+def test_alignment_pairs_distinct_and_unchanged_without_repeats():
+    from kpd.annotations import alignment_pairs
+
+    for n, count in ((3, 100), (5, 20), (40, 200)):
+        pairs = alignment_pairs(n, count, seed=1)
+        assert len({tuple(p) for p in pairs}) == len(pairs) == min(count, n * (n - 1))
+        assert (pairs[:, 0] != pairs[:, 1]).all()
+    rng = np.random.default_rng([0, 3])  # the draws before duplicates were dropped, when there are none
+    source = rng.integers(1000, size=5)
+    target = (source + rng.integers(1, 1000, size=5)) % 1000
+    np.testing.assert_array_equal(alignment_pairs(1000, 5, 0), np.stack([source, target], 1))
+
+
+def test_split_lists_are_accepted(inputs, tmp_path):
+    from kpd.data import discover
+
+    flat = tmp_path / "flat"
+    shutil.copytree(inputs / "data" / "chair", flat)
+    (flat / "train.txt").write_text("\n".join(f"c{i}" for i in range(5)) + "\n")
+    (flat / "test.txt").write_text("c5\nc6\nc7\n")
+    found = discover(flat)  # beside the meshes
+    assert [f.name for f in found.splits["test"]] == ["c5", "c6", "c7"]
+    assert len(found.splits["train"]) + len(found.splits["val"]) == 5
+    lists = tmp_path / "lists"
+    lists.mkdir()
+    for name in ("train.txt", "test.txt"):
+        shutil.move(flat / name, lists / name)
+    given = discover(flat, split_file=lists / "train.txt")  # one list given by itself
+    assert [f.name for f in given.splits["test"]] == ["c5", "c6", "c7"]
