@@ -134,7 +134,10 @@ def bench_editor(mesh: Path, drags: int, folder: Path) -> dict:
                 keypoints = np.array(released[0]["keypoints"])
             xdo("key", "u", kind="key")
             xdo("key", "y", kind="key")
-            _wait(lambda: [e for e in _events(events) if e["event"] == "redo"], 60, "redo")
+            redo = _wait(lambda: [e for e in _events(events) if e["event"] == "redo"], 60, "redo")[0]
+            # the frame after input paused: a large mesh's stand-in is then replaced by the whole mesh
+            _wait(lambda: [f for f in _events(events) if f["event"] == "frame" and f["time"] > redo["time"]
+                           and not f.get("stand_in")], 60, "the last frame")
             time.sleep(0.5)
             log = _events(events)
         finally:
