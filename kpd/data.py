@@ -31,7 +31,6 @@ import hashlib
 import json
 import logging
 import os
-import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
@@ -393,19 +392,20 @@ def _cache_file(cache_dir: Path, digest: str, settings: SampleSettings) -> Path:
 
 
 def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.stem, suffix=".tmp")
+    """Write a cache entry with kpd's one atomic writer (a full disk is one :class:`~kpd.errors.WriteError`, a
+    killed worker's temporary is removed by the next run)."""
+    from kpd.io import atomic_output
+
     try:
-        with os.fdopen(fd, "wb") as f:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        from kpd.errors import WriteError
+        from kpd.io.atomic import describe_os_error
+
+        raise WriteError(describe_os_error(exc, path.parent)) from exc
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as f:
             np.savez(f, **arrays)
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _ingest_one(job: tuple[str, str, dict, str, int | None]) -> str | None:
@@ -577,6 +577,22 @@ def prepare(root: str | os.PathLike, category: str | None = None, *, settings: S
     """
     cat = discover(root, category, split_file=split_file, val_fraction=val_fraction, seed=seed)
     cache_dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    from kpd.io import remove_stale_temporaries
+
+    remove_stale_temporaries(cache_dir / "samples")  # left by sampling workers that were killed
+    new_folders = [f for f in (cache_dir / "samples", cache_dir) if not f.exists()]
+    try:
+        return _prepare(cat, root, category, settings, cache_dir, split_file, val_fraction, seed, splits, processes,
+                        progress, min_shapes)
+    except BaseException:
+        for folder in new_folders:  # a failed first run (a full disk) leaves no empty cache folders
+            if folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
+        raise
+
+
+def _prepare(cat, root, category, settings, cache_dir, split_file, val_fraction, seed, splits, processes, progress,
+             min_shapes) -> PreparedData:
     samples: dict[str, ShapeSamples] = {}
     skipped: list[Skipped] = []
     for i, split in enumerate(splits):

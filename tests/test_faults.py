@@ -219,11 +219,12 @@ def _full_disk_cases(i: Path, f: Path, run: Path) -> dict:
                          "--out", f / "e.json"],
         "export": ["export", run, "--out", f / "run.kpd", "--no-prior"],
         "train": ["train", i / "data", "--out", f / "run", "--cache", i / "cache", *TINY_TRAIN],
+        "train cache": ["train", i / "data", "--out", f / "run", "--cache", f / "cache", *TINY_TRAIN],
     }
 
 
 FULL_DISK = ["keypoints", "deform ply", "deform obj+mtl+png", "deform glb", "deform --rig", "align", "sample", "demo",
-             "scan", "bench", "eval chamfer", "export", "train"]
+             "scan", "bench", "eval chamfer", "export", "train", "train cache"]
 
 
 @pytest.mark.parametrize("case", FULL_DISK)
