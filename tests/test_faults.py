@@ -220,11 +220,12 @@ def _full_disk_cases(i: Path, f: Path, run: Path) -> dict:
         "export": ["export", run, "--out", f / "run.kpd", "--no-prior"],
         "train": ["train", i / "data", "--out", f / "run", "--cache", i / "cache", *TINY_TRAIN],
         "train cache": ["train", i / "data", "--out", f / "run", "--cache", f / "cache", *TINY_TRAIN],
+        "render": ["render", "--rig", i / "rig.npz", "--move", "0:0,0,2", "--size", "160x120", "--out", f / "r.png"],
     }
 
 
 FULL_DISK = ["keypoints", "deform ply", "deform obj+mtl+png", "deform glb", "deform --rig", "align", "sample", "demo",
-             "scan", "bench", "eval chamfer", "export", "train", "train cache"]
+             "scan", "bench", "eval chamfer", "export", "train", "train cache", "render"]
 
 
 @pytest.mark.parametrize("case", FULL_DISK)
