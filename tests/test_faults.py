@@ -322,6 +322,14 @@ def test_companions_written_together_under_final_names(inputs, tmp_path, capfd):
     assert kpd(capfd, "deform", inputs / "toy.kpd", inputs / "tex.obj", "--move", "0:0,0,2", "--out",
                tmp_path / "out.obj", "--force")[0] == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["other.txt", "out.mtl", "out.obj", "out_0.png"]
+    # kpd scan of a textured mesh: the same, next to its report
+    scans = tmp_path / "scan"
+    scans.mkdir()
+    code, _, err = kpd(capfd, "scan", inputs / "tex.obj", "--out", scans / "s.obj", "--report", scans / "s.json",
+                       "--no-pieces")
+    assert code == 0, err
+    assert sorted(p.name for p in scans.iterdir()) == ["s.json", "s.mtl", "s.obj", "s_0.png"]
+    assert "mtllib s.mtl" in (scans / "s.obj").read_text() and "s_0.png" in (scans / "s.mtl").read_text()
 
 
 # --- --force never touches an input -------------------------------------------------------------------------------
