@@ -2,10 +2,18 @@
 
 Batch 16, 1024 points, K = 12, past the warm-up (full loss, both optimisers). Uses 64 real ModelNet10 chairs from the
 sample cache ($KPD_DATA or ../shared/data; sampled into the cache first if needed), or synthetic shapes when the data
-is absent. The two measurements alternate in rounds and the medians are reported, so load from other processes
-affects both alike. Prints one JSON object.
+is absent. Each round measures, in turn, the bare networks and the iteration with 1 and with 2 threads in this
+process, then the iteration with DistributedDataParallel over 2 gloo ranks of one thread each (``torchrun
+--standalone``, this script's ``--worker`` mode: the same code path as ``torchrun ... kpd train``); medians over the
+rounds are reported, so load from other processes affects every configuration alike. Peak memory: the process's
+peak resident set (CPU; each rank's for DDP) or ``torch.cuda.max_memory_allocated`` (CUDA).
 
-    python benchmarks/bench_train.py [--threads N] [--rounds 5] [--steps 6]
+``--device cuda`` (a machine with a GPU) times the bare networks and the iteration on the GPU (synchronised around
+each timed block), reports the peak GPU memory of each, checks that the step never waits for the device
+(``torch.cuda.set_sync_debug_mode("error")``), and with 2 or more GPUs adds DDP over 2 GPUs (NCCL). Prints one JSON
+object.
+
+    python benchmarks/bench_train.py [--device cpu|cuda|auto] [--rounds 5] [--steps 6] [--ddp 2]
 """
 
 from __future__ import annotations
@@ -13,7 +21,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -22,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+BATCH, KEYPOINTS = 16, 12
 
 
 def real_data(count: int):
@@ -60,36 +71,131 @@ def synthetic_data(count: int):
     return samples, settings, "synthetic"
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
-    parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--steps", type=int, default=6, help="timed iterations per round and method")
-    parser.add_argument("--shapes", type=int, default=64)
-    args = parser.parse_args(argv)
-
-    import torch
-
+def make_trainer(shapes: int, device: str, world=None):
+    """The benchmark's Trainer (warm-up off: every step is the full loss) and the data source's name."""
     from kpd.data import Category, PreparedData
     from kpd.train.trainer import Trainer, TrainConfig
 
-    threads = args.threads or os.cpu_count() or 1
-    torch.set_num_threads(threads)
-    loaded = real_data(args.shapes) or synthetic_data(args.shapes)
-    samples, settings, source = loaded
+    samples, settings, source = real_data(shapes) or synthetic_data(shapes)
     data = PreparedData(category=Category(Path(source), "benchmark", "chair"), settings=settings,
                         cache_dir=Path(tempfile.gettempdir()), samples={"train": samples}, skipped=[])
-    config = TrainConfig(keypoints=12, batch=16, warmup=0, iterations=10**6, val_pairs=0)
+    config = TrainConfig(keypoints=KEYPOINTS, batch=BATCH, warmup=0, iterations=10**6, val_pairs=0)
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = Trainer(config, data, tmp, device="cpu", command="bench")
+        trainer = Trainer(config, data, tmp, device=device, command="bench", world=world)
+    return trainer, samples, source
+
+
+def peak_rss_mb() -> float:
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)  # Linux: KiB
+
+
+class Timer:
+    """Seconds per call of ``f`` over ``steps`` calls, synchronised on CUDA; peak GPU memory of those calls."""
+
+    def __init__(self, device) -> None:
+        import torch
+
+        self.torch, self.cuda = torch, device.type == "cuda"
+
+    def __call__(self, f, steps: int) -> tuple[float, float | None]:
+        torch = self.torch
+        if self.cuda:
+            torch.cuda.synchronize()
+            torch.cuda.reset_peak_memory_stats()
+        start = time.perf_counter()
+        for _ in range(steps):
+            f()
+        if self.cuda:
+            torch.cuda.synchronize()
+        seconds = (time.perf_counter() - start) / steps
+        peak = round(torch.cuda.max_memory_allocated() / 2**20, 1) if self.cuda else None
+        return seconds, peak
+
+
+def worker(args) -> int:
+    """One rank of the DDP measurement (under torchrun): warm up, time ``--steps`` iterations, rank 0 writes JSON."""
+    import torch
+
+    from kpd.train import distributed
+
+    world = distributed.from_environment(BATCH, args.device)
+    torch.set_num_threads(1)
+    distributed.init(world)
+    try:
+        trainer, _, _ = make_trainer(args.shapes, args.device, world)
+        timer = Timer(trainer.device)
+        t = 0
+
+        def iteration() -> None:
+            nonlocal t
+            trainer.step(t)
+            t += 1
+
+        for _ in range(2):
+            iteration()
+        distributed.barrier(world)
+        seconds, peak = timer(iteration, args.steps)
+        distributed.barrier(world)  # the slowest rank counts
+        rss = torch.tensor([peak_rss_mb()], device=trainer.device)
+        gathered = [torch.zeros_like(rss) for _ in range(world.size)]
+        torch.distributed.all_gather(gathered, rss)
+        if world.main:
+            Path(args.worker).write_text(json.dumps({
+                "seconds": seconds, "peak_gpu_mb": peak, "peak_rss_mb_per_rank": [round(float(g), 1) for g in gathered],
+                "ranks": world.size, "backend": world.backend}))
+    finally:
+        distributed.shutdown()
+    return 0
+
+
+def ddp_round(args, ranks: int) -> dict:
+    """Launch ``ranks`` processes with torchrun on this machine and return rank 0's measurement."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "ddp.json"
+        command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(ranks),
+                   __file__, "--worker", str(out), "--device", args.device, "--steps", str(args.steps),
+                   "--shapes", str(args.shapes)]
+        env = {**os.environ, "OMP_NUM_THREADS": "1"}
+        done = subprocess.run(command, capture_output=True, text=True, env=env)
+        if done.returncode != 0:
+            raise SystemExit(f"bench_train: the DDP round failed:\n{done.stderr[-3000:]}")
+        return json.loads(out.read_text())
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cpu", help="cpu (default), cuda or auto")
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=6, help="timed iterations per round and configuration")
+    parser.add_argument("--shapes", type=int, default=64)
+    parser.add_argument("--threads", default="1,2", help="CPU thread counts measured in this process (default 1,2)")
+    parser.add_argument("--ddp", type=int, default=2,
+                        help="ranks of the DDP measurement (one thread, or one GPU, each; 0 = none)")
+    parser.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.worker:
+        return worker(args)
+
+    import torch
+
+    from kpd.train.trainer import resolve_device
+
+    device = resolve_device(args.device)
+    args.device = device.type
+    cuda = device.type == "cuda"
+    threads = [1] if cuda else [int(n) for n in args.threads.split(",")]
+    ddp = args.ddp if not cuda or torch.cuda.device_count() >= args.ddp else 0
+    torch.set_num_threads(threads[0])
+    trainer, samples, source = make_trainer(args.shapes, args.device)
+    rss_data = peak_rss_mb()
     model = trainer.model
-    b = config.batch
     idx = trainer.batch_indices(0)
-    x = torch.from_numpy(samples.points[np.concatenate([idx["source"], idx["target"]]), 0])  # (2B, N, 3)
+    x = torch.from_numpy(samples.points[np.concatenate([idx["source"], idx["target"]]), 0]).to(device)  # (2B, N, 3)
+    timer = Timer(device)
 
     def bare() -> None:
         keypoints = model.keypoint_predictor(x)  # Φ on source and target
-        offset = model.influence_predictor(x[:b])  # Γ on the source
+        offset = model.influence_predictor(x[:BATCH])  # Γ on the source
         model.zero_grad(set_to_none=True)
         (keypoints.sum() + offset.sum()).backward()
 
@@ -100,29 +206,73 @@ def main(argv: list[str] | None = None) -> int:
         trainer.step(t)
         t += 1
 
-    for f in (iteration, bare, iteration, bare):  # warm up allocators and threads
-        f()
-    times: dict[str, list[float]] = {"iteration": [], "bare": []}
+    times: dict[str, list[float]] = {}
+    peaks: dict[str, float] = {}
+    ddp_runs: list[dict] = []
     for _ in range(args.rounds):
-        for name, f in (("iteration", iteration), ("bare", bare)):
-            start = time.perf_counter()
-            for _ in range(args.steps):
-                f()
-            times[name].append((time.perf_counter() - start) / args.steps)
-    it, bare_s = statistics.median(times["iteration"]), statistics.median(times["bare"])
+        for n in threads:
+            torch.set_num_threads(n)
+            for name, f in ((f"bare_{n}t", bare), (f"iteration_{n}t", iteration)):
+                f()  # warm the thread pool and allocators
+                seconds, peak = timer(f, args.steps)
+                times.setdefault(name, []).append(seconds)
+                if peak is not None:
+                    peaks[name] = max(peaks.get(name, 0.0), peak)
+        if ddp:
+            ddp_runs.append(ddp_round(args, ddp))
+            times.setdefault(f"iteration_ddp{ddp}", []).append(ddp_runs[-1]["seconds"])
+    syncs = None
+    if cuda:  # does the step wait for the device anywhere?
+        torch.cuda.set_sync_debug_mode("error")
+        try:
+            for _ in range(3):
+                iteration()
+            syncs = "none"
+        except RuntimeError as exc:
+            syncs = str(exc).splitlines()[0]
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    configs: dict[str, dict] = {}
+    for n in threads:
+        it, b = med[f"iteration_{n}t"], med[f"bare_{n}t"]
+        key = "gpu" if cuda else f"{n} thread{'s' if n > 1 else ''}"
+        configs[key] = {"iteration_seconds": round(it, 4), "bare_phi_gamma_fwd_bwd_seconds": round(b, 4),
+                        "ratio_to_bare": round(it / b, 3)}
+        if cuda:
+            configs[key].update({"peak_gpu_mb_iteration": peaks[f"iteration_{n}t"],
+                                 "peak_gpu_mb_bare": peaks[f"bare_{n}t"], "step_synchronizes": syncs})
+    if ddp:
+        it = med[f"iteration_ddp{ddp}"]
+        key = f"{ddp} {'GPUs (nccl)' if cuda else 'gloo processes x 1 thread'}"
+        configs[key] = {"iteration_seconds": round(it, 4), "pairs_per_rank": BATCH // ddp}
+        for n in threads:
+            name = "gpu" if cuda else f"{n}_thread{'s' if n > 1 else ''}"
+            configs[key][f"ratio_to_bare_{name}"] = round(it / med[f"bare_{n}t"], 3)
+        if cuda:
+            configs[key]["peak_gpu_mb_rank0"] = max(r["peak_gpu_mb"] for r in ddp_runs)
+        else:
+            configs[key]["peak_rss_mb_per_rank"] = [max(r["peak_rss_mb_per_rank"][i] for r in ddp_runs)
+                                                    for i in range(ddp)]
+    first = med[f"iteration_{threads[0]}t"]
     result = {
         "benchmark": "train_iteration",
+        "device": str(device),
         "data": source,
-        "batch": b,
+        "batch": BATCH,
         "points": int(samples.points.shape[2]),
-        "keypoints": 12,
-        "iteration_seconds": round(it, 4),
-        "bare_phi_gamma_fwd_bwd_seconds": round(bare_s, 4),
-        "ratio": round(it / bare_s, 3),
-        "projected_2000_iterations_minutes": round(2000 * it / 60, 1),
+        "keypoints": KEYPOINTS,
+        # the single-thread (or GPU) figures, as before
+        "iteration_seconds": round(first, 4),
+        "bare_phi_gamma_fwd_bwd_seconds": round(med[f"bare_{threads[0]}t"], 4),
+        "ratio": round(first / med[f"bare_{threads[0]}t"], 3),
+        "projected_2000_iterations_minutes": round(2000 * first / 60, 1),
+        "configs": configs,
+        "speedup_over_first": {k: round(first / v["iteration_seconds"], 3) for k, v in configs.items()},
+        "peak_rss_mb": {"data_loaded": rss_data, "after_steps": peak_rss_mb()},
         "rounds": {k: [round(v, 4) for v in vs] for k, vs in times.items()},
         "torch": torch.__version__,
-        "threads": torch.get_num_threads(),
+        "gpu": torch.cuda.get_device_name(device) if cuda else None,
         "cpu_count": os.cpu_count(),
         "load_average": [round(v, 2) for v in os.getloadavg()],
     }

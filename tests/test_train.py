@@ -225,6 +225,25 @@ def test_warmup_trains_only_the_keypoint_predictor(chairs, tmp_path):
         assert changed == name.startswith("keypoint_predictor"), name
 
 
+@pytest.mark.parametrize("source, t", [("learned", 0), ("learned", 10), ("fps", 0)])
+def test_step_reads_no_value_on_the_host(chairs, tmp_path, source, t):
+    """GPU-ready: a whole step (batch, forward, backward, both optimisers) runs on the meta device, where tensors have
+    no values: any .item(), float(), .cpu(), .numpy(), bool() or value-dependent shape in it (a host round trip on a
+    GPU) would raise."""
+    trainer = Trainer(small_config(keypoint_source=source), chairs, tmp_path, device="cpu", command="test")
+    meta = torch.device("meta")
+    trainer.model.to(meta)
+    trainer.train_set = {k: v.to(meta) for k, v in trainer.train_set.items()}
+    trainer.device = meta
+    terms = trainer.step(t)  # warm-up (t=0) and full loss (t=10 = warmup)
+    assert terms.device == meta and terms.shape == (4,)
+    phi = {id(p) for p in trainer.model.phi_parameters()}
+    trained = [p for p in trainer.model.parameters() if t >= 10 or source == "fps" or id(p) in phi]
+    assert trained and all(p.grad is not None and p.grad.device == meta for p in trained)
+    with pytest.raises(RuntimeError, match="meta"):
+        float(terms[0])  # the check can fail
+
+
 def test_short_run_lowers_the_losses(chairs, tmp_path):
     trainer = Trainer(small_config(iterations=50, warmup=5, save_every=50), chairs, tmp_path, device="cpu",
                       command="test")

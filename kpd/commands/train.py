@@ -12,7 +12,9 @@ from kpd.commands import existing, folder, integer, number
 from kpd.errors import InputError
 
 HELP = "train KeypointDeformer on a shape category (PyTorch; cuda when available)"
-EXAMPLE = "kpd train data/modelnet10 --category chair --keypoints 12 --out runs/chair"
+EXAMPLE = ("kpd train data/modelnet10 --category chair --keypoints 12 --out runs/chair\n"
+           "  torchrun --nproc_per_node 2 -m kpd.cli train data/modelnet10 --category chair --out runs/chair  "
+           "# 2 ranks, 8 pairs each")
 
 # The paper's values where the authors' code differs (REFERENCE §11).
 PAPER = {"alpha_kpt": 1.0, "inf_reg": "paper", "alpha_inf": 1e-6, "warmup": 0, "wc_lr": None, "clamp": False,
@@ -28,8 +30,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--iterations", type=integer(1), default=2000, help="optimisation steps (default 2000)")
     g.add_argument("--batch", type=integer(1), default=16, help="source/target pairs per step (default 16)")
     g.add_argument("--seed", type=integer(0), default=0, help="seed of everything random (default 0)")
-    g.add_argument("--device", default="auto", help="auto (cuda if available), cpu, cuda, cuda:N")
-    g.add_argument("--threads", type=integer(1), default=None, help="torch CPU threads (default: all cores)")
+    g.add_argument("--device", default="auto",
+                   help="auto (cuda if available), cpu, cuda, cuda:N (under torchrun: cpu or cuda, one GPU per rank)")
+    g.add_argument("--threads", type=integer(1), default=None,
+                   help="torch CPU threads (default: all cores, shared out among the ranks of a node under torchrun)")
     g.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     g.add_argument("--force", action="store_true", help="start over in an existing --out")
     g.add_argument("--save-every", type=integer(1), default=200, help="checkpoint interval in iterations (default 200)")
@@ -84,32 +88,25 @@ def recipe(args: argparse.Namespace):
         keypoint_source=args.keypoint_source, save_every=args.save_every, val_pairs=args.val_pairs)
 
 
-# A validation split smaller than this gives no validation score (pairs of one shape score 0); fewer than
-# FEW_VAL shapes are flagged.
-MIN_VAL, FEW_VAL = 2, 5
-
-
-def _score(value) -> bool:
-    """A validation chamfer was computed (not absent, not NaN)."""
-    return value is not None and value == value
-
-
-def run(args: argparse.Namespace) -> int:
-    from kpd.io import check_output as check_folder
-    from kpd.io import remove_stale_temporaries
-
-    out = Path(args.out)
-    if args.resume and args.force:
-        raise InputError("--resume and --force contradict each other; choose one")
+def check_output(args: argparse.Namespace, out: Path) -> None:
+    """The run folder suits --resume / --force (checked by rank 0 alone under torchrun)."""
     if args.resume and not (out / "checkpoint.pt").is_file():
         raise InputError(f"--resume: no checkpoint in {out}")
     if not args.resume and out.is_dir() and any(out.iterdir()) and not args.force:
         raise InputError(f"output {out} exists and is not empty; pass --resume to continue or --force to start over")
     if not out.parent.exists():
         raise InputError(f"output folder {out.parent} does not exist")
-    # the run folder is not replaced as a whole (checkpoints go into it as training runs), but it is checked like
-    # every output: writable, and neither the data, the split file nor the cache nor a folder holding them
-    check_folder(out, option="--out", force=True, kind="folder", inputs=(args.data, args.split_file, args.cache))
+
+
+# A validation split smaller than this gives no validation score (pairs of one shape score 0); fewer than
+# FEW_VAL shapes are flagged.
+MIN_VAL, FEW_VAL = 2, 5
+
+
+def run(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    if args.resume and args.force:
+        raise InputError("--resume and --force contradict each other; choose one")
     if args.points < args.keypoints:
         raise InputError(f"--points must be at least --keypoints ({args.keypoints}); got {args.points}")
     config = recipe(args)
@@ -118,40 +115,83 @@ def run(args: argparse.Namespace) -> int:
 
     started = time.perf_counter()
 
+    from kpd.train import distributed
+
+    try:
+        world = distributed.from_environment(config.batch, args.device)  # None unless started by torchrun
+        if world is None:
+            check_run_folder(args, out)
+            return _train(args, config, out, None, started)
+        distributed.init(world)
+        try:
+            distributed.only_main(world, lambda: check_run_folder(args, out))
+            return _train(args, config, out, world, started)
+        finally:
+            distributed.shutdown()
+    except distributed.Stopped:
+        return 2  # another rank printed the error
+
+
+def check_run_folder(args: argparse.Namespace, out: Path) -> None:
+    """--out suits --resume / --force and is a writable folder apart from the inputs (rank 0 alone under torchrun)."""
+    from kpd.io import check_output as check_folder
+
+    check_output(args, out)
+    # the run folder is not replaced as a whole (checkpoints go into it as training runs), but it is checked like
+    # every output: writable, and neither the data, the split file nor the cache nor a folder holding them
+    check_folder(out, option="--out", force=True, kind="folder", inputs=(args.data, args.split_file, args.cache))
+
+
+def _score(value) -> bool:
+    """A validation chamfer was computed (not absent, not NaN)."""
+    return value is not None and value == value
+
+
+def _train(args: argparse.Namespace, config, out: Path, world, started: float) -> int:
+    """Sample (once per cache), train and report; under torchrun rank 0 alone prints and writes."""
+    import dataclasses
+    import time
+
     import torch
 
     from kpd.data import SampleSettings, prepare
+    from kpd.io import remove_stale_temporaries
+    from kpd.train import distributed
     from kpd.train.trainer import train
 
-    torch.set_num_threads(args.threads or os.cpu_count() or 1)
+    main = world is None or world.main
+    per_node = 1 if world is None else world.local_size
+    torch.set_num_threads(args.threads or max(1, (os.cpu_count() or 1) // per_node))
     settings = SampleSettings(points=args.points, samples=args.samples, cage_level=args.cage_level,
                               cage_distance=args.cage_distance, enclose=args.enclose_cage,
                               outer=args.outer_surface)
-    data = prepare(args.data, args.category, settings=settings, cache_dir=args.cache, split_file=args.split_file,
-                   val_fraction=args.val_fraction, seed=args.seed, processes=args.processes,
-                   progress=not args.quiet)
+    data = distributed.in_turn(world, lambda: prepare(
+        args.data, args.category, settings=settings, cache_dir=args.cache, split_file=args.split_file,
+        val_fraction=args.val_fraction, seed=args.seed, processes=args.processes,
+        progress=not args.quiet and (world is None or world.local_rank == 0)))
+    say = print if main else (lambda *a, **k: None)
     for s in data.skipped:
-        print(f"skipped {s.path}: {s.reason}", file=sys.stderr)
+        say(f"skipped {s.path}: {s.reason}", file=sys.stderr)
     counts = ", ".join(f"{k} {len(v)}" for k, v in data.samples.items())
-    print(f"{data.category.category} ({data.category.layout}): {counts} shapes; {len(data.skipped)} skipped")
+    ranks = "" if world is None else f"; {world.size} ranks ({world.backend}), {config.batch // world.size} pairs each"
+    say(f"{data.category.category} ({data.category.layout}): {counts} shapes; {len(data.skipped)} skipped{ranks}")
     val = len(data.samples["val"]) if "val" in data.samples else 0
     if config.val_pairs and val < MIN_VAL:
-        print(f"warning: the validation split has {val} shape(s): no validation score (it needs pairs of distinct "
-              f"shapes); give more data, a split file with a val list, or a larger --val-fraction", file=sys.stderr)
-        import dataclasses
-
+        say(f"warning: the validation split has {val} shape(s): no validation score (it needs pairs of distinct "
+            f"shapes); give more data, a split file with a val list, or a larger --val-fraction", file=sys.stderr)
         config = dataclasses.replace(config, val_pairs=0)
     elif config.val_pairs and val < FEW_VAL:
-        print(f"warning: the validation split has only {val} shapes; its chamfer says little", file=sys.stderr)
+        say(f"warning: the validation split has only {val} shapes; its chamfer says little", file=sys.stderr)
     command = "kpd " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if "train" in sys.argv[1:] else None
-    created = not out.exists()
-    out.mkdir(exist_ok=True)
-    if args.resume:
-        for path in remove_stale_temporaries(out):
-            print(f"removed {path.name}, left by the interrupted run", file=sys.stderr)
+    created = main and not out.exists()
+    if main:
+        out.mkdir(exist_ok=True)
+        if args.resume:
+            for path in remove_stale_temporaries(out):
+                print(f"removed {path.name}, left by the interrupted run", file=sys.stderr)
     try:
         record = train(data, config, out, device=args.device, resume=args.resume, progress=not args.quiet,
-                       command=command)
+                       command=command, world=world)
     except BaseException:
         if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()  # a refused or failed start leaves no empty run folder
@@ -159,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
     metrics = record["metrics"]
     score = (f"val chamfer {metrics['val_chamfer']:.5f} (undeformed {metrics['val_chamfer_undeformed']:.5f})"
              if _score(metrics.get("val_chamfer")) else "no validation score (the validation split is too small)")
-    print(f"done: {record['metrics']['iterations_done']} iterations; {record['train_seconds']:.0f} s in steps, "
-          f"{record['run_seconds']:.0f} s training loop, {time.perf_counter() - started:.0f} s in this command; "
-          f"{score}; {out}")
+    say(f"done: {record['metrics']['iterations_done']} iterations; {record['train_seconds']:.0f} s in steps, "
+        f"{record['run_seconds']:.0f} s training loop, {time.perf_counter() - started:.0f} s in this command; "
+        f"{score}; {out}")
     return 0

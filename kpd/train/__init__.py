@@ -5,6 +5,7 @@
 - ``ops``: batched chamfer, farthest point sampling, the M-nearest mask, cage deformation, mean value coordinates.
 - ``losses``: L_sim, L_kpt, L_inf (REFERENCE §6).
 - ``trainer``: :class:`TrainConfig`, :class:`Trainer`, :func:`train` (checkpoints, exact resume, records).
+- ``distributed``: torchrun data parallelism (the world of a rank, rank-0-first turns, the checkpoint broadcast).
 - ``predictor``: :class:`CheckpointPredictor` (keypoints, influence, alignment from a checkpoint).
 - ``evaluate``: alignment chamfer (paper Fig. 7) and label-free keypoint quality.
 """

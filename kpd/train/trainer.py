@@ -5,6 +5,12 @@ randomness (source order, targets, which cached sample, FPS starts) is drawn fro
 by ``(seed, iteration)``, so a run resumed from a checkpoint continues with exactly the numbers an uninterrupted run
 would have used; the checkpoint holds the weights, both optimisers' states and the loss history.
 
+Under ``torchrun`` (:mod:`kpd.train.distributed`) each rank takes its slice of every iteration's global batch from
+the same ``(seed, iteration)`` schedule and DistributedDataParallel averages the gradients, so W ranks follow the
+single-process run to floating-point rounding, and a checkpoint resumes with any world size; rank 0 alone validates
+and writes the files below. The step keeps every per-iteration tensor on the device: the loss terms are brought to
+the host (and averaged over the ranks) every :data:`LOG_EVERY` iterations and at checkpoints only.
+
 Output folder::
 
     checkpoint.pt   the latest checkpoint (atomic; torch.load(..., weights_only=True)):
@@ -13,9 +19,10 @@ Output folder::
                      "states": KeypointDeformer.state_dict() (keys of REFERENCE §16),
                      "optimizers": {"keypoint": Adam state | None, "deformer": Adam state},
                      "history": {"train": (T, 5) float64 [iteration, loss, sim, kpt, inf],
-                                 "val": (V, 3) float64 [iteration, val chamfer, val chamfer undeformed]}}
+                                 "val": (V, 3) float64 [iteration, val chamfer, val chamfer undeformed]},
+                     "world_sizes": [[first iteration, world size], ...] (one entry per change of world size)}
     model.json      model config, train config, sample settings
-    record.json     data, command, seed, iterations, metrics, skipped files, timings, versions
+    record.json     data, command, seed, iterations, metrics, skipped files, timings, world size, versions
     losses.csv      per-iteration losses;  losses.png  the curves
 """
 
@@ -34,15 +41,18 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 
 from kpd.data import PreparedData, SampleSettings, ShapeSamples
 from kpd.errors import InputError, TrainingError
+from kpd.train import distributed
+from kpd.train.distributed import World
 from kpd.train.losses import influence_loss, keypoint_loss, similarity_loss
 from kpd.train.nets import KeypointDeformer, ModelConfig
 from kpd.train.ops import chamfer, farthest_point_sampling, fps_keypoints, gather_points, mvc_weights, serial
 
 __all__ = ["TrainConfig", "Trainer", "train", "resolve_device", "load_checkpoint", "CHECKPOINT_FORMAT",
-           "CHECKPOINT_VERSION"]
+           "CHECKPOINT_VERSION", "LOG_EVERY"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +60,7 @@ CHECKPOINT_FORMAT = "kpd-checkpoint"
 CHECKPOINT_VERSION = 1
 CHECKPOINT_NAME = "checkpoint.pt"
 HISTORY_COLUMNS = ("iteration", "loss", "sim", "kpt", "inf")
+LOG_EVERY = 10  # iterations between bringing the loss terms to the host
 
 
 @dataclass(frozen=True)
@@ -168,6 +179,66 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     return ckpt
 
 
+class Objective(nn.Module):
+    """One iteration's forward pass and losses as a module call, the unit DistributedDataParallel wraps.
+
+    The warm-up objective (``warm=True``: the keypoint regulariser alone) holds Φ only and the full one the whole
+    model, so each holds exactly the parameters its loss reaches and DDP never meets an unused one.
+
+    Parameters
+    ----------
+    model : the networks (shared, not copied).
+    config : the recipe (K, J factor, loss weights).
+    warm : the warm-up objective.
+    """
+
+    def __init__(self, model: KeypointDeformer, config: TrainConfig, warm: bool) -> None:
+        super().__init__()
+        self.config, self.warm, self.clamp = config, warm, model.config.clamp
+        self.keypoint_predictor = model.keypoint_predictor  # Φ, None for farthest-point keypoints
+        self.model = None if warm else model
+
+    def forward(self, points: torch.Tensor, cage: torch.Tensor, weights: torch.Tensor, fps_start: torch.Tensor,
+                fps_keypoints: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Losses of ``b`` pairs.
+
+        Parameters
+        ----------
+        points : (2b, N, 3) the sources, then the targets.
+        cage : (b, C, 3) the sources' cages; weights : (b, N, C) their MVC weights.
+        fps_start : (2b,) int64 first farthest point of each cloud (keypoint regulariser).
+        fps_keypoints : (2b, K, 3) the keypoints of the farthest-point baseline; None for Φ's.
+
+        Returns
+        -------
+        out : ``loss`` (what is backpropagated) and the terms ``sim``, ``kpt``, ``inf`` it has (scalars); the full
+            objective also gives ``deformed``, ``new_cage`` (b, ...) and its inputs ``cage``, ``weights``.
+        """
+        cfg = self.config
+        b = len(points) // 2
+        out: dict[str, torch.Tensor] = {}
+        if fps_keypoints is None:
+            keypoints = self.keypoint_predictor(points)  # (2b, K, 3); as KeypointDeformer.keypoints
+            if self.clamp:
+                keypoints = keypoints.clamp(-1.0, 1.0)
+            fps = farthest_point_sampling(points, cfg.fps_factor * cfg.keypoints, fps_start)
+            out["kpt"] = keypoint_loss(keypoints, gather_points(points, fps))
+        else:
+            keypoints = fps_keypoints
+        if self.warm:
+            out["loss"] = cfg.alpha_kpt * out["kpt"]
+            return out
+        result = self.model.deform(points[:b], cage, weights, keypoints[:b], keypoints[b:])
+        out["sim"] = similarity_loss(result.deformed, points[b:])
+        out["inf"] = influence_loss(result.offset, cfg.inf_reg)
+        loss = out["sim"] + cfg.alpha_inf * out["inf"]
+        if fps_keypoints is None:
+            loss = loss + cfg.alpha_kpt * out["kpt"]
+        out["loss"] = loss
+        out["deformed"], out["new_cage"], out["cage"], out["weights"] = result.deformed, result.new_cage, cage, weights
+        return out
+
+
 class Trainer:
     """One training run on prepared data; :meth:`run` trains, checkpoints and writes the record.
 
@@ -176,19 +247,26 @@ class Trainer:
     config : the recipe.
     data : from :func:`kpd.data.prepare` with the ``train`` (and optionally ``val``) split.
     out_dir : the run folder (created).
-    device : ``auto``, ``cpu``, ``cuda``...
+    device : ``auto``, ``cpu``, ``cuda``... (under torchrun the device of ``world``).
     command : recorded in ``record.json``.
+    world : this rank's torchrun job (:func:`kpd.train.distributed.from_environment`, after
+        :func:`~kpd.train.distributed.init`); None for one process.
     """
 
     def __init__(self, config: TrainConfig, data: PreparedData, out_dir: str | os.PathLike, *, device: str = "auto",
-                 command: str | None = None) -> None:
+                 command: str | None = None, world: World | None = None) -> None:
         from kpd.cage import default_m, icosphere
 
         config.check()
+        if world is not None and config.batch % world.size:
+            raise InputError(f"batch {config.batch} does not split over {world.size} ranks")
         self.config = config
         self.data = data
         self.out_dir = Path(out_dir)
-        self.device = resolve_device(device)
+        self.world = world if world is not None and world.size > 1 else None
+        self.main = world is None or world.main
+        self.world_size = 1 if world is None else world.size
+        self.device = world.device if world is not None else resolve_device(device)
         self.command = command if command is not None else " ".join(sys.argv)
         train = data.samples["train"]
         self.settings: SampleSettings = data.settings
@@ -210,9 +288,14 @@ class Trainer:
             {"params": list(self.model.influence_predictor.parameters()), "lr": config.lr},
             {"params": [self.model.influence_param], "lr": config.wc_lr},
         ], fused=True)
+        learned = self.model_config.keypoint_source == "learned"
+        self.objectives = {warm: Objective(self.model, config, warm) for warm in ((True, False) if learned else (False,))}
+        self._ddp: tuple[bool, nn.Module] | None = None  # (warm, the DDP wrapper of that objective)
         self.iteration = 0
         self.history: list[list[float]] = []
         self.val_history: list[list[float]] = []
+        self.world_sizes: list[list[int]] = []  # [first iteration, world size] per change
+        self.world_info = None if world is None else world.to_dict()
         self.seconds = 0.0  # time in optimisation steps
         self.run_seconds = 0.0  # wall time of the training loop, with validation and checkpoints
         self._val_pairs = self._validation_pairs()
@@ -277,38 +360,59 @@ class Trainer:
             return data["fps_keypoints"][shapes, samples]
         return self.model.keypoints(points)
 
-    def losses(self, t: int) -> dict[str, torch.Tensor]:
-        """Forward pass of iteration ``t``; the ``loss`` entry is what :meth:`step` backpropagates."""
-        cfg, data = self.config, self.train_set
-        idx = {k: torch.from_numpy(v).to(self.device) for k, v in self.batch_indices(t).items()}
-        shapes = torch.cat([idx["source"], idx["target"]])
-        samples = torch.cat([idx["source_sample"], idx["target_sample"]])
-        points = data["points"][shapes, samples]  # (2B, N, 3)
-        b = cfg.batch
-        learned = self.model_config.keypoint_source == "learned"
-        out: dict[str, torch.Tensor] = {}
-        keypoints = self._keypoints(data, shapes, samples, points)  # (2B, K, 3)
-        if learned:
-            fps = farthest_point_sampling(points, cfg.fps_factor * cfg.keypoints, idx["fps_start"])
-            out["kpt"] = keypoint_loss(keypoints, gather_points(points, fps))
-        if learned and t < cfg.warmup:
-            out["loss"] = cfg.alpha_kpt * out["kpt"]
-            return out
-        source = points[:b]
-        cage = data["cages"][idx["source"], idx["source_sample"]]  # (B, C, 3)
-        weights = data["weights"][idx["source"], idx["source_sample"]]  # (B, N, C)
-        result = self.model.deform(source, cage, weights, keypoints[:b], keypoints[b:])
-        out["sim"] = similarity_loss(result.deformed, points[b:])
-        out["inf"] = influence_loss(result.offset, cfg.inf_reg)
-        loss = out["sim"] + cfg.alpha_inf * out["inf"]
-        if learned:
-            loss = loss + cfg.alpha_kpt * out["kpt"]
-        out["loss"] = loss
-        out["deformed"], out["new_cage"], out["cage"], out["weights"] = result.deformed, result.new_cage, cage, weights
-        return out
+    def _upload(self, array: np.ndarray) -> torch.Tensor:
+        """A host array on the device without waiting for it (pinned memory, asynchronous copy on CUDA)."""
+        tensor = torch.from_numpy(array)
+        if self.device.type == "cuda":
+            return tensor.pin_memory().to(self.device, non_blocking=True)
+        return tensor.to(self.device)
 
-    def step(self, t: int) -> dict[str, float]:
-        """One optimisation step; returns the loss terms as floats (NaN for terms not computed)."""
+    def batch(self, t: int) -> dict[str, torch.Tensor]:
+        """This rank's share of iteration ``t``'s pairs (all of them in one process), gathered on the device.
+
+        Returns the keyword arguments of :meth:`Objective.forward`: ``points`` (2b, N, 3) sources then targets,
+        ``cage`` (b, C, 3), ``weights`` (b, N, C), ``fps_start`` (2b,), ``fps_keypoints`` (2b, K, 3) or None, with
+        b = B / W pairs from slot ``[rank * b, (rank + 1) * b)`` of :meth:`batch_indices`.
+        """
+        data, b = self.train_set, self.config.batch
+        idx = self.batch_indices(t)
+        share = slice(0, b) if self.world is None else self.world.share(b)
+        rows = np.stack([idx["source"][share], idx["target"][share], idx["source_sample"][share],
+                         idx["target_sample"][share], idx["fps_start"][:b][share], idx["fps_start"][b:][share]])
+        source, target, source_sample, target_sample, fps_source, fps_target = self._upload(rows).unbind(0)
+        shapes = torch.cat([source, target])
+        samples = torch.cat([source_sample, target_sample])
+        return {
+            "points": data["points"][shapes, samples],
+            "cage": data["cages"][source, source_sample],
+            "weights": data["weights"][source, source_sample],
+            "fps_start": torch.cat([fps_source, fps_target]),
+            "fps_keypoints": data["fps_keypoints"][shapes, samples] if "fps_keypoints" in data else None,
+        }
+
+    def _objective(self, warm: bool) -> nn.Module:
+        """The objective of this phase; under torchrun wrapped in DistributedDataParallel (re-wrapped once, when
+        the warm-up ends: the old wrapper is dropped first, which removes its gradient hooks)."""
+        objective = self.objectives[warm]
+        if self.world is None:
+            return objective
+        if self._ddp is None or self._ddp[0] != warm:
+            from torch.nn.parallel import DistributedDataParallel
+
+            self._ddp = None
+            ids = [self.device.index] if self.device.type == "cuda" else None
+            self._ddp = (warm, DistributedDataParallel(objective, device_ids=ids, forward_sync_buffers=False))
+        return self._ddp[1]
+
+    def losses(self, t: int) -> dict[str, torch.Tensor]:
+        """Forward pass of this rank's share of iteration ``t``; the ``loss`` entry is what :meth:`step`
+        backpropagates (see :meth:`Objective.forward`)."""
+        warm = self.model_config.keypoint_source == "learned" and t < self.config.warmup
+        return self._objective(warm)(**self.batch(t))
+
+    def step(self, t: int) -> torch.Tensor:
+        """One optimisation step. Returns this rank's loss terms ``[loss, sim, kpt, inf]`` (4,) on the device, NaN
+        for terms not computed; nothing waits for the device (no value is read on the host)."""
         out = self.losses(t)
         warm = self.model_config.keypoint_source == "learned" and t < self.config.warmup
         if self.opt_keypoints is not None:
@@ -320,7 +424,26 @@ class Trainer:
                 self.opt_keypoints.step()
             if not warm:
                 self.opt_deformer.step()
-        return {k: float(out[k].detach()) if k in out else math.nan for k in HISTORY_COLUMNS[1:]}
+        nan = out["loss"].detach().new_full((), math.nan)
+        return torch.stack([out[k].detach() if k in out else nan for k in HISTORY_COLUMNS[1:]])
+
+    def _log_terms(self, first: int, terms: list[torch.Tensor]) -> np.ndarray:
+        """Bring the terms of iterations ``first ..`` to the host (the mean over the ranks) into :attr:`history`;
+        :class:`~kpd.errors.TrainingError` at the first non-finite loss. Returns the rows (L, 5)."""
+        stacked = torch.stack(terms)  # (L, 4) on the device
+        if self.world is not None:
+            distributed.average(stacked)
+        values = stacked.cpu().double().numpy()
+        rows = np.column_stack([np.arange(first, first + len(values), dtype=np.float64), values])
+        self.history.extend(rows.tolist())
+        bad = np.flatnonzero(~np.isfinite(values[:, 0]))
+        if len(bad):
+            kept = self.out_dir / CHECKPOINT_NAME
+            error = TrainingError if self.main else distributed.Stopped  # every rank sees it; rank 0 says it
+            raise error(f"training diverged at iteration {first + bad[0]}: loss {values[bad[0], 0]}; "
+                        + (f"{kept} keeps the last good checkpoint" if kept.is_file()
+                           else "no checkpoint had been written yet"))
+        return rows
 
     # ----------------------------------------------------------------------------------------------- validation
     @torch.no_grad()
@@ -365,6 +488,7 @@ class Trainer:
             },
             "seconds": self.seconds,
             "run_seconds": self.run_seconds,
+            "world_sizes": [list(s) for s in self.world_sizes],
         }
 
     def load_state(self, ckpt: dict) -> None:
@@ -387,6 +511,7 @@ class Trainer:
         self.val_history = ckpt["history"]["val"].tolist()
         self.seconds = float(ckpt.get("seconds", 0.0))
         self.run_seconds = float(ckpt.get("run_seconds", 0.0))
+        self.world_sizes = [[int(a), int(b)] for a, b in ckpt.get("world_sizes", [[0, 1]])]
 
     def save(self) -> None:
         """Write checkpoint, model.json, record.json, losses.csv and losses.png (each atomically)."""
@@ -429,6 +554,9 @@ class Trainer:
             "run_seconds": round(self.run_seconds, 2),
             "device": str(self.device),
             "threads": torch.get_num_threads(),
+            "world_size": self.world_size,
+            "distributed": self.world_info,
+            "world_sizes": [list(s) for s in self.world_sizes],
             "versions": {"torch": torch.__version__, "numpy": np.__version__, "python": platform.python_version()},
             "last": None if last is None else dict(zip(HISTORY_COLUMNS, last)),
         }
@@ -477,48 +605,61 @@ class Trainer:
     # ----------------------------------------------------------------------------------------------- loop
     def run(self, *, progress: bool = True, stop_at: int | None = None) -> dict:
         """Train from :attr:`iteration` to ``config.iterations`` (or ``stop_at``), checkpointing every
-        ``save_every`` iterations and at the end. Returns the record."""
+        ``save_every`` iterations and at the end (rank 0 only under torchrun). Returns the record."""
         from tqdm import tqdm
 
         cfg = self.config
         end = cfg.iterations if stop_at is None else min(stop_at, cfg.iterations)
+        if self.iteration < end and (not self.world_sizes or self.world_sizes[-1][1] != self.world_size):
+            self.world_sizes.append([self.iteration, self.world_size])
         self.model.train()
-        bar = tqdm(total=end, initial=self.iteration, desc="training", unit="it", disable=not progress)
+        bar = tqdm(total=end, initial=self.iteration, desc="training", unit="it", disable=not (progress and self.main))
         loop_start = time.perf_counter() - self.run_seconds
+        pending: list[torch.Tensor] = []  # loss terms on the device, not yet logged
         try:
+            start = time.perf_counter()
             while self.iteration < end:
                 t = self.iteration
-                start = time.perf_counter()
-                terms = self.step(t)
+                pending.append(self.step(t))
                 self.iteration = t + 1
-                self.history.append([float(t)] + [terms[k] for k in HISTORY_COLUMNS[1:]])
-                self.seconds += time.perf_counter() - start
-                if not math.isfinite(terms["loss"]):
-                    kept = self.out_dir / CHECKPOINT_NAME
-                    raise TrainingError(f"training diverged at iteration {t}: loss {terms['loss']}; "
-                                        + (f"{kept} keeps the last good checkpoint" if kept.is_file()
-                                           else "no checkpoint had been written yet"))
-                if self.iteration % 10 == 0:
+                checkpoint = self.iteration % cfg.save_every == 0 or self.iteration == end
+                if checkpoint or self.iteration % LOG_EVERY == 0:
+                    rows = self._log_terms(self.iteration - len(pending), pending)
+                    pending = []
+                    self.seconds += time.perf_counter() - start  # steps, and the wait for the device
+                    terms = dict(zip(HISTORY_COLUMNS[1:], rows[-1, 1:]))
                     bar.set_postfix({k: f"{v:.3g}" for k, v in terms.items() if not math.isnan(v)}, refresh=False)
-                bar.update()
-                if self.iteration % cfg.save_every == 0 or self.iteration == end:
-                    self.run_seconds = time.perf_counter() - loop_start
-                    val = self.validate()
-                    self.val_history.append([float(self.iteration), *val])
-                    self.save()
-                    log.info("iteration %d: loss %.5g, val chamfer %.5g (undeformed %.5g)", self.iteration,
-                             terms["loss"], *val)
+                    bar.update(len(rows))
+                    if checkpoint and self.main:
+                        self.run_seconds = time.perf_counter() - loop_start
+                        val = self.validate()
+                        self.val_history.append([float(self.iteration), *val])
+                        self.save()
+                        log.info("iteration %d: loss %.5g, val chamfer %.5g (undeformed %.5g)", self.iteration,
+                                 terms["loss"], *val)
+                    start = time.perf_counter()
         finally:
             bar.close()
+        distributed.barrier(self.world)  # the others end after rank 0 wrote the last checkpoint
         return self.record()
 
 
 def train(data: PreparedData, config: TrainConfig, out_dir: str | os.PathLike, *, device: str = "auto",
           resume: bool = False, progress: bool = True, command: str | None = None,
-          stop_at: int | None = None) -> dict:
-    """Train (or resume) a model in ``out_dir``; returns the training record (also in ``out_dir/record.json``)."""
-    trainer = Trainer(config, data, out_dir, device=device, command=command)
+          stop_at: int | None = None, world: World | None = None) -> dict:
+    """Train (or resume) a model in ``out_dir``; returns the training record (also in ``out_dir/record.json``).
+
+    Under torchrun (``world``), rank 0 reads and checks the checkpoint and sends it to the other ranks.
+    """
+    trainer = Trainer(config, data, out_dir, device=device, command=command, world=world)
     if resume:
-        trainer.load_state(load_checkpoint(Path(out_dir) / CHECKPOINT_NAME))
+        def load() -> dict:
+            ckpt = load_checkpoint(Path(out_dir) / CHECKPOINT_NAME)
+            trainer.load_state(ckpt)
+            return ckpt
+
+        ckpt = distributed.broadcast_state(world, distributed.only_main(world, load))
+        if not trainer.main:
+            trainer.load_state(ckpt)
         log.info("resuming %s at iteration %d", out_dir, trainer.iteration)
     return trainer.run(progress=progress, stop_at=stop_at)
