@@ -71,6 +71,7 @@ def export_model(
     training: Mapping | None = None,
     force: bool = False,
     tolerance: float = PARITY_TOLERANCE,
+    rig_cage_distance: float | None = None,
 ) -> ExportResult:
     """Export a network into a validated bundle (folder, or zip when ``out`` ends in ``.zip``).
 
@@ -91,6 +92,8 @@ def export_model(
     training : the training record (data, command, seed, iterations, metrics).
     force : replace an existing ``out``.
     tolerance : largest accepted |onnxruntime - torch| over keypoints and influence.
+    rig_cage_distance : the stop distance of the cage fitted for each rig at run time, if not the training one
+        (a tighter cage keeps edits more local; measured in benchmarks/bench_edits.py).
     """
     out = Path(out)
     if out.exists() and not force:
@@ -153,6 +156,7 @@ def export_model(
         m=cfg.m, point_count=point_count, cage_fit=cage_fit, prior=prior, template_points=template,
         template_source=template_source, up=up, training=_json_safe(record), clamp=cfg.clamp,
         frame_check=frame_check,
+        rig_fit=None if rig_cage_distance is None else {"distance": float(rig_cage_distance)},
     )
     with Outputs(force=force) as outputs:  # validated where it is written, placed only when it passes
         target = outputs.file(out, None) if out.suffix == ".zip" else outputs.folder(out, None)
@@ -272,6 +276,7 @@ def export_checkpoint(
     up: str | None = None,
     force: bool = False,
     progress: bool = True,
+    rig_cage_distance: float | None = None,
 ) -> ExportResult:
     """Export a kpd training run (its folder or its ``checkpoint.pt``) into a bundle.
 
@@ -329,7 +334,8 @@ def export_checkpoint(
     if up is None and recorded.get("layout") == "modelnet":
         up = "+z"
     return export_model(model, out, category=category, point_count=int(settings.get("points", 1024)), shapes=shapes,
-                        fit_prior=fit_prior, cage_fit=cage_fit, up=up, training=training, force=force)
+                        fit_prior=fit_prior, cage_fit=cage_fit, up=up, training=training, force=force,
+                        rig_cage_distance=rig_cage_distance)
 
 
 def _recorded_split(source: str) -> tuple[str | None, float]:

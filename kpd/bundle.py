@@ -244,11 +244,12 @@ def _check_manifest(manifest: dict, files: dict[str, bytes]) -> None:
         raise ValueError(f"cage vertices must be finite with shape (C, 3) = ({c}, 3); got {vertices.shape}")
     if faces.shape != (f, 3) or faces.dtype.kind not in "iu" or faces.min() < 0 or faces.max() >= c:
         raise ValueError(f"cage faces must be integers in [0, {c}) with shape (F, 3) = ({f}, 3); got {faces.shape}")
-    fit = manifest["cage"].get("fit") or {}
-    for key, value in fit.items():
-        if key not in ("distance", "iterations", "step") or isinstance(value, bool) or \
-                not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
-            raise ValueError(f"cage fit setting {key}={value!r} is not one of distance/iterations/step >= 0")
+    for entry in ("fit", "rig"):
+        fit = manifest["cage"].get(entry) or {}
+        for key, value in fit.items():
+            if key not in ("distance", "iterations", "step") or isinstance(value, bool) or \
+                    not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
+                raise ValueError(f"cage {entry} setting {key}={value!r} is not one of distance/iterations/step >= 0")
     shared = np.asarray(manifest["shared_influence"], dtype=np.float64)
     if shared.shape != (k, c) or not np.isfinite(shared).all():
         raise ValueError(f"shared_influence (W_C) must be finite with shape (K, C) = ({k}, {c}); got {shared.shape}")
@@ -303,6 +304,7 @@ def build_manifest(
     training: Mapping | None = None,
     clamp: bool = True,
     frame_check: Mapping | None = None,
+    rig_fit: Mapping | None = None,
 ) -> tuple[dict, dict[str, bytes]]:
     """The manifest and the files of a bundle (not yet written).
 
@@ -321,6 +323,7 @@ def build_manifest(
     up : the up axis of the training data's frame ("+z" for ModelNet), if known.
     training : the training record (data, command, seed, iterations, metrics), JSON-safe.
     frame_check : the limits of :func:`kpd.frame.calibrate` (the frame and category check), or None.
+    rig_fit : cage-fitting settings for rigs that differ from ``cage_fit`` (a tighter ``distance``), or None.
 
     Returns
     -------
@@ -366,6 +369,8 @@ def build_manifest(
     }
     if frame_check is not None:
         manifest["frame_check"] = dict(frame_check)
+    if rig_fit:
+        manifest["cage"]["rig"] = dict(rig_fit)
     manifest[_CHECKSUM_KEY] = manifest_checksum(manifest)
     files[contract.MANIFEST_FILE] = (json.dumps(manifest, indent=1, allow_nan=False) + "\n").encode("utf-8")
     return manifest, files

@@ -103,6 +103,8 @@ class Model:
         self._prior = bundle.prior
         fit = bundle.manifest["cage"].get("fit") or {}
         self._cage_fit = {key: fit[key] for key in ("distance", "iterations", "step") if key in fit}
+        # a bundle may fit its rigs' cages tighter than training did (kpd export --rig-cage-distance)
+        self._cage_fit.update(bundle.manifest["cage"].get("rig") or {})
 
     @classmethod
     def load(cls, path: str | os.PathLike, *, threads: int | None = None, inter_op_threads: int | None = None,

@@ -314,3 +314,26 @@ def test_export_command(run_dir, tmp_path, capsys, reuse_graphs):
     assert main(["export", str(run_dir), "--out", str(tmp_path / "c.zip")]) == 2  # exists, no --force
     assert "exists" in capsys.readouterr().err
     assert Path(tmp_path / "c.zip").is_file()
+
+
+def test_export_rig_cage_distance(run_dir, tmp_path, capsys, reuse_graphs):
+    """--rig-cage-distance: recorded in the bundle, and the runtime fits every rig's cage that tight."""
+    from kpd.cli import main
+    from kpd.io import Mesh
+    from kpd.runtime import Model
+
+    assert main(["export", str(run_dir), "--out", str(tmp_path / "loose.kpd")]) == 0
+    assert main(["export", str(run_dir), "--out", str(tmp_path / "tight.kpd"), "--rig-cage-distance", "0.2"]) == 0
+    capsys.readouterr()
+    assert read_bundle(tmp_path / "tight.kpd").manifest["cage"]["rig"] == {"distance": 0.2}
+    assert "rig" not in read_bundle(tmp_path / "loose.kpd").manifest["cage"]
+    # a box, rigged by both: the tight cage ends closer to the shape
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-0.5, 0.5) for z in (-0.3, 0.3)], dtype=float)
+    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
+                      [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    box = Mesh(corners, faces)
+    radius = [np.linalg.norm(Model.load(tmp_path / name).rig(box, enclose=False).cage.vertices, axis=1).mean()
+              for name in ("loose.kpd", "tight.kpd")]
+    assert radius[1] < radius[0]
+    assert main(["export", str(run_dir), "--out", str(tmp_path / "bad.kpd"), "--rig-cage-distance", "2"]) == 2
+    assert "--rig-cage-distance must lie in (0, 1.4)" in capsys.readouterr().err
