@@ -112,7 +112,16 @@ class _ToyPrior:
     def _check_params(self):
         return 1
 
+    def _check_fitted(self):
+        return None
+
+    def covariance(self):
+        from kpd.prior import KeypointPrior
+
+        return KeypointPrior.covariance(self)
+
     ridge_ = 1e-9
+    mirror_permutation_ = None
 
 
 def test_propose_with_and_without_prior():
