@@ -58,7 +58,7 @@ def _minimal_args(name: str) -> list[str]:
         "demo": [], "train": [".", "--out", "runs/x"], "export": ["run", "--out", "x.kpd"], "keypoints": ["chair", "s.ply"],
         "deform": ["chair", "s.ply", "--out", "o.ply"], "align": ["chair", "a.ply", "b.ply", "--out", "o.ply"],
         "sample": ["chair", "s.ply", "--out", "d"], "scan": ["s.ply", "--out", "a.ply", "--report", "r.json"], "view": ["chair", "s.ply"],
-        "render": ["chair", "s.ply", "--out", "v.png"], "eval": ["alignment", "runs/chair", "--out", "a.json"], "bench": ["chair"],
+        "render": ["chair", "s.ply", "--out", "v.png"], "eval": ["alignment", ".", "--out", "a.json"], "bench": ["chair"],
     }[name]
 
 
