@@ -341,6 +341,21 @@ def test_open3d_plotly_helpers_load_on_first_use():
     assert done.stdout.strip() == "Figure"
 
 
+def test_a_crashed_render_child_is_one_line(chair_rig, tmp_path, monkeypatch):
+    """The Filament renderer runs in a child process; when that child dies of a signal the caller gets one line."""
+    import kpd.viewer.render as render
+    from kpd.errors import KpdError
+    from kpd.rig import Rig
+
+    crash = tmp_path / "crash.sh"
+    crash.write_text("#!/bin/sh\necho 'Filament: something went wrong' >&2\nkill -SEGV $$\n")
+    crash.chmod(0o755)
+    monkeypatch.setattr(render.sys, "executable", str(crash))
+    with pytest.raises(KpdError, match=r"^the offscreen \(Filament\) renderer was killed by signal 11: Filament: "
+                                       r"something went wrong; try --backend egl$"):
+        render.render_rig(Rig.load(chair_rig), settings=ViewSettings(width=64, height=48), backend="offscreen")
+
+
 def test_no_window_is_one_line(chair_rig, tmp_path):
     env = dict(os.environ, DISPLAY=":987")  # no X server there
     _one_line_error(kpd("view", "--rig", chair_rig, env=env), "could not open an OpenGL window")

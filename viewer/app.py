@@ -143,7 +143,7 @@ class EditorApp:
         self.drawing = RigDrawing(self.view, self.rig.mesh, self.rig.num_keypoints, self.rig.cage.faces, settings=s)
         rest = self.rig.mesh.vertices
         self.view.set_box(rest)
-        self._home = camera_pose(rest, s)
+        self._home = camera_pose(rest, s, margin=0.75)  # room for edits that grow the shape
         self.camera = self._home
         vis = self.view.vis
         vis.register_mouse_button_callback(self._on_mouse_button)

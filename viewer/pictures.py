@@ -149,7 +149,7 @@ def render_sheet(meshes: Sequence[Any], path: Any, *, titles: Sequence[str] | No
     if keypoints is not None:
         everything += [np.asarray(k) for k in keypoints if k is not None]
     points = np.vstack(everything)
-    camera = camera_pose(points, settings.replace(zoom=1.12))
+    camera = camera_pose(points, settings)
     diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) or 1.0
     radius = settings.keypoint_size * diagonal * 1.1
     shots = []
@@ -198,11 +198,11 @@ def point_panels(panels: Sequence[dict], path: Any, *, up: str = "z", cell: floa
         kp = panel.get("keypoints")
         shot = Shot(layers=layers, keypoints=None if kp is None else np.asarray(kp, dtype=np.float64))
         everything = frame_points(shot)
-        shot.camera = camera_pose(everything, settings.replace(zoom=1.12))
+        shot.camera = camera_pose(everything, settings)
         radii.append(settings.keypoint_size * 1.1 * float(np.linalg.norm(np.ptp(everything, axis=0)) or 1.0))
         shots.append(shot)
     if shared_camera:
-        camera = camera_pose(np.vstack([frame_points(shot) for shot in shots]), settings.replace(zoom=1.12))
+        camera = camera_pose(np.vstack([frame_points(shot) for shot in shots]), settings)
         for shot in shots:
             shot.camera = camera
     radius = float(np.median(radii))

@@ -1,23 +1,23 @@
 """Draw a rig -- its (deformed) mesh with its own colours or texture, the keypoints as coloured markers with their
-numbers, optionally the cage as a wireframe and the rest shape as a ghost -- the same way in the editor's window
-and in an image file.
+numbers, optionally the cage as a wireframe and the rest shape as a ghost -- to an image, and the camera maths, the
+settings and the PNG files the editor shares.
 
-:class:`RigScene` builds and updates the Open3D geometries of one rig; the editor (:mod:`kpd.viewer.app`) and the
-renderers here both use it, with one :class:`ViewSettings`. :func:`render_rig` draws without a window of its own:
+:func:`render_rig` and :func:`render_frames` draw without a window of their own, with one of :data:`BACKENDS`:
 
+``backend="egl"`` (what ``"auto"`` means)
+    Open3D's legacy OpenGL renderer (:mod:`kpd.viewer.gl`) in a headless EGL context, in this process: no X server,
+    first frame about 0.2 s after start and tens of milliseconds a frame with Mesa's software rasteriser.
 ``backend="xvfb"``
-    a private X server (``Xvfb``) with an Open3D window in a child process, read back with the scene's
-    ``render_to_image``. Needs the ``Xvfb`` program but no display; fast with software rendering.
+    the same renderer in a hidden window on a private ``Xvfb`` server.
 ``backend="window"``
-    the same child process on the current ``$DISPLAY``.
+    the same on the current ``$DISPLAY``.
 ``backend="offscreen"``
-    Open3D's ``rendering.OffscreenRenderer`` in this process: truly headless (EGL/Vulkan), but slow on software
-    rasterisers (Mesa's lavapipe takes seconds per frame where the window path takes a fraction of one).
-``backend="auto"`` (default)
-    ``xvfb`` when the ``Xvfb`` program is installed, else ``offscreen``.
+    Open3D's Filament ``OffscreenRenderer``, in a child process; slow without a GPU (shader compilation takes tens of
+    seconds once another process holds a core).
 
 Keypoint numbers are drawn into the image after rendering (a small built-in digit font at the projected keypoint
-positions), so images from every backend carry them; the editor shows them as 3D labels instead.
+positions); the editor shows them as camera-facing digits in the 3D view instead. :class:`RigScene` (Filament) is
+used by the ``offscreen`` backend only.
 """
 
 from __future__ import annotations
@@ -163,9 +163,10 @@ class Camera:
     far: float
 
 
-def camera_pose(vertices: Any, settings: ViewSettings) -> Camera:
+def camera_pose(vertices: Any, settings: ViewSettings, *, margin: float = 0.9) -> Camera:
     """The camera of a view: orbiting the bounding-box centre of ``vertices`` (V, 3) at the settings' azimuth and
-    elevation around the up axis, far enough for the whole box (with a margin for edits) to fit.
+    elevation around the up axis, as close as lets every vertex into the view with ``margin`` (a fraction of the
+    view's half-width and half-height) to spare; ``settings.zoom`` > 1 moves it closer.
 
     The front view (azimuth 0) looks along the horizontal axis that follows the up axis (x -> y -> z -> x) in the
     positive direction, i.e. from ``-that axis``: for ModelNet (z up, chair backs towards +y) that is the view from
@@ -182,8 +183,17 @@ def camera_pose(vertices: Any, settings: ViewSettings) -> Camera:
     side = np.cross(up, front)
     az, el = math.radians(settings.azimuth), math.radians(settings.elevation)
     direction = math.cos(el) * (math.cos(az) * front + math.sin(az) * side) + math.sin(el) * up
-    fov = math.radians(settings.fov)
-    distance = 1.15 * radius / math.sin(fov / 2) / settings.zoom
+    # as close as the view lets every vertex in, with ``margin`` of the half-width and half-height to spare
+    forward = -direction
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    upward = np.cross(right, forward)
+    offsets = vertices - center  # (V, 3)
+    x, y, z = np.abs(offsets @ right), np.abs(offsets @ upward), offsets @ direction
+    tan_v = math.tan(math.radians(settings.fov) / 2)
+    tan_h = tan_v * settings.width / settings.height
+    distance = float(np.max(z + np.maximum(x / (margin * tan_h), y / (margin * tan_v)))) if len(z) else 1.0
+    distance = max(distance, 1e-3 * radius) / settings.zoom
     eye = center + distance * direction
     return Camera(center=center, eye=eye, up=up, fov=float(settings.fov), near=max(distance - 3 * radius, distance / 100),
                   far=distance + 3 * radius)
@@ -738,7 +748,7 @@ def render_frames(rig: Any, keypoint_sets: Sequence[Any], *, settings: ViewSetti
     camera = camera_pose(np.vstack([np.vstack([f.vertices, f.keypoints]) for f in frames]), settings)
     log.info("rendering %d frame(s) of %dx%d with the %s backend", len(frames), settings.width, settings.height, backend)
     if backend == "offscreen":
-        return _render_offscreen(rig.mesh, k, rig.cage.faces, frames, settings, camera)
+        return _render_offscreen_in_child(rig.mesh, k, rig.cage.faces, frames, settings, camera, timeout)
     with gl_display(backend, settings.width, settings.height):
         return _render_gl(rig, frames, settings, camera, on_display=backend != "egl")
 
@@ -950,3 +960,104 @@ def grab_screen(fbdir: str | os.PathLike) -> np.ndarray:
     pixels = np.frombuffer(data, np.uint8, count=line * height, offset=size + 12 * colours)
     bgrx = pixels.reshape(height, line)[:, :width * 4].reshape(height, width, 4)
     return np.ascontiguousarray(bgrx[:, :, [2, 1, 0]])
+
+
+# --- the Filament renderer, in a child process ------------------------------------------------------------------
+
+
+def _save_job(folder: Path, mesh: Any, k: int, cage_faces: Any, frames: list[Frame], settings: ViewSettings,
+              camera: Camera) -> Path:
+    """Everything a render child needs, as one npz of plain arrays (no pickle) and a JSON string."""
+    arrays = {
+        "vertices": np.stack([f.vertices for f in frames]),
+        "keypoints": np.stack([f.keypoints for f in frames]),
+        "triangles": mesh.triangles,
+        "rest": mesh.vertices,
+    }
+    if cage_faces is not None and frames[0].cage is not None:
+        arrays["cage"] = np.stack([f.cage for f in frames])
+        arrays["cage_faces"] = np.asarray(cage_faces)
+    for name in ("vertex_colors", "triangle_uvs", "triangle_material_ids"):
+        value = getattr(mesh, name)
+        if value is not None:
+            arrays[name] = value
+    for i, texture in enumerate(mesh.textures):
+        arrays[f"texture_{i}"] = texture
+    meta = {"settings": settings.to_dict(), "num_keypoints": k, "selections": [list(f.selection) for f in frames],
+            "camera": {name: np.asarray(getattr(camera, name)).tolist() for name in ("center", "eye", "up")} |
+            {"fov": camera.fov, "near": camera.near, "far": camera.far}}
+    arrays["meta"] = np.array(json.dumps(meta))
+    path = folder / "job.npz"
+    np.savez(path, **arrays)
+    return path
+
+
+def _load_job(path: Path) -> tuple[Any, int, Any, list[Frame], ViewSettings, Camera]:
+    from kpd.io import Mesh
+
+    with np.load(path, allow_pickle=False) as data:
+        arrays = {name: data[name] for name in data.files}
+    meta = json.loads(str(arrays["meta"]))
+    textures = [arrays[n] for n in sorted((n for n in arrays if n.startswith("texture_")), key=lambda s: int(s[8:]))]
+    mesh = Mesh(vertices=arrays["rest"], triangles=arrays["triangles"], vertex_colors=arrays.get("vertex_colors"),
+                triangle_uvs=arrays.get("triangle_uvs"), textures=textures,
+                triangle_material_ids=arrays.get("triangle_material_ids"))
+    frames = []
+    for i, selection in enumerate(meta["selections"]):
+        cage = arrays["cage"][i] if "cage" in arrays else None
+        frames.append(Frame(arrays["vertices"][i], arrays["keypoints"][i], cage, tuple(selection)))
+    c = meta["camera"]
+    camera = Camera(center=np.array(c["center"]), eye=np.array(c["eye"]), up=np.array(c["up"]), fov=c["fov"],
+                    near=c["near"], far=c["far"])
+    return (mesh, int(meta["num_keypoints"]), arrays.get("cage_faces"), frames, ViewSettings.from_dict(meta["settings"]),
+            camera)
+
+
+def _render_offscreen_in_child(mesh: Any, k: int, cage_faces: Any, frames: list[Frame], settings: ViewSettings,
+                               camera: Camera, timeout: float) -> list[np.ndarray]:
+    """Filament's OffscreenRenderer in a child process: it leaves its process's EGL unusable for the OpenGL path, and a
+    crash of it (a signal) is reported here in one line instead of taking the caller down."""
+    with tempfile.TemporaryDirectory(prefix="kpd-render-") as tmp:
+        folder = Path(tmp)
+        job = _save_job(folder, mesh, k, cage_faces, frames, settings, camera)
+        command = [sys.executable, "-m", "kpd.viewer.render", "--offscreen", str(job)]
+        try:
+            done = subprocess.run(command, capture_output=True, timeout=timeout)
+        except subprocess.TimeoutExpired as exc:
+            raise KpdError(f"the offscreen (Filament) renderer took longer than {timeout:g} s and was stopped; "
+                           "--backend egl is fast without a GPU") from exc
+        images = []
+        for i in range(len(frames)):
+            out = folder / f"frame_{i}.npy"
+            if done.returncode != 0 or not out.is_file():
+                how = (f"was killed by signal {-done.returncode}" if done.returncode < 0
+                       else f"failed (exit {done.returncode})")
+                said = done.stderr.decode("utf-8", "replace").strip().splitlines()
+                raise KpdError(f"the offscreen (Filament) renderer {how}" + (f": {said[-1]}" if said else "")
+                               + "; try --backend egl")
+            images.append(np.load(out, allow_pickle=False))
+        return images
+
+
+def _offscreen_worker(job: Path) -> int:
+    """Child-process entry of :func:`_render_offscreen_in_child`: draw the job's frames, save them beside it."""
+    mesh, k, cage_faces, frames, settings, camera = _load_job(job)
+    for i, image in enumerate(_render_offscreen(mesh, k, cage_faces, frames, settings, camera)):
+        np.save(job.parent / f"frame_{i}.npy", image)
+    return 0
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(description="kpd.viewer.render child process (internal)")
+    parser.add_argument("--offscreen", required=True, type=Path)
+    args = parser.parse_args(argv)
+    status = _offscreen_worker(args.offscreen)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)  # skip Filament's teardown, which may crash after the work is saved
+
+
+if __name__ == "__main__":
+    _main()
