@@ -341,6 +341,24 @@ def test_open3d_plotly_helpers_load_on_first_use():
     assert done.stdout.strip() == "Figure"
 
 
+@pytest.mark.slow
+def test_eval_chamfer_gallery_draws_the_pairs_as_meshes(data_dir, tmp_path):
+    """``kpd eval chamfer --gallery``: one row per pair, source (blue), deformed (green) and target (red) meshes."""
+    out, gallery = tmp_path / "c.json", tmp_path / "g.png"
+    done = kpd("eval", "chamfer", data_dir / "modelnet10", "--category", "chair", "--model", "chair", "--pairs", "4",
+               "--out", out, "--gallery", gallery, "--gallery-pairs", "2", "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert json.loads(out.read_text())["gallery"] == str(gallery)
+    image = read_png(gallery).astype(int)
+    rows, columns = 2, 3
+    assert image.shape[1] == columns * 280 and image.shape[0] > rows * 280
+    r, g, b = image[..., 0], image[..., 1], image[..., 2]
+    tints = {"blue": (b > r + 30) & (b > g + 10), "green": (g > r + 25) & (g > b + 10), "red": (r > g + 40) & (r > b + 40)}
+    for column, name in enumerate(("blue", "green", "red")):
+        part = tints[name][:, column * 280:(column + 1) * 280]
+        assert part.mean() > 0.02, f"the {name} meshes are missing from column {column}"
+
+
 def test_a_crashed_render_child_is_one_line(chair_rig, tmp_path, monkeypatch):
     """The Filament renderer runs in a child process; when that child dies of a signal the caller gets one line."""
     import kpd.viewer.render as render

@@ -15,7 +15,7 @@ import numpy as np
 
 from kpd.errors import InputError
 
-__all__ = ["picture_display", "render_sheet", "point_panels", "compose", "arrow_mesh"]
+__all__ = ["picture_display", "render_sheet", "point_panels", "alignment_sheet", "compose", "arrow_mesh"]
 
 _SUPERSAMPLE = 2
 
@@ -210,3 +210,53 @@ def point_panels(panels: Sequence[dict], path: Any, *, up: str = "z", cell: floa
     titles = [p.get("title", "") for p in panels]
     colors = [p.get("color", (20, 20, 20)) for p in panels]
     write_png(path, compose(images, titles=titles, columns=columns, title=title, caption_colors=colors))
+
+
+def alignment_sheet(model: Any, pairs: Sequence[tuple[Any, Any]], path: Any, *, titles: Sequence[str] | None = None,
+                    scores: Sequence[float] | None = None, up: str | None = None, seed: int = 0,
+                    cell: float = 2.8) -> None:
+    """One row per (source, target) mesh pair: the source with its keypoints, the source deformed by ``model`` to the
+    target's keypoints (:meth:`kpd.runtime.Model.align`), the target with its keypoints; each drawn in its own
+    [-1, 1] model frame, all from one camera, into a PNG.
+
+    Parameters
+    ----------
+    model : kpd.runtime.Model.
+    pairs : (source, target) kpd Mesh objects.
+    titles : one line per pair (its names); scores : its chamfer x1e3 (shown over the deformed source).
+    up : the frame's up axis (default: the model's).
+    """
+    from kpd.viewer.gl import Layer, Shot
+    from kpd.viewer.render import ViewSettings, camera_pose, write_png
+
+    if not len(pairs):
+        raise InputError("an alignment sheet needs at least one pair")
+    axis = str(up or getattr(model, "up", None) or "z").strip().lower()
+    pixels = int(round(cell * 100))
+    settings = ViewSettings(width=pixels, height=pixels, up=axis if axis[0] in "+-" else f"+{axis}", azimuth=30.0,
+                            elevation=18.0)
+    shots, captions = [], []
+    for i, (source, target) in enumerate(pairs):
+        rig = model.rig(source, seed=seed)
+        seen = model.predict(target, seed=seed)
+        deformed = rig.deformed_mesh(rig.normalizer.invert(seen.keypoints))
+        frame = rig.normalizer.apply
+        shots.append(Shot(layers=[Layer(source.with_vertices(frame(source.vertices)), color=(0.55, 0.66, 0.9))],
+                          keypoints=frame(rig.keypoints)))
+        shots.append(Shot(layers=[Layer(deformed.with_vertices(frame(deformed.vertices)), color=(0.55, 0.82, 0.6))],
+                          keypoints=seen.keypoints))
+        shots.append(Shot(layers=[Layer(target.with_vertices(seen.normalizer.apply(target.vertices)),
+                                        color=(0.92, 0.6, 0.55))], keypoints=seen.keypoints))
+        name = titles[i] if titles is not None else f"pair {i}"
+        score = f": chamfer {scores[i]:.2f}" if scores is not None else ""
+        captions += [f"source {name}", f"deformed{score}", "target"]
+    from kpd.viewer.gl import frame_points
+
+    camera = camera_pose(np.vstack([frame_points(shot) for shot in shots]), settings)
+    for shot in shots:
+        shot.camera = camera
+    radius = settings.keypoint_size * 2.0  # the [-1, 1] frame: diagonal about 2 to 3.5
+    images = _draw_cells(shots, settings, radius * 1.6)
+    write_png(path, compose(images, titles=captions, columns=3,
+                            title="kpd eval chamfer: source (blue) deformed to the target's keypoints (green), target "
+                                  "(red)"))

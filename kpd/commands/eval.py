@@ -189,6 +189,8 @@ def _add_protocol_parsers(sub) -> None:
     p.add_argument("--pairs", type=integer(1), default=200, help="number of pairs (default 200)")
     p.add_argument("--split-file", type=existing, help="split file overriding the layout's")
     p.add_argument("--category", help="category of the dataset (ModelNet class, ShapeNet synset or name)")
+    p.add_argument("--gallery", help="PNG with source / deformed / target meshes and keypoints for the first pairs")
+    p.add_argument("--gallery-pairs", type=integer(1, 50), default=4, help="pairs in the gallery (default 4)")
     _protocol_common(p)
 
 
@@ -240,6 +242,9 @@ def _run_protocol(args: argparse.Namespace) -> int:
               getattr(args, "split_file", None), *getattr(args, "geometry", []))
     outputs = Outputs(force=args.force, inputs=inputs)
     out = outputs.file(args.out, "--out", formats=(".json",), what="result (JSON)")
+    gallery = None
+    if getattr(args, "gallery", None):
+        gallery = outputs.file(args.gallery, "--gallery", formats=(".png",), what="gallery (PNG)")
     progress = None
     if not args.quiet:
         from tqdm import tqdm
@@ -283,9 +288,13 @@ def _run_protocol(args: argparse.Namespace) -> int:
             raise InputError(f"--pairs must be at least 1; got {args.pairs}")
         from kpd.runtime import Model
 
-        result = annotations.chamfer_protocol(Model.load(args.model), args.data, args.category, pairs=args.pairs,
+        model = Model.load(args.model)
+        result = annotations.chamfer_protocol(model, args.data, args.category, pairs=args.pairs,
                                               seed=args.seed, split_file=args.split_file, progress=progress)
         r = result["results"]
+        if gallery is not None:
+            _chamfer_gallery(model, args, result, outputs.stage(gallery))
+            result["gallery"] = str(gallery)
         rows = [("chamfer x1e3, model", f"{r['chamfer_x1e3']['model']['mean']:.3f}"),
                 ("chamfer x1e3, no deformation", f"{r['chamfer_x1e3']['no_deformation']['mean']:.3f}"),
                 ("ratio to no deformation", f"{r['ratio_to_no_deformation']:.3f}"),
@@ -311,6 +320,19 @@ def _run_protocol(args: argparse.Namespace) -> int:
             print(f"warning: {note}", file=sys.stderr)
     print(f"wrote {out}")
     return 0
+
+
+def _chamfer_gallery(model, args: argparse.Namespace, result: dict, path: Path) -> None:
+    """The first ``--gallery-pairs`` pairs of a chamfer protocol as meshes (source, deformed, target)."""
+    from kpd.data import discover
+    from kpd.io import read_mesh
+    from kpd.viewer.pictures import alignment_sheet
+
+    test = {f.name: f.path for f in discover(args.data, args.category, split_file=args.split_file).splits["test"]}
+    chosen = result["results"]["per_pair"][:args.gallery_pairs]
+    pairs = [(read_mesh(test[p["source"]]), read_mesh(test[p["target"]])) for p in chosen]
+    alignment_sheet(model, pairs, path, titles=[f"{p['source']} -> {p['target']}" for p in chosen],
+                    scores=[p["model"] for p in chosen], seed=args.seed)
 
 
 def _names(names: list, source: str, shown: int = 8) -> str:
