@@ -236,14 +236,15 @@ def test_torchrun_refuses_a_batch_the_ranks_cannot_share_and_an_occupied_output(
     one, cache = reference
     out = tmp_path / "run"
     done = torchrun(train_args(shapes, out, cache, batch=3))
-    assert done.returncode != 0 and done.stderr.count("exitcode  : 2") == 2  # both ranks ended with status 2
+    # the worker ended with status 2 (torchrun stops the other rank once one has ended, so it may report only one)
+    assert done.returncode != 0 and "exitcode  : 2" in done.stderr
     assert worker_lines(done.stderr) == [  # said once, by rank 0
         "kpd train: error: --batch 3 does not split over WORLD_SIZE=2 ranks: each rank takes batch / world size "
         "pairs, so pass a multiple of 2"]
     assert not out.exists()
     before = {p.name: p.stat().st_mtime_ns for p in one.iterdir()}
     done = torchrun(train_args(shapes, one, cache))  # rank 0 finds the output taken; rank 1 stops without a word
-    assert done.returncode != 0 and done.stderr.count("exitcode  : 2") == 2
+    assert done.returncode != 0 and "exitcode  : 2" in done.stderr
     assert worker_lines(done.stderr) == [
         f"kpd train: error: output {one} exists and is not empty; pass --resume to continue or --force to start over"]
     assert {p.name: p.stat().st_mtime_ns for p in one.iterdir()} == before
