@@ -76,23 +76,12 @@ def bench_render(mesh: Path, runs: int, folder: Path) -> dict:
             "max": round(max(walls), 3)}
 
 
-def _events(path: Path) -> list[dict]:
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.endswith("}")]
 
 
-def _wait(condition, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.02)
-    raise RuntimeError(f"timed out after {timeout:g} s waiting for {what}")
 
 
 def bench_editor(mesh: Path, drags: int, folder: Path) -> dict:
+    from kpd.viewer.app import read_events, wait_for
     from kpd.viewer.render import private_display, project
 
     events = folder / "events.jsonl"
@@ -103,8 +92,8 @@ def bench_editor(mesh: Path, drags: int, folder: Path) -> dict:
         window = subprocess.Popen(_kpd("view", "chair", str(mesh), "--events", str(events), "--size", "960x720"),
                                   env=env, cwd=folder, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         try:
-            ready = _wait(lambda: [e for e in _events(events) if e["event"] == "ready"], 120, "the editor")[0]
-            first = min(e["time"] for e in _events(events) if e["event"] == "frame")
+            ready = wait_for(lambda: [e for e in read_events(events) if e["event"] == "ready"], 120, "the editor")[0]
+            first = min(e["time"] for e in read_events(events) if e["event"] == "frame")
             sent: list[tuple[str, float]] = []  # (kind, time sent) of every input that changes the picture
 
             def xdo(*args: object, kind: str | None = None) -> None:
@@ -130,16 +119,16 @@ def bench_editor(mesh: Path, drags: int, folder: Path) -> dict:
                 xdo("mouseup", 1)
                 sent.append(("release", time.time()))
                 xdo("key", "Right" if drag % 2 == 0 else "Left", kind="key")
-                released = _wait(lambda: [e for e in _events(events) if e["event"] == "nudge"][drag:], 60, "a nudge")
+                released = wait_for(lambda: [e for e in read_events(events) if e["event"] == "nudge"][drag:], 60, "a nudge")
                 keypoints = np.array(released[0]["keypoints"])
             xdo("key", "u", kind="key")
             xdo("key", "y", kind="key")
-            redo = _wait(lambda: [e for e in _events(events) if e["event"] == "redo"], 60, "redo")[0]
+            redo = wait_for(lambda: [e for e in read_events(events) if e["event"] == "redo"], 60, "redo")[0]
             # the frame after input paused: a large mesh's stand-in is then replaced by the whole mesh
-            _wait(lambda: [f for f in _events(events) if f["event"] == "frame" and f["time"] > redo["time"]
+            wait_for(lambda: [f for f in read_events(events) if f["event"] == "frame" and f["time"] > redo["time"]
                            and not f.get("stand_in")], 60, "the last frame")
             time.sleep(0.5)
-            log = _events(events)
+            log = read_events(events)
         finally:
             window.terminate()
             try:

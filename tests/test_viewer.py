@@ -23,6 +23,7 @@ from kpd.viewer.render import (
     ViewSettings, camera_pose, keypoint_palette, look_at_matrix, overlay_labels, perspective_matrix, pixel_ray,
     plane_hit, project, read_png, write_png,
 )
+from kpd.viewer.app import read_events, wait_for
 from kpd.viewer.session import EditSession, component_offsets, propose
 
 REPO = Path(__file__).resolve().parents[1]
@@ -385,25 +386,12 @@ def test_no_window_is_one_line(chair_rig, tmp_path):
 # --- the real window -------------------------------------------------------------------------------------------------
 
 
-def _wait(condition, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
 
 
-def _events(path: Path) -> list[dict]:
-    if not path.exists():
-        return []
-    lines = path.read_text().splitlines()
-    return [json.loads(line) for line in lines if line.endswith("}")]
 
 
 def _last(path: Path, name: str, after: int = 0):
-    found = [e for e in _events(path)[after:] if e["event"] == name]
+    found = [e for e in read_events(path)[after:] if e["event"] == name]
     return found[-1] if found else None
 
 
@@ -435,8 +423,8 @@ def _editor_window(tmp_path: Path, *args: object, size: str = "480x400") -> Iter
                                   text=True).stdout
 
         try:
-            ready = _wait(lambda: _last(events, "ready"), 90, "the editor window")
-            wid = _wait(lambda: subprocess.run(["xdotool", "search", "--name", f"^{ready['title']}$"], env=env,
+            ready = wait_for(lambda: _last(events, "ready"), 90, "the editor window")
+            wid = wait_for(lambda: subprocess.run(["xdotool", "search", "--name", f"^{ready['title']}$"], env=env,
                                                capture_output=True, text=True).stdout.split(), 30, "the X window")[-1]
             geometry = dict(line.split("=") for line in xdo("getwindowgeometry", "--shell", wid).split())
             yield _Window(events, xdo, ready, (int(geometry["X"]), int(geometry["Y"])), display)
@@ -481,15 +469,15 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
         x, y = np.rint(_screen_pixels(win, rig.keypoints)[index]).astype(int)
         xdo("mousemove", x, y)
         xdo("mousedown", 1)
-        selected = _wait(lambda: _last(events, "select"), 60, "the selection")
+        selected = wait_for(lambda: _last(events, "select"), 60, "the selection")
         assert selected["selection"] == [index] and selected["picked"] == index
         for step in range(1, 6):
             xdo("mousemove", x + 4 * step, y - 10 * step)
         xdo("mouseup", 1)
-        released = _wait(lambda: _last(events, "release"), 120, "the end of the drag")
+        released = wait_for(lambda: _last(events, "release"), 120, "the end of the drag")
         assert released["moved"]
         xdo("key", "s")
-        saved = _wait(lambda: _last(events, "save"), 60, "the saved mesh")
+        saved = wait_for(lambda: _last(events, "save"), 60, "the saved mesh")
         keypoints = np.array(saved["keypoints"])
         moved = np.flatnonzero(np.abs(keypoints - rig.keypoints).max(axis=1) > 0)
         assert moved.tolist() == [index]  # the prior is off: only the selection moved
@@ -499,13 +487,13 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
         scale = np.abs(expected).max()
         np.testing.assert_allclose(mesh.vertices, expected, atol=1e-5 * scale)
         assert np.abs(mesh.vertices - rig.mesh.vertices).max() > 1e-3 * scale  # the mesh did change
-        count = len(_events(events))
+        count = len(read_events(events))
         xdo("key", "u")
-        undone = _wait(lambda: _last(events, "undo", count), 60, "undo")
+        undone = wait_for(lambda: _last(events, "undo", count), 60, "undo")
         np.testing.assert_allclose(undone["keypoints"], rig.keypoints)
-        count = len(_events(events))
+        count = len(read_events(events))
         xdo("key", "s")
-        _wait(lambda: _last(events, "save", count), 60, "the second save")
+        wait_for(lambda: _last(events, "save", count), 60, "the second save")
         np.testing.assert_allclose(read_mesh(out).vertices, rig.mesh.vertices, atol=1e-5 * scale)
 
 
@@ -523,7 +511,7 @@ def test_editor_scripted_session_of_many_drags_and_keys(chair_rig, tmp_path):
     with _editor_window(tmp_path, "--rig", chair_rig, "--out", out, "--screenshot", tmp_path / "shot.png") as win:
         events, xdo = win.events, win.xdo
         xdo("key", "p")
-        first = _wait(lambda: _last(events, "screenshot"), 60, "the first screenshot")
+        first = wait_for(lambda: _last(events, "screenshot"), 60, "the first screenshot")
         index = _clear_keypoint(win, rig.keypoints)
         keypoints = rig.keypoints
         vx, vy, w, h = win.ready["viewport"]
@@ -537,27 +525,27 @@ def test_editor_scripted_session_of_many_drags_and_keys(chair_rig, tmp_path):
             for step in range(1, 6):
                 xdo("mousemove", x + int(towards[0] * 2 * step), y + int(towards[1] * 3 * step))
             xdo("mouseup", 1)
-            released = _wait(lambda: [e for e in _events(events) if e["event"] == "release"][drag:], 60,
+            released = wait_for(lambda: [e for e in read_events(events) if e["event"] == "release"][drag:], 60,
                              f"the end of drag {drag + 1}")[0]
             assert released["moved"] and released["selection"] == [index]
             xdo("key", "Left" if drag % 2 else "Right")  # a nudge, undone by the next one
-            nudges = _wait(lambda: [e for e in _events(events) if e["event"] == "nudge"][drag:], 60, "the nudge")
+            nudges = wait_for(lambda: [e for e in read_events(events) if e["event"] == "nudge"][drag:], 60, "the nudge")
             keypoints = np.array(nudges[0]["keypoints"])
         xdo("key", "u")
-        _wait(lambda: _last(events, "undo"), 60, "undo")
+        wait_for(lambda: _last(events, "undo"), 60, "undo")
         xdo("key", "y")
-        redone = _wait(lambda: _last(events, "redo"), 60, "redo")
+        redone = wait_for(lambda: _last(events, "redo"), 60, "redo")
         np.testing.assert_allclose(redone["keypoints"], keypoints)
         xdo("key", "s")
-        saved = _wait(lambda: _last(events, "save"), 60, "the saved mesh")
+        saved = wait_for(lambda: _last(events, "save"), 60, "the saved mesh")
         xdo("key", "p")
-        second = _wait(lambda: [e for e in _events(events) if e["event"] == "screenshot"][1:], 60,
+        second = wait_for(lambda: [e for e in read_events(events) if e["event"] == "screenshot"][1:], 60,
                        "the second screenshot")[0]
         final = np.array(saved["keypoints"])
         np.testing.assert_allclose(final, keypoints)
-        inputs = [e for e in _events(events) if e["event"] == "input"]
+        inputs = [e for e in read_events(events) if e["event"] == "input"]
         assert len(inputs) >= 50
-        frames = [e for e in _events(events) if e["event"] == "frame"]
+        frames = [e for e in read_events(events) if e["event"] == "frame"]
         redo = max(i for i, e in enumerate(inputs, 1) if e["kind"] == "key" and e["key"] == ord("Y"))
         assert frames[-1]["serial"] >= redo  # the last input that changed anything was drawn (save and P change none)
         np.testing.assert_allclose(frames[-1]["keypoints"], final)  # nothing lost: the last frame is the final state
@@ -598,7 +586,7 @@ def test_editor_window_pca_slider_explores_the_category(chair_rig, tmp_path):
             time.sleep(0.2)
             win.xdo("mousemove", x + step * sw // 20, y)  # to 0.3 of the width right of the middle
         win.xdo("mouseup", 1)
-        moved = _wait(lambda: [e for e in _events(win.events) if e["event"] == "component" and e["value"] > 1.0],
+        moved = wait_for(lambda: [e for e in read_events(win.events) if e["event"] == "component" and e["value"] > 1.0],
                       120, "the slider at more than one standard deviation")[-1]
     assert moved["component"] == 0
     sigmas = np.zeros(len(prior.components_))

@@ -43,7 +43,7 @@ from kpd.errors import InputError, KpdError
 from kpd.viewer.render import Camera, Frame, ViewSettings, camera_pose, pixel_ray, plane_hit, project, write_png
 from kpd.viewer.session import EditSession, component_offsets, propose
 
-__all__ = ["EditorApp", "PANEL_WIDTH"]
+__all__ = ["EditorApp", "PANEL_WIDTH", "read_events", "wait_for"]
 
 log = logging.getLogger(__name__)
 
@@ -672,3 +672,23 @@ def _rotate(vector: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
     axis = axis / max(np.linalg.norm(axis), 1e-12)
     return (vector * math.cos(angle) + np.cross(axis, vector) * math.sin(angle)
             + axis * (axis @ vector) * (1 - math.cos(angle)))
+
+
+def read_events(path: str | os.PathLike) -> list[dict]:
+    """The events an editor started with ``events=path`` has written so far (whole lines only; [] before it opens)."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.endswith("}")]
+
+
+def wait_for(condition: Any, timeout: float, what: str, *, poll: float = 0.02) -> Any:
+    """Call ``condition()`` until it returns something true and return that; :class:`KpdError` after ``timeout`` s
+    (scripts driving an editor wait for its events with it)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(poll)
+    raise KpdError(f"timed out after {timeout:g} s waiting for {what}")
