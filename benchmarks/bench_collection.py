@@ -1,6 +1,6 @@
 """Groupwise collection alignment (kpd.collection) on the GSO shoes turned by seeded random rotations; prints ONE JSON.
 
-    .venv/bin/python benchmarks/bench_collection.py --out benchmarks/results/collection.json
+    .venv/bin/python benchmarks/bench_collection.py --rounds 2 --out benchmarks/results/collection.json
     .venv/bin/python benchmarks/bench_collection.py --limit 60 --surface all --out /tmp/collection_all.json
 
 Every shoe is sampled (5000 points, the outer surface unless ``--surface all``), turned by its own seeded random
@@ -46,7 +46,7 @@ def score(estimated: np.ndarray, truth: np.ndarray, ambiguous: np.ndarray) -> di
     upper = errors[np.triu_indices(len(errors), 1)]
     per_shape = np.array([np.median(np.delete(row, i)) for i, row in enumerate(errors)]) if len(errors) > 1 else \
         np.zeros(len(errors))
-    return {"decided": int(decided.sum()), "flagged": int(ambiguous.sum()),
+    return {"decided": int(decided.sum()), "flagged": int(ambiguous.sum()), "shapes": len(ambiguous),
             "right": int((per_shape <= 10.0).sum()), "wrong": int((per_shape > 10.0).sum()),
             "right_share_of_decided": float((per_shape <= 10.0).mean()) if len(per_shape) else None,
             "pairs_within_10deg": float((upper <= 10.0).mean()) if len(upper) else None,
@@ -61,6 +61,9 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=5000)
     parser.add_argument("--surface", choices=("outer", "all"), default="outer")
     parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--original-rounds", type=int, default=1,
+                        help="rounds of the alignment of the unrotated originals, which only counts those that were "
+                             "off (default 1)")
     parser.add_argument("--processes", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0, help="seed of the rotations (default 0)")
     parser.add_argument("--state", default="/tmp/kpd-bench-collection", help="folder of resumable state files")
@@ -83,7 +86,7 @@ def main() -> None:
                               state=state / f"rotated_{tag}.json", progress=True, seed=0)
     seconds_rotated = time.perf_counter() - started
     started = time.perf_counter()
-    originals = align_collection(clouds, names, rounds=args.rounds, processes=args.processes,
+    originals = align_collection(clouds, names, rounds=args.original_rounds, processes=args.processes,
                                  state=state / f"originals_{tag}.json", progress=True, seed=0)
     seconds_originals = time.perf_counter() - started
     # the shared frame of the originals is their template's own; an original turned far from it was off
@@ -99,6 +102,7 @@ def main() -> None:
         "rotation_seed": args.seed, "rounds_limit": args.rounds, "processes": args.processes,
         "machine": platform.machine(), "cpus": os.cpu_count(), "load": os.getloadavg()[0],
         "rotated": {"templates": result.templates, "changed": result.changed, "converged": result.converged,
+                    "decided_by_neighbours": int(sum(s.decided_by == "neighbours" for s in result.shapes)),
                     "raw": score(result.rotations, truth, result.ambiguous),
                     "corrected_for_off_originals": score(result.rotations, corrected, result.ambiguous),
                     "seconds": seconds_rotated, "seconds_per_shape": seconds_rotated / len(clouds),
@@ -109,7 +113,7 @@ def main() -> None:
                       "seconds": seconds_originals},
         "sampling_seconds": sampling,
         "shapes_detail": [{"name": s.name, "score": s.score, "margin": s.margin, "ambiguous": s.ambiguous,
-                           "runner_up_angle": s.runner_up_angle if np.isfinite(s.runner_up_angle) else None}
+                           "decided_by": s.decided_by, "runner_up_angle": s.runner_up_angle if np.isfinite(s.runner_up_angle) else None}
                           for s in result.shapes],
     }
     text = json.dumps(report, indent=1)

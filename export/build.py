@@ -315,7 +315,9 @@ def export_checkpoint(
         split_file, val_fraction = _recorded_split(recorded.get("split_source", ""))
     seed = int(discover.get("seed", record.get("seed", 0)))
     try:
-        shapes = load_training_shapes(root, category, settings, seed=seed,
+        # the category as the run discovered it (None for a flat folder, whose name is the category)
+        found_as = discover["category"] if data is None and "category" in discover else category
+        shapes = load_training_shapes(root, found_as, settings, seed=seed,
                                       cache_dir=cache_dir or recorded.get("cache"), split_file=split_file,
                                       val_fraction=val_fraction, progress=progress)
     except DataError as exc:

@@ -7,7 +7,9 @@ Groupwise alignment (:func:`align_collection`), reusing the orientation search o
    rotation search is needed to choose it, and the collection frame is that shape's own frame;
 2. every shape is oriented to the template (the full rotation search, or the turns about ``up`` when it is known),
    with its score, runner-up and ambiguity flag;
-3. the template is **re-estimated** as the medoid, by chamfer distance in the shared frame, of the shapes just
+3. a flagged shape is settled by its decided look-alikes when they clearly prefer one of its candidate rotations
+   (:func:`_neighbour_vote`: a ballet flat is judged by other flats, not by the template sneaker);
+4. the template is **re-estimated** as the medoid, by chamfer distance in the shared frame, of the shapes just
    aligned and not flagged, and step 2 is repeated, until the template no longer changes or no shape turns by
    more than 10 degrees between rounds (or ``rounds``).
 
@@ -32,7 +34,7 @@ from scipy.spatial import cKDTree
 
 from kpd.errors import DataError, InputError
 from kpd.geometry import as_points, as_rng, sample_surface
-from kpd.scan import ScanAligner, parse_axis, rotation_angle
+from kpd.scan import DEFAULT_AMBIGUITY_MARGIN, ScanAligner, parse_axis, rotation_angle
 
 __all__ = [
     "CollectionShape",
@@ -60,6 +62,8 @@ class CollectionShape(NamedTuple):
     runner_up_score / runner_up_angle : the best rotation more than ``distinct_angle`` degrees away, and its angle
     margin : ``runner_up_score / score - 1`` ; ambiguous : margin under the threshold (not decided)
     template : True for the shape that served as the final template (its rotation is the reference's)
+    decided_by : ``"template"`` (its fit to the template), ``"neighbours"`` (flagged there, settled by its decided
+        look-alikes) or ``"undecided"``
     """
 
     name: str
@@ -70,6 +74,7 @@ class CollectionShape(NamedTuple):
     margin: float
     ambiguous: bool
     template: bool = False
+    decided_by: str = "template"
 
     def to_dict(self) -> dict:
         def num(x: float) -> float | None:
@@ -79,7 +84,8 @@ class CollectionShape(NamedTuple):
         transform[:3, :3] = self.rotation
         return {"name": self.name, "transform": transform.tolist(), "score": num(self.score),
                 "runner_up_score": num(self.runner_up_score), "runner_up_angle": num(self.runner_up_angle),
-                "margin": num(self.margin), "ambiguous": bool(self.ambiguous), "template": bool(self.template)}
+                "margin": num(self.margin), "ambiguous": bool(self.ambiguous), "template": bool(self.template),
+                "decided_by": self.decided_by}
 
     @classmethod
     def from_dict(cls, data: dict) -> "CollectionShape":
@@ -89,7 +95,8 @@ class CollectionShape(NamedTuple):
         return cls(str(data["name"]), np.asarray(data["transform"], dtype=np.float64)[:3, :3], num(data["score"]),
                    num(data["runner_up_score"]), math.nan if data["runner_up_angle"] is None
                    else float(data["runner_up_angle"]), num(data["margin"]), bool(data["ambiguous"]),
-                   bool(data.get("template", False)))
+                   bool(data.get("template", False)),
+                   "undecided" if data["ambiguous"] else str(data.get("decided_by", "template")))
 
 
 class CollectionAlignment(NamedTuple):
@@ -253,9 +260,66 @@ def _worker_orient(item: tuple[str, np.ndarray]) -> dict:
 
     name, points = item
     started = time.perf_counter()
-    o = _WORKER["aligner"].orient(points)
+    aligner = _WORKER["aligner"]
+    o = aligner.orient(points)
+    candidates: list[dict] = []  # distinct hypotheses, best first: what the neighbour vote chooses among
+    for h in o.hypotheses:
+        if len(candidates) == _CANDIDATES:
+            break
+        if all(rotation_angle(h.rotation, np.asarray(c["rotation"])) > aligner.distinct_angle for c in candidates):
+            candidates.append({"rotation": h.rotation.tolist(), "score": float(h.score), "source": h.source})
     return {**CollectionShape(name, o.rotation, o.score, o.runner_up_score, o.runner_up_angle, o.margin,
-                              o.ambiguous).to_dict(), "seconds": time.perf_counter() - started}
+                              o.ambiguous).to_dict(), "seconds": time.perf_counter() - started,
+            "candidates": candidates}
+
+
+_CANDIDATES = 4  # distinct hypotheses kept per shape for the neighbour vote
+
+
+def _neighbour_vote(clouds: Sequence[np.ndarray], rotations: np.ndarray, results: list[dict],
+                    descriptors: np.ndarray, *, neighbours: int, margin: float, points: int = 500,
+                    seed: int = 0) -> list[dict]:
+    """Settle flagged shapes by their decided look-alikes: each candidate rotation of a flagged shape is scored by
+    its mean RMS chamfer distance (unit RMS radius, shared frame) to the ``neighbours`` decided shapes nearest by
+    descriptor (a ballet flat is compared with other flats, not with the template sneaker); a candidate that beats
+    the others by ``margin`` (relative, as the template's ambiguity margin) decides the shape."""
+    decided = [i for i, r in enumerate(results) if not r["ambiguous"]]
+    out = [dict(r) for r in results]
+    if len(decided) < 2:
+        return out
+
+    def unit_sample(i: int, rotation: np.ndarray) -> np.ndarray:
+        c = clouds[i]
+        sub = c if len(c) <= points else c[np.random.default_rng([seed, i]).choice(len(c), points, replace=False)]
+        return _unit(sub @ rotation.T)
+
+    trees: dict[int, tuple[cKDTree, np.ndarray]] = {}
+    for i, r in enumerate(results):
+        candidates = r.get("candidates") or []
+        if not r["ambiguous"] or len(candidates) < 2:
+            continue
+        order = np.argsort(np.abs(descriptors[decided] - descriptors[i]).sum(axis=1))[:neighbours]
+        near = [decided[j] for j in order if decided[j] != i]
+        costs = []
+        for c in candidates:
+            turned = unit_sample(i, np.asarray(c["rotation"]))
+            total = 0.0
+            for j in near:
+                if j not in trees:
+                    pts = unit_sample(j, rotations[j])
+                    trees[j] = (cKDTree(pts), pts)
+                tree, pts = trees[j]
+                total += float((tree.query(turned)[0] ** 2).mean() + (cKDTree(turned).query(pts)[0] ** 2).mean())
+            costs.append(math.sqrt(total / max(1, len(near))))
+        ranked = np.argsort(costs)
+        vote_margin = costs[ranked[1]] / costs[ranked[0]] - 1.0 if costs[ranked[0]] > 0 else math.inf
+        out[i]["neighbour_margin"] = float(vote_margin)
+        if vote_margin >= margin:
+            best = candidates[int(ranked[0])]
+            out[i].update(ambiguous=False, decided_by="neighbours",
+                          transform=np.block([[np.asarray(best["rotation"]), np.zeros((3, 1))],
+                                              [np.zeros((1, 3)), np.ones((1, 1))]]).tolist())
+    return out
 
 
 def _load_state(path: Path | None, names: list[str], settings: dict) -> dict:
@@ -288,6 +352,7 @@ def align_collection(
     state: str | os.PathLike | None = None,
     progress: bool = False,
     seed: int = 0,
+    neighbours: int = 8,
     **aligner_params: Any,
 ) -> CollectionAlignment:
     """Groupwise alignment of a collection (see the module docstring).
@@ -304,6 +369,9 @@ def align_collection(
     state : a JSON file that keeps every result as it is found; a run given the same file (same shapes and
         settings) continues where the previous one stopped.
     seed : seeds the descriptor, the medoids and the aligner.
+    neighbours : after each round, a flagged shape is settled by its ``neighbours`` nearest decided look-alikes
+        (by descriptor) when one of its distinct candidate rotations fits them better than the others by the
+        ambiguity margin (0 turns this off); such shapes are reported with ``decided_by: neighbours``.
     aligner_params : further :class:`kpd.scan.ScanAligner` parameters (``ambiguity_margin``, ``n_points``, ...).
 
     Returns
@@ -335,7 +403,9 @@ def align_collection(
     results: dict[str, dict] = {}
     seconds = np.zeros(len(clouds))
     converged = False
-    template = descriptor_medoid(clouds, seed=seed)
+    descriptors = np.stack([shape_descriptor(c, seed=seed) for c in clouds])  # (S, D)
+    template = int(np.argmin(np.abs(descriptors[:, None, :] - descriptors[None, :, :]).sum(axis=(1, 2))))
+    margin = float(params.get("ambiguity_margin", DEFAULT_AMBIGUITY_MARGIN))
     for k in range(int(rounds)):
         name = names[template]
         if k < len(saved["rounds"]):
@@ -379,6 +449,12 @@ def align_collection(
         for n in names:
             rotations[index[n]] = np.asarray(results[n]["transform"])[:3, :3]
             seconds[index[n]] += float(results[n].get("seconds", math.nan))
+        if neighbours:  # the flagged shapes settled by their decided look-alikes (recomputed from the state)
+            voted = _neighbour_vote(clouds, rotations, [results[n] for n in names], descriptors,
+                                    neighbours=neighbours, margin=margin, seed=seed)
+            results = {n: v for n, v in zip(names, voted)}
+            for n in names:
+                rotations[index[n]] = np.asarray(results[n]["transform"])[:3, :3]
         if k > 0:
             changed.append(int(sum(rotation_angle(rotations[i], previous[i]) > 10.0 for i in range(len(names)))))
         if k > 0 and changed[-1] == 0:  # no shape turned: another template would change nothing that matters
@@ -421,17 +497,15 @@ def pairwise_rotation_errors(estimated: np.ndarray, truth: np.ndarray, mask: np.
 
 
 def contact_sheet(clouds: Sequence[np.ndarray], alignment: CollectionAlignment, path: Any, *, up: Any = None,
-                  columns: int = 12, max_points: int = 600, seed: int = 0, title: str | None = None) -> None:
-    """Draw every shape turned into the shared frame, side by side, to a PNG (flagged ones titled in red).
+                  columns: int = 12, max_points: int = 1500, seed: int = 0, title: str | None = None,
+                  cell: float = 1.6) -> None:
+    """Draw every shape turned into the shared frame, side by side, to a PNG (flagged ones captioned in red).
 
-    Each cell shows the shape from the side, the same view for all: the template's longest principal axis
-    horizontal and ``up`` (if given; else its middle principal axis) vertical; colour is depth, so a shape turned
-    back to front or upside down stands out among the others.
+    Every cell shows its shape from one camera (kpd.viewer.pictures.point_panels, lit splats): the template's
+    longest principal axis across the picture and ``up`` (if given; else the template's middle principal axis)
+    upwards, so a shape turned back to front or upside down stands out among the others.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from kpd.viewer.pictures import point_panels
 
     rng = as_rng(seed)
     template = next((i for i, s in enumerate(alignment.shapes) if s.template), 0)
@@ -444,28 +518,17 @@ def contact_sheet(clouds: Sequence[np.ndarray], alignment: CollectionAlignment, 
         basis = np.linalg.eigh(ref.T @ ref)[1]
         horizontal, vertical = basis[:, 2], basis[:, 1]
     depth = np.cross(horizontal, vertical)
-    view = np.stack([horizontal, vertical, depth])  # (3, 3) rows: screen x, screen y, depth
-    count = len(alignment.shapes)
-    columns = max(1, min(columns, count))
-    rows = int(math.ceil(count / columns))
-    figure, axes = plt.subplots(rows, columns, figsize=(1.6 * columns, 1.35 * rows + 0.6), dpi=100, squeeze=False)
-    for cell in axes.ravel():
-        cell.axis("off")
+    view = np.stack([horizontal, vertical, depth])  # (3, 3) rows: picture x, picture y (up), depth
+    panels = []
     for i, shape in enumerate(alignment.shapes):
         cloud = clouds[i]
         if len(cloud) > max_points:
             cloud = cloud[rng.choice(len(cloud), max_points, replace=False)]
-        seen = _unit(cloud @ alignment.rotations[i].T) @ view.T  # (n, 3) screen x, y, depth
-        cell = axes.ravel()[i]
-        cell.scatter(seen[:, 0], seen[:, 1], c=seen[:, 2], s=0.6, cmap="viridis", vmin=-1.0, vmax=1.0)
-        cell.set_xlim(-2.6, 2.6)
-        cell.set_ylim(-2.0, 2.0)
-        cell.set_aspect("equal")
-        label = shape.name if len(shape.name) <= 18 else shape.name[:17] + "…"
-        cell.set_title(("* " if shape.template else "") + label, fontsize=5.5,
-                       color="red" if shape.ambiguous else "black")
-    figure.suptitle(title or f"{count} shapes in the shared frame ({int(alignment.ambiguous.sum())} flagged "
-                             f"ambiguous, in red; * the template)", fontsize=9)
-    figure.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - 0.35 / (1.35 * rows + 0.6)))
-    figure.savefig(str(path))
-    plt.close(figure)
+        label = shape.name if len(shape.name) <= 16 else shape.name[:15] + "…"
+        panels.append({"points": _unit(cloud @ alignment.rotations[i].T) @ view.T,
+                       "title": ("* " if shape.template else "") + label,
+                       "color": (200, 20, 20) if shape.ambiguous else (20, 20, 20)})
+    count = len(panels)
+    point_panels(panels, path, up="y", cell=cell, columns=max(1, min(columns, count)), shared_camera=True,
+                 title=title or f"{count} shapes in the shared frame ({int(alignment.ambiguous.sum())} flagged "
+                                f"ambiguous, in red; * the template)")

@@ -214,3 +214,52 @@ def test_kpd_scan_on_a_folder_writes_an_aligned_folder_kpd_train_reads(turned_sh
     found = sorted(f.name for s in category.splits.values() for f in s)
     assert found == sorted(n for n, d in zip(names, decided) if d)
     assert main(["scan", str(collection), "--out", str(out)]) == 2  # exists, no --force
+
+
+# --- the shipped shoe bundle --------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def shoe_model():
+    from kpd.runtime import Model
+
+    return Model.load("shoe")
+
+
+def test_the_shipped_shoe_bundle_loads_with_its_prior_template_and_record(shoe_model):
+    assert shoe_model.category == "shoe" and shoe_model.num_keypoints == 12
+    assert shoe_model.prior is not None and shoe_model.template_points is not None
+    assert shoe_model.up == "+y" and shoe_model.outer_surface
+    record = shoe_model.bundle.manifest["training"]
+    assert record["data"]["counts"]["test"] >= 10  # a held-out split of its own
+    assert "--outer-surface" in record["command"] and "--keypoints 12" in record["command"]
+
+
+def test_shoe_keypoints_on_the_real_sneaker_scan_lie_near_its_surface(shoe_model, data_dir):
+    from scipy.spatial import cKDTree
+
+    from kpd.commands.keypoints import ScanFrame
+    from kpd.io import read_mesh
+
+    scan = read_mesh(data_dir / "scans" / "sneaker.ply")
+    frame = ScanFrame(shoe_model, scan, None)
+    keypoints = frame.to_original(shoe_model.keypoints(frame.result.shape, seed=0))
+    assert keypoints.shape == (12, 3) and np.isfinite(keypoints).all()
+    size = np.linalg.norm(scan.vertices.max(0) - scan.vertices.min(0))
+    surface = cKDTree(sample_surface(scan.vertices, scan.triangles, 50000, seed=0).points)
+    distance = surface.query(keypoints)[0] / size
+    assert np.median(distance) < 0.03 and distance.max() < 0.08, distance.round(3)
+    # spread over the shoe, not collapsed: the keypoints span most of its length
+    length_axis = np.argmax(np.ptp(scan.vertices, axis=0))
+    assert np.ptp(keypoints[:, length_axis]) > 0.5 * np.ptp(scan.vertices[:, length_axis])
+
+
+def test_kpd_deform_shoe_with_a_zero_move_reproduces_the_input(shoes_dir, tmp_path):
+    from kpd.cli import main
+    from kpd.io import read_mesh
+
+    source = shoes_dir / SHOES[0] / "model.obj"
+    out = tmp_path / "same.obj"
+    assert main(["deform", "shoe", str(source), "--move", "0:0,0,0", "--out", str(out)]) == 0
+    given, result = read_mesh(source), read_mesh(out)
+    assert result.triangles.shape == given.triangles.shape
+    assert np.allclose(result.vertices, given.vertices, atol=1e-6)

@@ -193,6 +193,7 @@ def evaluate_keypoints(run: str | os.PathLike, *, samples: int = 5, seed: int = 
     category = discover(data_root or options["root"], options["category"], split_file=options["split_file"],
                         val_fraction=options["val_fraction"], seed=options["seed"])
     n_points = int(predictor.sample_settings.get("points", 1024))
+    outer = bool(predictor.sample_settings.get("outer", False))  # sampled as the model was trained
     files = category.splits["test"][:max_test] if max_test else category.splits["test"]
     if not files:
         raise InputError(f"category {category.category!r} has no test split to evaluate")
@@ -206,7 +207,8 @@ def evaluate_keypoints(run: str | os.PathLike, *, samples: int = 5, seed: int = 
             normalizer = Normalizer().fit(mesh.vertices[np.unique(triangles)])
             vertices = normalizer.apply(mesh.vertices)
             rng = np.random.default_rng([seed, 5, i])
-            clouds = np.stack([sample_surface(vertices, triangles, n_points, seed=rng).points for _ in range(samples)])
+            clouds = np.stack([sample_surface(vertices, triangles, n_points, seed=rng, outer=outer).points
+                               for _ in range(samples)])
         except KpdError as exc:
             skipped.append(Skipped(str(f.path), str(exc)))
             continue
