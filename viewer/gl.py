@@ -235,9 +235,10 @@ class GLView:
     ----------
     width, height : the drawing area in pixels.
     title : the window title.
-    visible : False for pictures (a hidden window; still needs an X display, real or a private Xvfb).
+    visible : False for pictures: a hidden window on ``$DISPLAY`` or, without one, a headless EGL context.
     left, top : where a visible window opens on the screen.
     background : RGB in [0, 1].
+    on_display : must it be on the X display (default: when visible)? Then Open3D's fallback to EGL is refused.
     """
 
     def __init__(self, width: int, height: int, *, title: str = "kpd", visible: bool = False, left: int = 40,
@@ -263,7 +264,6 @@ class GLView:
             raise NoWindowError(f"could not open an OpenGL {'window' if on_display else 'context'} on {where}: "
                                 "install Mesa's OpenGL (apt-get install libgl1-mesa-dri libegl-mesa0)"
                                 + (", check $DISPLAY" if on_display else ", or use --backend xvfb or offscreen"))
-        self.headless = headless
         options = self.vis.get_render_option()
         options.mesh_show_back_face = True  # flipped triangles of CAD meshes stay visible
         options.background_color = np.asarray(background, dtype=np.float64)
@@ -350,18 +350,6 @@ class GLView:
         control = self.vis.get_view_control()
         with _quiet_stderr():
             control.convert_from_pinhole_camera_parameters(params, allow_arbitrary=True)
-
-    def matrices(self) -> tuple[np.ndarray, np.ndarray]:
-        """(4, 4) view and projection matrices (OpenGL conventions) of the camera as the renderer has it."""
-        from kpd.viewer.render import perspective_matrix
-
-        params = self.vis.get_view_control().convert_to_pinhole_camera_parameters()
-        view = np.diag([1.0, -1.0, -1.0, 1.0]) @ np.asarray(params.extrinsic, dtype=np.float64)
-        fy = float(np.asarray(params.intrinsic.intrinsic_matrix)[1, 1])
-        fov = math.degrees(2 * math.atan(self.height / 2 / fy))
-        near = max(1e-6, self.camera.near if self.camera is not None else 0.01)
-        far = self.camera.far if self.camera is not None else 100.0
-        return view, perspective_matrix(fov, self.width / self.height, near, far)
 
     # drawing
 
