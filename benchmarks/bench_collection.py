@@ -61,9 +61,9 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=5000)
     parser.add_argument("--surface", choices=("outer", "all"), default="outer")
     parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--original-rounds", type=int, default=1,
+    parser.add_argument("--original-rounds", type=int, default=2,
                         help="rounds of the alignment of the unrotated originals, which only counts those that were "
-                             "off (default 1)")
+                             "off (default 2)")
     parser.add_argument("--processes", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0, help="seed of the rotations (default 0)")
     parser.add_argument("--state", default="/tmp/kpd-bench-collection", help="folder of resumable state files")
