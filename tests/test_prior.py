@@ -289,3 +289,28 @@ def test_mirror_prior_roundtrip_and_errors():
     shifted = scattered[:, [1, 2, 0, 3, 4]]  # keypoint 0 lands on 1, 1 on 2, 2 on 0: a cycle, not pairs
     with pytest.raises(InputError, match="do not pair up under the mirror"):
         KeypointPrior(n_components=2).fit(scattered, shifted)
+
+
+@pytest.mark.parametrize("category", ["chair", "table"])
+def test_shipped_priors_move_mirror_partners_and_little_else(data_dir, category):
+    """Issue #14's targets on a held-out shape: every keypoint with a mirror partner, moved alone along each axis,
+    moves the partner by >= 0.8 of the mirrored move and the others by <= 0.3 of the move on average."""
+    from kpd.io import read_mesh
+    from kpd.metrics import prior_response
+    from kpd.runtime import Model
+
+    model = Model.load(category)
+    prior = model.prior
+    assert prior.mirror_permutation_ is not None
+    mesh = read_mesh(sorted((data_dir / "modelnet10" / category / "test").glob("*.ply"))[3])
+    keypoints = model.predict(mesh).keypoints
+    pairs = [(i, int(p)) for i, p in enumerate(prior.mirror_permutation_) if p != i]
+    assert len(pairs) >= 4
+    for i, p in pairs:
+        responses = []
+        for axis in range(3):
+            move = np.zeros(3)
+            move[axis] = 0.2
+            responses.append(prior_response(keypoints, prior.sync(keypoints, {i: keypoints[i] + move}), i, p, move))
+        assert np.mean([r.partner for r in responses]) >= 0.8, (i, responses)
+        assert np.mean([r.others for r in responses]) <= 0.3, (i, responses)
