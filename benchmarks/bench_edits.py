@@ -3,10 +3,11 @@
 Prints one JSON object (``--out`` writes it too). For each category (ModelNet10 *test* chairs and tables, never seen
 in training) and each deformer, side by side in one run:
 
-* ``shipped``: the bundle shipped in ``kpd/models`` (or ``--shipped NAME=PATH``), with its prior as written;
-* ``level2``: a bundle with a finer cage (icosphere level 2, retrained: ``--level2 chair=PATH``);
+* each ``--variant NAME:CATEGORY=BUNDLE,...`` (default ``shipped``: the bundles in ``kpd/models``), e.g. the
+  bundles shipped before (level-1 cage), the level-2 cage retrained, and the same with the rig's cage fitted
+  tighter (``kpd export --rig-cage-distance``), each with its prior as written;
 * ``biharmonic``: libigl's biharmonic deformation (``igl.harmonic(..., k=2)``, the classical handle deformer) with
-  the shipped model's keypoints as handles (each handle the mesh vertex nearest its keypoint), the anchor for
+  the first variant's keypoints as handles (each handle the mesh vertex nearest its keypoint), the anchor for
   locality and detail.
 
 Every measure is defined in :mod:`kpd.metrics` and runs in the model's [-1, 1] frame on the test mesh with its
@@ -24,7 +25,8 @@ the biharmonic solve needs a connected surface), the same mesh for all deformers
 * samples (``folded_share``, ``new_self_intersections``, ``keypoint_set_distance``): ``--samples`` prior draws per
   shape at the default scale (0.5) and at 1.0, with the refitted prior.
 
-    python benchmarks/bench_edits.py --level2 chair=runs/chair-l2.kpd,table=runs/table-l2.kpd \\
+    python benchmarks/bench_edits.py --variant before:chair=old/chair.kpd,table=old/table.kpd \\
+        --variant level2:chair=runs/chair-l2.kpd,table=runs/table-l2.kpd --variant shipped:chair=chair,table=table \\
         --out benchmarks/results/edits.json
 """
 
@@ -69,6 +71,10 @@ def weld(mesh: Mesh) -> Mesh:
     return Mesh(np.ascontiguousarray(sv[used], dtype=np.float64), remap[sf])
 
 
+class BiharmonicFailed(RuntimeError):
+    """libigl could not solve the biharmonic system of a mesh (counted in the JSON, the shape is left out)."""
+
+
 def biharmonic_basis(vertices: np.ndarray, triangles: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
     """(V, K) biharmonic coordinates of the handles (libigl): displacement = basis @ keypoint offsets.
 
@@ -102,8 +108,11 @@ def biharmonic_basis(vertices: np.ndarray, triangles: np.ndarray, keypoints: np.
         mine = np.flatnonzero(label[handles] == piece)
         bc = np.zeros((len(mine), k))
         bc[np.arange(len(mine)), mine] = 1.0
-        w = igl.harmonic(np.ascontiguousarray(vertices[members]), np.ascontiguousarray(faces),
-                         local[handles[mine]].astype(np.int64), bc, 2)
+        try:
+            w = igl.harmonic(np.ascontiguousarray(vertices[members]), np.ascontiguousarray(faces),
+                             local[handles[mine]].astype(np.int64), bc, 2)
+        except RuntimeError as exc:  # libigl's solve fails on some CAD pieces (degenerate cotangent weights)
+            raise BiharmonicFailed(str(exc)) from exc
         basis[members] = np.nan_to_num(np.asarray(w), nan=0.0, posinf=0.0, neginf=0.0)
     return basis
 
@@ -185,9 +194,12 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
     step = max(1, len(train) // args.train_shapes)
     train = train[::step][: args.train_shapes]
     meshes = [weld(read_mesh(f.path)) for f in tests]
+    first = next(iter(bundles))
     out: dict = {"test_shapes": [f.name for f in tests], "train_shapes_for_prior": len(train), "deformers": {}}
     for label, path in bundles.items():
         model = Model.load(path, threads=1)
+        if label in args.distances:  # as if exported with --rig-cage-distance
+            model._cage_fit["distance"] = args.distances[label]
         t0 = time.perf_counter()
         kp_train, mk_train = training_keypoints(model, train, len(train))
         permutation = fit_mirror_permutation(kp_train, mk_train)
@@ -196,6 +208,7 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
         edits = semantic_edits(roles, category, args.move)
         acc: dict = {key: [] for key in ("leakage", "single_folded", "single_edge", "single_dihedral")}
         anchor: dict = {key: [] for key in acc}
+        anchor_failed = 0
         samples = {scale: {"folded": [], "intersecting": [], "distance": []} for scale in SAMPLE_SCALES}
         test_sets = []
         for mesh in tqdm(meshes, desc=f"{category} {label}", leave=False):
@@ -205,9 +218,12 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
             test_sets.append(keypoints)
             areas = vertex_areas(rest, mesh.triangles)
             measure_deformer(rest, mesh.triangles, areas, rig.basis, keypoints, edits, args.move, acc)
-            if label == "shipped":
-                basis = biharmonic_basis(rest, mesh.triangles, keypoints)
-                measure_deformer(rest, mesh.triangles, areas, basis, keypoints, edits, args.move, anchor)
+            if label == first:
+                try:
+                    basis = biharmonic_basis(rest, mesh.triangles, keypoints)
+                    measure_deformer(rest, mesh.triangles, areas, basis, keypoints, edits, args.move, anchor)
+                except BiharmonicFailed:
+                    anchor_failed += 1
             for scale in SAMPLE_SCALES:
                 sets = refit.sample(args.samples, seed=0, scale=scale, base=keypoints)  # (n, K, 3)
                 for s in sets:
@@ -220,6 +236,7 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
         result = {
             "bundle": str(model.bundle.path),
             "cage_vertices": model.num_cage_vertices, "m": model.m,
+            "rig_cage_distance": model._cage_fit.get("distance"),
             "roles": {k: (v.tolist()) for k, v in roles.items()},
             "semantic_edits": {name: {str(i): o.tolist() for i, o in e.items()} for name, e in edits.items()},
             "mirror_permutation": permutation.tolist(),
@@ -237,10 +254,11 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
             "seconds": time.perf_counter() - t0,
         }
         out["deformers"][label] = result
-        if label == "shipped":
+        if label == first:
             out["deformers"]["biharmonic"] = {
-                "handles": "the shipped model's keypoints (nearest mesh vertex each)",
+                "handles": f"the keypoints of {first} (nearest mesh vertex each)",
                 "measures": {key: summarise(v) for key, v in anchor.items()},
+                "shapes_libigl_failed_on": anchor_failed,
             }
     return out
 
@@ -263,23 +281,28 @@ def main(argv: list[str] | None = None) -> int:
                         help="training shapes for the mirror permutation and the refitted prior (default 200)")
     parser.add_argument("--move", type=float, default=0.2, help="keypoint move, [-1, 1] box units (default 0.2)")
     parser.add_argument("--samples", type=int, default=8, help="prior samples per shape and scale (default 8)")
-    parser.add_argument("--shipped", help="CATEGORY=BUNDLE,... instead of the shipped bundles")
-    parser.add_argument("--level2", help="CATEGORY=BUNDLE,...: the level-2 cage bundles")
+    parser.add_argument("--variant", action="append", default=[],
+                        help="NAME:CATEGORY=BUNDLE,... (repeatable; default shipped:chair=chair,table=table)")
+    parser.add_argument("--rig-cage-distance", action="append", default=[], metavar="NAME=D",
+                        help="fit the rigs' cages of variant NAME with stop distance D, as kpd export "
+                             "--rig-cage-distance D records it (repeatable)")
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args(argv)
-    shipped, level2 = parse_paths(args.shipped), parse_paths(args.level2)
+    args.distances = {name: float(d) for name, d in (item.split("=", 1) for item in args.rig_cage_distance)}
+    variants = {}
+    for item in args.variant or ["shipped:chair=chair,table=table"]:
+        name, _, paths = item.partition(":")
+        variants[name] = parse_paths(paths)
     t0 = time.perf_counter()
     result: dict = {
         "benchmark": "edits",
-        "settings": {"shapes": args.shapes, "train_shapes": args.train_shapes, "move": args.move,
-                     "samples": args.samples, "sample_scales": list(SAMPLE_SCALES), "frame": "model [-1, 1] box"},
+        "settings": {"variants": variants, "rig_cage_distance": args.distances, "shapes": args.shapes,
+                     "train_shapes": args.train_shapes, "move": args.move, "samples": args.samples, "sample_scales": list(SAMPLE_SCALES), "frame": "model [-1, 1] box"},
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "load": os.getloadavg()},
         "categories": {},
     }
     for category in args.categories.split(","):
-        bundles = {"shipped": shipped.get(category, category)}
-        if category in level2:
-            bundles["level2"] = level2[category]
+        bundles = {name: paths[category] for name, paths in variants.items() if category in paths}
         result["categories"][category] = run_category(category, bundles, args)
     result["seconds"] = time.perf_counter() - t0
     text = json.dumps(result, indent=2)
