@@ -64,8 +64,22 @@ def compose(images: Sequence[np.ndarray], *, titles: Sequence[str] | None = None
         sheet.paste(Image.fromarray(np.ascontiguousarray(image)), (x, y + caption))
         if titles is not None:
             color = tuple(caption_colors[i]) if caption_colors is not None else (20, 20, 20)
-            draw.multiline_text((x + 6, y + 4), str(titles[i]), fill=color, font=font, spacing=4)
+            text = "\n".join(_fit(draw, line, font, w - 10) for line in str(titles[i]).split("\n"))
+            draw.multiline_text((x + 6, y + 4), text, fill=color, font=font, spacing=4)
     return np.asarray(sheet)
+
+
+def _fit(draw: Any, text: str, font: Any, width: float) -> str:
+    """``text`` shortened in the middle (with an ellipsis) until it is at most ``width`` pixels long."""
+    if draw.textlength(text, font=font) <= width:
+        return text
+    keep = len(text)
+    while keep > 2:
+        keep -= 1
+        short = text[: (keep + 1) // 2] + "…" + text[len(text) - keep // 2:]
+        if draw.textlength(short, font=font) <= width:
+            return short
+    return text[:1] + "…"
 
 
 def arrow_mesh(start: Any, end: Any, radius: float) -> Any:
@@ -142,9 +156,9 @@ def render_sheet(meshes: Sequence[Any], path: Any, *, titles: Sequence[str] | No
     if not len(meshes):
         raise InputError("a contact sheet needs at least one mesh")
     pixels = int(round(cell * 100))
-    axis = str(up).strip().lower().lstrip("+")
-    settings = ViewSettings(width=pixels, height=pixels, up=f"+{axis}" if not str(up).startswith("-") else up,
-                            azimuth=30.0, elevation=18.0)
+    axis = str(up or "z").strip().lower()
+    settings = ViewSettings(width=pixels, height=pixels, up=axis if axis[0] in "+-" else f"+{axis}", azimuth=30.0,
+                            elevation=18.0)
     everything = [np.asarray(m.vertices) for m in meshes]
     if keypoints is not None:
         everything += [np.asarray(k) for k in keypoints if k is not None]

@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         (staging / "keypoints.json").write_text(json.dumps(record, indent=1) + "\n")
         render_sheet([mesh, *meshes], staging / "contact_sheet.png",
                      titles=["input", *[f"{i:03d}" for i in range(len(meshes))]],
-                     keypoints=[rig.keypoints, *keypoint_sets])
+                     keypoints=[rig.keypoints, *keypoint_sets], up=model.up or "z")
     print(f"wrote {len(meshes)} variants, keypoints.json and contact_sheet.png to {out}")
     return 0
 
