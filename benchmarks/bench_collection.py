@@ -36,6 +36,7 @@ from kpd.collection import (align_collection, collection_points, contact_sheet, 
                             pairwise_rotation_errors)
 from kpd.io import read_mesh  # noqa: E402
 from kpd.scan import rotation_angle  # noqa: E402
+from kpd.commands.bench import write_json  # noqa: E402
 
 OFF_ANGLE = 30.0  # an original turned by more than this against the shared frame was off
 
@@ -116,9 +117,8 @@ def main() -> None:
                            "decided_by": s.decided_by, "runner_up_angle": s.runner_up_angle if np.isfinite(s.runner_up_angle) else None}
                           for s in result.shapes],
     }
-    text = json.dumps(report, indent=1)
     if args.out:
-        Path(args.out).write_text(text + "\n")
+        write_json(args.out, report, indent=1)
     brief = {k: v for k, v in report.items() if k != "shapes_detail"}
     for key in ("raw", "corrected_for_off_originals"):
         brief["rotated"][key] = {k: v for k, v in brief["rotated"][key].items() if k != "per_shape_median_error_deg"}

@@ -49,6 +49,7 @@ from kpd.metrics import (edit_distortion, far_side_leakage, fit_mirror_permutati
                          keypoint_set_distance, new_self_intersections, prior_response, semantic_edits, vertex_areas)
 from kpd.prior import KeypointPrior
 from kpd.runtime import Model
+from kpd.commands.bench import write_json
 
 DATA = Path(os.environ.get("KPD_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 SAMPLE_SCALES = (0.5, 1.0)  # kpd sample's default scale, and one standard deviation
@@ -305,11 +306,9 @@ def main(argv: list[str] | None = None) -> int:
         bundles = {name: paths[category] for name, paths in variants.items() if category in paths}
         result["categories"][category] = run_category(category, bundles, args)
     result["seconds"] = time.perf_counter() - t0
-    text = json.dumps(result, indent=2)
-    print(text)
+    print(json.dumps(result, indent=2))
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text + "\n")
+        write_json(args.out, result, indent=2)
     return 0
 
 

@@ -32,6 +32,7 @@ from kpd.data import discover
 from kpd.frame import _aligner, _check, calibrate
 from kpd.io import Mesh, read_mesh, read_shape
 from kpd.runtime import Model
+from kpd.commands.bench import write_json
 
 DATA = Path(os.environ.get("KPD_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
@@ -128,11 +129,9 @@ def main(argv: list[str] | None = None) -> int:
             "seconds_per_check": {"median": float(np.median(seconds)), "p90": float(np.quantile(seconds, 0.9))},
         }
     result["seconds"] = time.perf_counter() - t0
-    text = json.dumps(result, indent=2)
-    print(text)
+    print(json.dumps(result, indent=2))
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text + "\n")
+        write_json(args.out, result, indent=2)
     return 0
 
 

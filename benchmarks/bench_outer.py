@@ -29,6 +29,7 @@ sys.path.insert(0, str(REPO))
 
 from kpd.geometry import Normalizer, interior_mask, mesh_pieces, sample_surface  # noqa: E402
 from kpd.io import read_mesh  # noqa: E402
+from kpd.commands.bench import write_json  # noqa: E402
 
 
 def measure(path: str, n: int, seed: int) -> dict:
@@ -81,9 +82,8 @@ def main() -> None:
     for name, files in sets.items():
         rows = [measure(f, args.points, args.seed) for f in files]
         result["sets"][name] = {"summary": summary(rows), "shapes": rows}
-    text = json.dumps(result, indent=1)
     if args.out:
-        Path(args.out).write_text(text + "\n")
+        write_json(args.out, result, indent=1)
     print(json.dumps({k: v["summary"] for k, v in result["sets"].items()}, indent=1))
 
 

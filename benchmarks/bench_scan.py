@@ -63,6 +63,7 @@ sys.path.insert(0, str(REPO))
 from kpd.geometry import Normalizer, chamfer, sample_surface  # noqa: E402
 from kpd.io import read_mesh  # noqa: E402
 from kpd.scan import ScanAligner, preprocess, rotation_angle  # noqa: E402
+from kpd.commands.bench import write_json  # noqa: E402
 
 RECOVERED_DEG = 10.0
 UP_AXIS = {"chair": np.array([0.0, 0.0, 1.0]), "table": np.array([0.0, 0.0, 1.0]),  # ModelNet10: z up
@@ -455,11 +456,9 @@ def main() -> int:
         },
         "wall_time_s": round(time.perf_counter() - t_start, 1),
     }
-    text = json.dumps(out, indent=1)
-    print(text)
+    print(json.dumps(out, indent=1))
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text + "\n")
+        write_json(args.out, out, indent=1)
     return 0
 
 

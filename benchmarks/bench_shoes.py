@@ -38,6 +38,7 @@ from kpd.geometry import Normalizer, sample_surface  # noqa: E402
 from kpd.data import discover  # noqa: E402
 from kpd.io import read_mesh  # noqa: E402
 from kpd.runtime import Model  # noqa: E402
+from kpd.commands.bench import write_json  # noqa: E402
 
 
 def spread(keypoints: np.ndarray, size: float) -> float:
@@ -105,9 +106,8 @@ def main() -> None:
               "outer_surface_distance": {"mean": float(np.mean(distances)), "median": float(np.median(distances)),
                                          "within_0.05": float(np.mean(distances <= 0.05))},
               "seconds_per_pose": seconds / max(1, len(rows) * args.poses), "shapes": rows}
-    text = json.dumps(result, indent=1)
     if args.out:
-        Path(args.out).write_text(text + "\n")
+        write_json(args.out, result, indent=1)
     print(json.dumps({k: v for k, v in result.items() if k != "shapes"}, indent=1))
 
 

@@ -237,7 +237,9 @@ def test_full_disk(case, inputs, tiny_run, full_disk, capfd):
 
 
 def test_full_disk_library_writers(full_disk):
-    """The library writers themselves (what every command calls) end in WriteError and leave nothing."""
+    """The library writers themselves (what every command calls, and the benchmarks' JSON) end in WriteError and leave
+    nothing."""
+    from kpd.commands.bench import write_json
     from kpd.errors import WriteError
     from kpd.io import write_keypoints
     from kpd.viewer.session import EditSession
@@ -246,7 +248,8 @@ def test_full_disk_library_writers(full_disk):
     points = np.random.default_rng(0).uniform(size=(5000, 3))
     for write in (lambda: write_points(full_disk / "p.pcd", points), lambda: write_points(full_disk / "p.xyz", points),
                   lambda: write_keypoints(full_disk / "k.txt", points[:4]),
-                  lambda: EditSession(points[:4]).save(full_disk / "session.json")):
+                  lambda: EditSession(points[:4]).save(full_disk / "session.json"),
+                  lambda: write_json(full_disk / "bench.json", {"points": points.tolist()})):
         with pytest.raises(WriteError, match="disk is full"):
             write()
         assert snapshot(full_disk) == before

@@ -30,6 +30,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
 
 
+def write_json(path: str | os.PathLike, data: dict, *, indent: int = 2) -> None:
+    """Write a benchmark's result as JSON through kpd's one atomic writer (a full disk or a read-only folder is one
+    :class:`kpd.errors.WriteError`, nothing half-written is left); the folder is made when missing, an existing file
+    replaced."""
+    from pathlib import Path
+
+    from kpd.io import atomic_output
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_output(path, force=True) as tmp:
+        tmp.write_text(json.dumps(data, indent=indent) + "\n", encoding="utf-8")
+
+
 def median_ms(fn, repeats: int, warmup: int = 10) -> float:
     """Median wall time of ``fn()`` in milliseconds over ``repeats`` calls after ``warmup`` untimed ones."""
     for _ in range(warmup):
