@@ -25,7 +25,7 @@ import math
 import os
 import tempfile
 from dataclasses import dataclass, field
-from typing import Any, Iterator, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -347,9 +347,7 @@ class GLView:
                                                       self.height / 2 - 0.5)
         params = o3d.camera.PinholeCameraParameters()
         params.intrinsic, params.extrinsic = intrinsic, extrinsic
-        control = self.vis.get_view_control()
-        with _quiet_stderr():
-            control.convert_from_pinhole_camera_parameters(params, allow_arbitrary=True)
+        self.vis.get_view_control().convert_from_pinhole_camera_parameters(params, allow_arbitrary=True)
 
     # drawing
 
@@ -366,29 +364,6 @@ class GLView:
     def close(self) -> None:
         with contextlib.suppress(Exception):
             self.vis.destroy_window()
-
-
-@contextlib.contextmanager
-def _quiet_stderr() -> Iterator[None]:
-    """Send what native code prints on stderr (GLFW, Mesa) to the log instead of the terminal."""
-    if log.isEnabledFor(logging.DEBUG):
-        yield
-        return
-    import sys
-
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as sink:
-        try:
-            os.dup2(sink.fileno(), 2)
-            yield
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            sink.seek(0)
-            text = sink.read().decode("utf-8", "replace").strip()
-            if text:
-                log.debug("native code said: %s", text)
 
 
 # --- markers, lines, digits ----------------------------------------------------------------------------------------
@@ -556,6 +531,7 @@ class RigDrawing:
         self.frame: Any = None
         self._eye: np.ndarray | None = None
         self._proxy_shown = False
+        self._cage: Any = None  # the cage wireframe, its points updated in place
 
     @property
     def marker_radius(self) -> float:
@@ -583,6 +559,8 @@ class RigDrawing:
         ``fast``: a frame during a gesture; a mesh of more than :data:`PROXY_TRIANGLES` triangles is then drawn by its
         coarse stand-in (:func:`proxy_triangles`), and in full again by the next frame that is not fast.
         """
+        import open3d as o3d
+
         s, view = self.settings, self.view
         view.camera = camera
         eye = np.asarray(camera.eye, dtype=np.float64)
@@ -613,9 +591,13 @@ class RigDrawing:
             self.digits.set(self.label_anchors(keypoints, camera, scales), camera)
             view.put("numbers", self.digits.geometry, show=s.show_keypoints and s.show_labels)
         if self.cage_edges is not None and frame.cage is not None and s.show_cage:
-            view.put("cage", line_set(frame.cage, self.cage_edges, s.cage_color))
+            if self._cage is None:
+                self._cage = line_set(frame.cage, self.cage_edges, s.cage_color)
+            else:
+                self._cage.points = o3d.utility.Vector3dVector(np.asarray(frame.cage, dtype=np.float64))
+            view.put("cage", self._cage)
         else:
-            view.remove("cage")
+            view.show("cage", False)
         if s.show_ghost:
             if "ghost" not in view._geometries:
                 view.put("ghost", line_set(self.mesh.vertices, self._wire(), s.ghost_color[:3]))
