@@ -45,7 +45,8 @@ from tqdm import tqdm
 
 from kpd.data import discover
 from kpd.io import Mesh, read_mesh
-from kpd.metrics import (edit_distortion, far_side_leakage, fit_mirror_permutation, folded_share, keypoint_roles,
+from kpd.metrics import (edit_distortion, far_side_leakage, fit_mirror_permutation, folded_area_share, folded_share,
+                         keypoint_roles,
                          keypoint_set_distance, new_self_intersections, prior_response, semantic_edits, vertex_areas)
 from kpd.prior import KeypointPrior
 from kpd.runtime import Model
@@ -148,6 +149,7 @@ def measure_deformer(rest: np.ndarray, triangles: np.ndarray, areas: np.ndarray,
             acc["leakage"].append(far_side_leakage(rest, deformed, keypoints[k], move, areas))
             dist = edit_distortion(rest, deformed, triangles)
             acc["single_folded"].append(dist.folded)
+            acc.setdefault("single_folded_area", []).append(folded_area_share(rest, deformed, triangles))
             acc["single_edge"].append(dist.edge)
             acc["single_dihedral"].append(dist.dihedral)
     for name, edit in edits.items():
@@ -157,6 +159,7 @@ def measure_deformer(rest: np.ndarray, triangles: np.ndarray, areas: np.ndarray,
         dist = edit_distortion(rest, rest + basis @ offsets, triangles)
         for field in ("folded", "edge", "dihedral"):
             acc.setdefault(f"{name}_{field}", []).append(getattr(dist, field))
+        acc.setdefault(f"{name}_folded_area", []).append(folded_area_share(rest, rest + basis @ offsets, triangles))
 
 
 def response(prior: KeypointPrior, keypoint_sets: np.ndarray, permutation: np.ndarray, move: float) -> dict:
@@ -199,8 +202,8 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
     out: dict = {"test_shapes": [f.name for f in tests], "train_shapes_for_prior": len(train), "deformers": {}}
     for label, path in bundles.items():
         model = Model.load(path, threads=1)
-        if label in args.distances:  # as if exported with --rig-cage-distance
-            model._cage_fit["distance"] = args.distances[label]
+        if label in args.distances:  # as if exported with --rig-cage-distance (0: the training cage)
+            model._rig_fit = {"distance": args.distances[label]} if args.distances[label] else {}
         t0 = time.perf_counter()
         kp_train, mk_train = training_keypoints(model, train, len(train))
         permutation = fit_mirror_permutation(kp_train, mk_train)
@@ -210,7 +213,7 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
         acc: dict = {key: [] for key in ("leakage", "single_folded", "single_edge", "single_dihedral")}
         anchor: dict = {key: [] for key in acc}
         anchor_failed = 0
-        samples = {scale: {"folded": [], "intersecting": [], "distance": []} for scale in SAMPLE_SCALES}
+        samples = {scale: {"folded": [], "folded_area": [], "intersecting": [], "distance": []} for scale in SAMPLE_SCALES}
         test_sets = []
         for mesh in tqdm(meshes, desc=f"{category} {label}", leave=False):
             rig = model.rig(mesh)
@@ -230,6 +233,7 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
                 for s in sets:
                     deformed = rest + rig.basis @ (s - keypoints)
                     samples[scale]["folded"].append(folded_share(rest, deformed, mesh.triangles))
+                    samples[scale]["folded_area"].append(folded_area_share(rest, deformed, mesh.triangles))
                     samples[scale]["intersecting"].append(
                         float(new_self_intersections(rest, deformed, mesh.triangles) > 0))
                 samples[scale]["distance"].extend(keypoint_set_distance(sets, kp_train).tolist())
@@ -237,7 +241,8 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
         result = {
             "bundle": str(model.bundle.path),
             "cage_vertices": model.num_cage_vertices, "m": model.m,
-            "rig_cage_distance": model._cage_fit.get("distance"),
+            "rig_cage_distance": model.rig_settings["rig"].get("distance", model.rig_settings["fit"].get("distance")),
+            "rig_settings": model.rig_settings,
             "roles": {k: (v.tolist()) for k, v in roles.items()},
             "semantic_edits": {name: {str(i): o.tolist() for i, o in e.items()} for name, e in edits.items()},
             "mirror_permutation": permutation.tolist(),
@@ -248,6 +253,7 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
             },
             "samples": {str(scale): {
                 "folded_share": summarise(v["folded"]),
+                "folded_area_share": summarise(v["folded_area"]),
                 "self_intersecting_share": float(np.mean(v["intersecting"])),
                 "distance_to_training": summarise(v["distance"]),
             } for scale, v in samples.items()},
@@ -285,8 +291,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--variant", action="append", default=[],
                         help="NAME:CATEGORY=BUNDLE,... (repeatable; default shipped:chair=chair,table=table)")
     parser.add_argument("--rig-cage-distance", action="append", default=[], metavar="NAME=D",
-                        help="fit the rigs' cages of variant NAME with stop distance D, as kpd export "
-                             "--rig-cage-distance D records it (repeatable)")
+                        help="fit the rigs' cages of variant NAME with stop distance D and transfer the influence "
+                             "to them, as kpd export --rig-cage-distance D records it; 0: the training cage "
+                             "(repeatable)")
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args(argv)
     args.distances = {name: float(d) for name, d in (item.split("=", 1) for item in args.rig_cage_distance)}

@@ -244,12 +244,15 @@ def _check_manifest(manifest: dict, files: dict[str, bytes]) -> None:
         raise ValueError(f"cage vertices must be finite with shape (C, 3) = ({c}, 3); got {vertices.shape}")
     if faces.shape != (f, 3) or faces.dtype.kind not in "iu" or faces.min() < 0 or faces.max() >= c:
         raise ValueError(f"cage faces must be integers in [0, {c}) with shape (F, 3) = ({f}, 3); got {faces.shape}")
-    for entry in ("fit", "rig"):
+    for entry, keys in (("fit", ("distance", "iterations", "step")),
+                        ("rig", ("distance", "iterations", "step", "sigma", "ridge"))):
         fit = manifest["cage"].get(entry) or {}
         for key, value in fit.items():
-            if key not in ("distance", "iterations", "step") or isinstance(value, bool) or \
+            if key not in keys or isinstance(value, bool) or \
                     not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
-                raise ValueError(f"cage {entry} setting {key}={value!r} is not one of distance/iterations/step >= 0")
+                raise ValueError(f"cage {entry} setting {key}={value!r} is not one of {'/'.join(keys)} >= 0")
+        if entry == "rig" and fit.get("sigma") == 0:
+            raise ValueError("cage rig setting sigma must be > 0")
     shared = np.asarray(manifest["shared_influence"], dtype=np.float64)
     if shared.shape != (k, c) or not np.isfinite(shared).all():
         raise ValueError(f"shared_influence (W_C) must be finite with shape (K, C) = ({k}, {c}); got {shared.shape}")
@@ -373,6 +376,27 @@ def build_manifest(
         manifest["cage"]["rig"] = dict(rig_fit)
     manifest[_CHECKSUM_KEY] = manifest_checksum(manifest)
     files[contract.MANIFEST_FILE] = (json.dumps(manifest, indent=1, allow_nan=False) + "\n").encode("utf-8")
+    return manifest, files
+
+
+def with_rig_fit(bundle: Bundle, rig_fit: Mapping | None, note: str | None = None) -> tuple[dict, dict[str, bytes]]:
+    """The files of ``bundle`` with its rig settings (``manifest.cage.rig``) replaced; everything else as it was.
+
+    ``rig_fit`` : e.g. ``{"distance": 0.2}`` (the cage fitted for each rig; the learned influence is transferred to
+    it, :func:`kpd.rig.transfer_influence`), or None to rig with the training cage. ``note`` is recorded beside it.
+    """
+    manifest = json.loads(json.dumps(bundle.manifest))
+    manifest["cage"].pop("rig", None)
+    manifest["cage"].pop("rig_note", None)
+    if rig_fit:
+        manifest["cage"]["rig"] = dict(rig_fit)
+        if note:
+            manifest["cage"]["rig_note"] = str(note)
+    manifest.pop(_CHECKSUM_KEY, None)
+    manifest[_CHECKSUM_KEY] = manifest_checksum(manifest)
+    files = {name: data for name, data in bundle.files.items() if name != contract.MANIFEST_FILE}
+    files[contract.MANIFEST_FILE] = (json.dumps(manifest, indent=1, allow_nan=False) + "\n").encode("utf-8")
+    _check_manifest(manifest, files)
     return manifest, files
 
 

@@ -539,6 +539,7 @@ __all__ += [
     "vertex_areas",
     "far_side_leakage",
     "folded_share",
+    "folded_area_share",
     "EditDistortion",
     "edit_distortion",
     "keypoint_roles",
@@ -624,6 +625,21 @@ def folded_share(rest: Any, deformed: Any, triangles: Any) -> float:
     """Share of the (non-degenerate) triangles whose normal turned by more than 90 degrees in an edit (folded)."""
     v0, v1, tri = _mesh_pair(rest, deformed, triangles)
     return _folded(v0, v1, tri)
+
+
+def folded_area_share(rest: Any, deformed: Any, triangles: Any) -> float:
+    """Share of the surface *area* (at rest) on triangles whose normal turned by more than 90 degrees in an edit.
+
+    :func:`folded_share` counts triangles; on CAD meshes one long sliver triangle (a strip along a table leg or a
+    seat edge, a thousandth of the area) counts as much as a large face, and slivers are what fold first when a
+    long flat face bends slightly. This weighs each by its area, so it reads as the share of the visible surface.
+    """
+    v0, v1, tri = _mesh_pair(rest, deformed, triangles)
+    n0, n1 = _normals(v0, tri), _normals(v1, tri)
+    size = np.linalg.norm(n0, axis=1)
+    if not size.sum() > 0:
+        return 0.0
+    return float(size[np.einsum("ij,ij->i", n0, n1) < 0.0].sum() / size.sum())
 
 
 def _folded(v0: np.ndarray, v1: np.ndarray, tri: np.ndarray) -> float:

@@ -26,13 +26,15 @@ from kpd.io import Mesh, atomic_output
 from kpd.io.integrity import HASH_KEY, check_hash, content_hash, load_numpy
 from kpd.mvc import mvc_weights
 
-__all__ = ["Rig", "RIG_FORMAT"]
+__all__ = ["Rig", "RIG_FORMAT", "transfer_influence", "TRANSFER_SIGMA", "TRANSFER_RIDGE"]
 
 log = logging.getLogger(__name__)
 
 RIG_FORMAT = "kpd-rig/1"
 _CAGE_SAMPLE_POINTS = 2048
 _EDIT_BLOCK = 4096  # mesh vertices per matmul in Rig.deform
+TRANSFER_SIGMA = 0.3  # width of the neighbourhood each keypoint's motion is kept in, [-1, 1] box units
+TRANSFER_RIDGE = 1e-4  # ridge of the transfer's least squares, relative to the neighbourhood's weight
 
 
 class Rig:
@@ -291,6 +293,69 @@ class Rig:
             f"Rig(V={len(self._rest_vertices)}, K={self.num_keypoints}, C={len(self.cage.vertices)}, "
             f"F={len(self.cage.faces)})"
         )
+
+
+def transfer_influence(
+    influence: Any,
+    keypoints: Any,
+    points: Any,
+    source: Cage,
+    target: Cage,
+    m: int,
+    *,
+    sigma: float = TRANSFER_SIGMA,
+    ridge: float = TRANSFER_RIDGE,
+) -> np.ndarray:
+    """Re-express an influence matrix learned for one cage of a shape on another, tighter cage of the same shape.
+
+    The network's influence W moves the cage it was trained with (fitted at the training stop distance, 0.4 of the
+    [-1, 1] box). Mean value coordinates of a cage that far from the shape are smooth but wide: a keypoint's move
+    reaches the far side of the shape. A cage fitted closer to the shape is more local, but the learned W applied to
+    it as it is overshoots (its coefficients of up to 5-7 were learned to move a distant cage) and folds the
+    surface. Instead, for each keypoint ``k`` this solves for the row on the target cage whose motion of the
+    shape's surface reproduces, near the keypoint, the motion the learned row gives through the source cage:
+
+        min_w  sum_p g_p (A_t[p, mask_k] w - A_s[p] W_k)^2 + ridge * sum_p g_p * |w|^2,
+        g_p = exp(-|p - keypoint_k|^2 / (2 sigma^2)),
+
+    with ``A_s``, ``A_t`` the mean value coordinates of the surface points in the two cages and ``mask_k`` the
+    target cage's ``m`` vertices nearest the keypoint (the model's locality). What the keypoint moves (its part)
+    moves as before; what is far from it follows the tighter cage's smaller reach.
+
+    Parameters
+    ----------
+    influence : (K, C) float64, the learned influence for ``source`` (masked or not: it is masked with ``m``).
+    keypoints : (K, 3) float64, model frame.
+    points : (N, 3) float64, surface points of the shape, model frame (the network's input sample).
+    source, target : the cages (same template topology, C vertices each), model frame.
+    m : cage vertices per keypoint.
+    sigma : neighbourhood width (> 0); ridge : regularisation (>= 0).
+
+    Returns
+    -------
+    (K, C) float64, masked to the target cage's ``m`` nearest vertices per keypoint.
+    """
+    keypoints = as_points(keypoints, "keypoints")
+    points = as_points(points, "points")
+    influence = np.asarray(influence, dtype=np.float64)
+    k, c = len(keypoints), len(source.vertices)
+    if influence.shape != (k, c) or len(target.vertices) != c:
+        raise InputError(f"influence must be (K, C) = ({k}, {c}) for two cages of {c} vertices; got "
+                         f"{influence.shape} and a target of {len(target.vertices)}")
+    if not (np.isfinite(sigma) and sigma > 0 and np.isfinite(ridge) and ridge >= 0):
+        raise InputError(f"transfer needs sigma > 0 and ridge >= 0; got {sigma!r}, {ridge!r}")
+    source_rows = influence * influence_mask(keypoints, source.vertices, m)  # (K, C)
+    moved = mvc_weights(points, source.vertices, source.faces) @ source_rows.T  # (N, K) motion per keypoint
+    coords = mvc_weights(points, target.vertices, target.faces)  # (N, C)
+    mask = influence_mask(keypoints, target.vertices, m)  # (K, C)
+    result = np.zeros((k, c))
+    for i in range(k):
+        d2 = np.sum((points - keypoints[i]) ** 2, axis=1)  # (N,)
+        g = np.exp(-(d2 - d2.min()) / (2.0 * sigma**2))  # the nearest point weighs 1, whatever the keypoint's offset
+        x = coords[:, mask[i]]  # (N, M)
+        gram = x.T @ (g[:, None] * x) + ridge * g.sum() * np.eye(x.shape[1])
+        result[i, mask[i]] = np.linalg.solve(gram, x.T @ (g * moved[:, i]))
+    return result
 
 
 def _read_table(path: Path, columns: int | None) -> np.ndarray:

@@ -28,7 +28,7 @@ from kpd.errors import BundleError, InputError
 from kpd.geometry import Normalizer, as_points, as_rng, sample_surface
 from kpd.io import Mesh, PointSet
 from kpd.prior import KeypointPrior
-from kpd.rig import Rig
+from kpd.rig import TRANSFER_RIDGE, TRANSFER_SIGMA, Rig, transfer_influence
 
 __all__ = ["Model", "Prediction", "Shape"]
 
@@ -103,8 +103,11 @@ class Model:
         self._prior = bundle.prior
         fit = bundle.manifest["cage"].get("fit") or {}
         self._cage_fit = {key: fit[key] for key in ("distance", "iterations", "step") if key in fit}
-        # a bundle may fit its rigs' cages tighter than training did (kpd export --rig-cage-distance)
-        self._cage_fit.update(bundle.manifest["cage"].get("rig") or {})
+        # a bundle may fit its rigs' cages tighter than training did (kpd export --rig-cage-distance); the learned
+        # influence is then transferred to that cage (kpd.rig.transfer_influence)
+        rig = bundle.manifest["cage"].get("rig") or {}
+        self._rig_fit = {key: rig[key] for key in ("distance", "iterations", "step") if key in rig}
+        self._transfer = {key: float(rig[key]) for key in ("sigma", "ridge") if key in rig}
 
     @classmethod
     def load(cls, path: str | os.PathLike, *, threads: int | None = None, inter_op_threads: int | None = None,
@@ -300,11 +303,27 @@ class Model:
         prediction = prediction if prediction is not None else self.predict(mesh, seed=seed)
         # the authors' rule on the sampled points, as in training; then, beyond it, push faces out until every mesh
         # vertex is inside (only the vertices are deformed through MVC)
+        vertices = prediction.normalizer.apply(mesh.vertices)
         cage = fit_cage(prediction.points, template=self._cage, **self._cage_fit)
         if enclose:
-            cage = fit_cage(prediction.normalizer.apply(mesh.vertices), template=cage, iterations=0, enclose=True)
-        return Rig.bind(mesh, prediction.keypoints, prediction.influence, normalizer=prediction.normalizer,
+            cage = fit_cage(vertices, template=cage, iterations=0, enclose=True)
+        influence = prediction.influence
+        if self._rig_fit:  # a tighter cage for editing, with the learned motion transferred onto it
+            rig_cage = fit_cage(prediction.points, template=self._cage, **{**self._cage_fit, **self._rig_fit})
+            if enclose:
+                rig_cage = fit_cage(vertices, template=rig_cage, iterations=0, enclose=True)
+            influence = transfer_influence(influence, prediction.keypoints, prediction.points, cage, rig_cage,
+                                           self.m, **self._transfer)
+            cage = rig_cage
+        return Rig.bind(mesh, prediction.keypoints, influence, normalizer=prediction.normalizer,
                         cage=cage, m=self.m)
+
+    @property
+    def rig_settings(self) -> dict:
+        """How :meth:`rig` fits the cage: the training fit, and the tighter rig fit with its transfer, if any."""
+        return {"fit": dict(self._cage_fit), "rig": dict(self._rig_fit),
+                "transfer": {"sigma": TRANSFER_SIGMA, "ridge": TRANSFER_RIDGE, **self._transfer}
+                if self._rig_fit else None}
 
     def align(self, source: Mesh | str | os.PathLike, target: Shape, *, seed: int = 0) -> Mesh:
         """Deform ``source`` so that its keypoints move to ``target``'s (paper §4.2); returns a copy of ``source``

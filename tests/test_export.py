@@ -337,3 +337,43 @@ def test_export_rig_cage_distance(run_dir, tmp_path, capsys, reuse_graphs):
     assert radius[1] < radius[0]
     assert main(["export", str(run_dir), "--out", str(tmp_path / "bad.kpd"), "--rig-cage-distance", "2"]) == 2
     assert "--rig-cage-distance must lie in (0, 1.4)" in capsys.readouterr().err
+
+
+def test_export_a_bundle_with_other_rig_settings(tmp_path, capsys, data_dir):
+    """kpd export BUNDLE --rig-cage-distance D: the same graphs, prior and record; the runtime fits each rig's
+    cage at D and transfers the learned influence to it (kpd.rig.transfer_influence); 0 goes back to the
+    training cage. Other options are refused for a bundle, and the source is never touched."""
+    from kpd.bundle import resolve_bundle
+    from kpd.cli import main
+    from kpd.io import read_mesh
+    from kpd.runtime import Model
+
+    shipped = resolve_bundle("table")
+    before = {p.name: p.read_bytes() for p in shipped.iterdir()}
+    assert main(["export", str(shipped), "--rig-cage-distance", "0.3", "--out", str(tmp_path / "t3.kpd")]) == 0
+    assert main(["export", str(tmp_path / "t3.kpd"), "--rig-cage-distance", "0",
+                 "--out", str(tmp_path / "t0.kpd")]) == 0
+    capsys.readouterr()
+    b3, b0 = read_bundle(tmp_path / "t3.kpd"), read_bundle(tmp_path / "t0.kpd")
+    assert b3.manifest["cage"]["rig"] == {"distance": 0.3} and "rig" not in b0.manifest["cage"]
+    assert {n: d for n, d in b3.files.items() if n != "manifest.json"} == \
+           {n: d for n, d in read_bundle(shipped).files.items() if n != "manifest.json"}
+    assert b3.manifest["prior"] == read_bundle(shipped).manifest["prior"]
+    mesh = read_mesh(data_dir / "modelnet10" / "table" / "test" / "table_0393.ply")
+    tight, loose = Model.load(tmp_path / "t3.kpd", threads=1), Model.load(tmp_path / "t0.kpd", threads=1)
+    assert tight.rig_settings["rig"] == {"distance": 0.3} and tight.rig_settings["transfer"]["sigma"] > 0
+    assert loose.rig_settings["transfer"] is None
+    r3, r0 = tight.rig(mesh), loose.rig(mesh)
+    assert np.linalg.norm(r3.cage.vertices, axis=1).mean() < np.linalg.norm(r0.cage.vertices, axis=1).mean()
+    np.testing.assert_array_equal(r3.deform(r3.keypoints), mesh.vertices)  # a zero edit is still the input
+    assert not np.allclose(r3.influence, r0.influence)
+    # refusals: one line, exit 2, nothing written
+    assert main(["export", str(shipped), "--out", str(tmp_path / "x.kpd")]) == 2
+    assert "give --rig-cage-distance" in capsys.readouterr().err
+    assert main(["export", str(shipped), "--rig-cage-distance", "0.2", "--up", "z", "--out",
+                 str(tmp_path / "x.kpd")]) == 2
+    assert "only --rig-cage-distance, --out and --force apply" in capsys.readouterr().err
+    assert main(["export", str(shipped), "--rig-cage-distance", "0.2", "--out", str(shipped)]) == 2
+    capsys.readouterr()
+    assert not (tmp_path / "x.kpd").exists()
+    assert {p.name: p.read_bytes() for p in shipped.iterdir()} == before

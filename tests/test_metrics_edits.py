@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from kpd.errors import InputError
-from kpd.metrics import (edit_distortion, far_side_leakage, folded_share, keypoint_roles, keypoint_set_distance,
+from kpd.metrics import (edit_distortion, far_side_leakage, folded_area_share, folded_share, keypoint_roles,
+                         keypoint_set_distance,
                          new_self_intersections, prior_response, semantic_edits, triangle_distance, vertex_areas)
 
 
@@ -72,6 +73,31 @@ def test_folds_and_distortion():
     assert 0 < share <= 6 / len(triangles)
     with pytest.raises(InputError, match="same shape"):
         edit_distortion(vertices, vertices[:-1], triangles)
+
+
+def test_folded_area_share_weighs_triangles_by_area():
+    # a fan of 20 thin slivers (0.05 of area in all) beside one large triangle (area 2)
+    n = 20
+    top = [[1.0, y, 0.0] for y in np.linspace(0, 0.1, n + 1)]
+    vertices = np.array([[0.0, 0.0, 0.0]] + top + [[0.0, -0.5, 0.0], [2.0, -0.5, 0.0], [0.0, -2.5, 0.0]])
+    slivers = [[0, 1 + i, 2 + i] for i in range(n)]
+    triangles = np.array(slivers + [[n + 2, n + 4, n + 3]])
+    areas = 0.5 * np.linalg.norm(np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]],
+                                          vertices[triangles[:, 2]] - vertices[triangles[:, 0]]), axis=1)
+    # fold one sliver (swap its far corners' order by pushing one across the other)
+    bent = vertices.copy()
+    bent[5] = vertices[7] + [0.0, 0.001, 0.0]
+    share, area = folded_share(vertices, bent, triangles), folded_area_share(vertices, bent, triangles)
+    folded = np.einsum("ij,ij->i", np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]],
+                                            vertices[triangles[:, 2]] - vertices[triangles[:, 0]]),
+                       np.cross(bent[triangles[:, 1]] - bent[triangles[:, 0]],
+                                bent[triangles[:, 2]] - bent[triangles[:, 0]])) < 0
+    assert 0 < folded.sum() < n
+    assert share == pytest.approx(folded.mean())
+    assert area == pytest.approx(areas[folded].sum() / areas.sum())
+    assert area < share / 4  # slivers are a large share of the triangles, a small one of the surface
+    assert folded_area_share(vertices, vertices * [-1.0, 1.0, 1.0], triangles) == pytest.approx(1.0)
+    assert folded_area_share(vertices, 3.0 * vertices, triangles) == 0.0
 
 
 # a chair-like mean keypoint set: four feet, three seat keypoints (one on the mirror plane), two top-of-back

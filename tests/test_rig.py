@@ -183,3 +183,39 @@ def test_real_sneaker_scan_binds(data_dir):
     np.testing.assert_array_equal(rig.deform(rig.keypoints), mesh.vertices)
     moved = rig.deform(rig.moved({0: [0.0, 0.1 * norm.scale_, 0.0]}))
     assert np.isfinite(moved).all() and np.abs(moved - mesh.vertices).max() > 0.01 * norm.scale_
+
+
+def test_transfer_influence_keeps_the_near_motion_and_shortens_the_reach(data_dir):
+    """The shipped chair's learned influence moved from its training cage (0.4) onto a cage fitted at 0.2: near
+    the moved keypoint the surface moves as before, far from it less, and the coefficients stay moderate."""
+    from kpd.cage import fit_cage, influence_mask
+    from kpd.mvc import mvc_weights
+    from kpd.rig import transfer_influence
+    from kpd.runtime import Model
+
+    model = Model.load("chair", threads=1)
+    mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply")
+    prediction = model.predict(mesh)
+    points = prediction.points
+    loose = fit_cage(points, template=model._cage, distance=0.4)
+    tight = fit_cage(points, template=model._cage, distance=0.2)
+    m = model.m
+    learned = prediction.influence * influence_mask(prediction.keypoints, loose.vertices, m)
+    moved = transfer_influence(prediction.influence, prediction.keypoints, points, loose, tight, m)
+    assert moved.shape == learned.shape
+    assert np.array_equal(moved != 0, influence_mask(prediction.keypoints, tight.vertices, m))  # the same locality M
+    # surface motion per keypoint through each cage, on a second, independent surface sample
+    check = sample_surface(prediction.normalizer.apply(mesh.vertices), mesh.triangles, 4096, seed=7).points
+    before = mvc_weights(check, loose.vertices, loose.faces) @ learned.T  # (P, K)
+    after = mvc_weights(check, tight.vertices, tight.faces) @ moved.T
+    raw = mvc_weights(check, tight.vertices, tight.faces) @ (prediction.influence * (moved != 0)).T  # W as it is
+    dist = np.linalg.norm(check[:, None, :] - prediction.keypoints[None], axis=2)  # (P, K)
+    near, far = dist < 0.2, dist > np.median(dist, axis=0)
+    assert np.abs(after - before)[near].mean() < 0.1 * np.abs(before[near]).mean()
+    assert np.abs(after[far]).mean() < 0.6 * np.abs(before[far]).mean()
+    # the learned W put on the tight cage as it is overshoots near the keypoint; the transfer does not
+    assert np.abs(raw - before)[near].mean() > 2 * np.abs(after - before)[near].mean()
+    with pytest.raises(InputError, match="sigma"):
+        transfer_influence(prediction.influence, prediction.keypoints, points, loose, tight, m, sigma=0.0)
+    with pytest.raises(InputError, match="influence must be"):
+        transfer_influence(prediction.influence[:, :5], prediction.keypoints, points, loose, tight, m)
