@@ -1,9 +1,11 @@
 """The shoe bundle under random poses: keypoints of held-out shoes with --scan; prints ONE JSON object.
 
-    .venv/bin/python benchmarks/bench_shoes.py --model shoe --data runs/data/shoe --poses 6 --out benchmarks/results/shoes.json \
+    .venv/bin/python benchmarks/bench_shoes.py --model shoe --data runs/data/shoe \
+        --split-file benchmarks/results/shoe_split_shipped.txt --poses 6 --out benchmarks/results/shoes.json \
         --sheet docs/shoe_keypoints.png
 
-For every shoe of the model's *test* split (the split recorded in the bundle, rebuilt from the aligned folder), the
+For every shoe of the model's *test* split (rebuilt from the aligned folder as the training did, or read from
+``--split-file``; its counts must match those recorded in the bundle, so that no training shoe is scored), the
 mesh is turned by ``--poses`` seeded random rotations; each turned copy goes through what ``kpd keypoints shoe
 SHAPE --scan`` does (kpd.scan orients it to the bundle's template, the model predicts, the keypoints are mapped back
 onto the turned copy), and the keypoints are turned back by the known rotation. The spread of a shoe is the mean
@@ -52,6 +54,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default="shoe")
     parser.add_argument("--data", required=True, help="the aligned folder the model was trained on")
+    parser.add_argument("--split-file", default=None,
+                        help="the split the model was trained with (NAME SPLIT lines), when the folder alone no longer "
+                             "gives it (a re-scan decides other shapes)")
     parser.add_argument("--poses", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--sheet", default=None, help="also draw the first 12 held-out shoes with their keypoints")
@@ -60,8 +65,13 @@ def main() -> None:
     model = Model.load(args.model, threads=1)
     record = model.bundle.manifest.get("training") or {}
     discover_args = (record.get("data") or {}).get("discover") or {}
-    category = discover(args.data, val_fraction=float(discover_args.get("val_fraction", 0.1)),
-                        seed=int(discover_args.get("seed", 0)))
+    category = discover(args.data, split_file=args.split_file,
+                        val_fraction=float(discover_args.get("val_fraction", 0.1)), seed=int(discover_args.get("seed", 0)))
+    recorded = (record.get("data") or {}).get("counts") or {}
+    found = {split: len(category.splits[split]) for split in recorded}
+    if recorded and found != recorded:
+        raise SystemExit(f"{args.data}: the split found ({found}) is not the one {args.model} was trained with "
+                         f"({recorded}); pass the training split as --split-file")
     tests = category.splits["test"]
     rows = []
     started = time.perf_counter()
@@ -98,7 +108,8 @@ def main() -> None:
     scan = np.array([r["spread_scan_pct"] for r in rows])
     plain = np.array([r["spread_plain_pct"] for r in rows])
     distances = np.concatenate([r["outer_surface_distance"] for r in rows])
-    result = {"benchmark": "shoes", "model": args.model, "test_shapes": len(rows), "poses": args.poses,
+    result = {"benchmark": "shoes", "model": args.model, "split_file": args.split_file, "test_shapes": len(rows),
+              "poses": args.poses,
               "seed": args.seed, "machine": platform.machine(), "cpus": os.cpu_count(), "load": os.getloadavg()[0],
               "scan": {"median_spread_pct": float(np.median(scan)), "share_within_3pct": float((scan <= 3).mean()),
                        "max_spread_pct": float(scan.max())},

@@ -11,7 +11,13 @@ Groupwise alignment (:func:`align_collection`), reusing the orientation search o
    (:func:`_neighbour_vote`: a ballet flat is judged by other flats, not by the template sneaker);
 4. the template is **re-estimated** as the medoid, by chamfer distance in the shared frame, of the shapes just
    aligned and not flagged, and step 2 is repeated, until the template no longer changes or no shape turns by
-   more than 10 degrees between rounds (or ``rounds``).
+   more than 10 degrees between rounds (or ``rounds``);
+5. without a known up axis, the collection is **stood on its floor** (:func:`floor_up`, :func:`stand_collection`):
+   objects are scanned standing, so the shared frame's up axis is the direction in which the decided shapes rest on
+   a flat contact (a sole, the tips of four legs) and each decided shape is turned by the small tilt that stands it
+   on its own support plane (:func:`kpd.scan.support_plane`). A template fit tilts shapes of other proportions (a
+   ballet flat fitted to a sneaker); the floor under each shape does not. Nothing is stood when no direction is a
+   clear floor for the collection.
 
 A shape flagged ambiguous (two rotations more than ``distinct_angle`` apart fit within the ambiguity margin) is
 reported as such, never silently counted as aligned. Every result is kept in a JSON state file after each shape,
@@ -34,7 +40,8 @@ from scipy.spatial import cKDTree
 
 from kpd.errors import DataError, InputError
 from kpd.geometry import as_points, as_rng, sample_surface
-from kpd.scan import DEFAULT_AMBIGUITY_MARGIN, ScanAligner, parse_axis, rotation_angle
+from kpd.scan import (DEFAULT_AMBIGUITY_MARGIN, ScanAligner, _dense_subset, _rotation_between, parse_axis,
+                      rotation_angle, support_plane)
 
 __all__ = [
     "CollectionShape",
@@ -44,6 +51,8 @@ __all__ = [
     "shape_descriptor",
     "descriptor_medoid",
     "chamfer_medoid",
+    "floor_up",
+    "stand_collection",
     "align_collection",
     "pairwise_rotation_errors",
     "contact_sheet",
@@ -75,6 +84,7 @@ class CollectionShape(NamedTuple):
     ambiguous: bool
     template: bool = False
     decided_by: str = "template"
+    tilt: float = math.nan
 
     def to_dict(self) -> dict:
         def num(x: float) -> float | None:
@@ -85,7 +95,7 @@ class CollectionShape(NamedTuple):
         return {"name": self.name, "transform": transform.tolist(), "score": num(self.score),
                 "runner_up_score": num(self.runner_up_score), "runner_up_angle": num(self.runner_up_angle),
                 "margin": num(self.margin), "ambiguous": bool(self.ambiguous), "template": bool(self.template),
-                "decided_by": self.decided_by}
+                "decided_by": self.decided_by, "tilt": None if not np.isfinite(self.tilt) else float(self.tilt)}
 
     @classmethod
     def from_dict(cls, data: dict) -> "CollectionShape":
@@ -96,7 +106,8 @@ class CollectionShape(NamedTuple):
                    num(data["runner_up_score"]), math.nan if data["runner_up_angle"] is None
                    else float(data["runner_up_angle"]), num(data["margin"]), bool(data["ambiguous"]),
                    bool(data.get("template", False)),
-                   "undecided" if data["ambiguous"] else str(data.get("decided_by", "template")))
+                   "undecided" if data["ambiguous"] else str(data.get("decided_by", "template")),
+                   math.nan if data.get("tilt") is None else float(data["tilt"]))
 
 
 class CollectionAlignment(NamedTuple):
@@ -110,6 +121,8 @@ class CollectionAlignment(NamedTuple):
         last round (another round would change nothing that matters)
     seconds : (S,) float64, each shape's orientation time summed over the rounds (as measured when it was done,
         also in an earlier, resumed run)
+    floor : what :func:`floor_up` found (the up axis in the shared frame, the flat-contact share of every candidate
+        direction, how many shapes were stood and by how much), or None when the up axis was given or standing off
     """
 
     shapes: list
@@ -118,6 +131,7 @@ class CollectionAlignment(NamedTuple):
     changed: list
     converged: bool
     seconds: np.ndarray
+    floor: dict | None = None
 
     @property
     def ambiguous(self) -> np.ndarray:
@@ -128,7 +142,8 @@ class CollectionAlignment(NamedTuple):
         return {"templates": list(self.templates), "changed": list(self.changed), "converged": self.converged,
                 "rounds": len(self.templates), "count": len(self.shapes),
                 "seconds_per_shape": float(self.seconds.mean()),
-                "ambiguous": int(self.ambiguous.sum()), "shapes": [s.to_dict() for s in self.shapes]}
+                "ambiguous": int(self.ambiguous.sum()), "floor": self.floor,
+                "shapes": [s.to_dict() for s in self.shapes]}
 
 
 # --------------------------------------------------------------------------------------------------------------------
@@ -245,6 +260,103 @@ def chamfer_medoid(clouds: Sequence[np.ndarray], rotations: np.ndarray, candidat
 
 
 # --------------------------------------------------------------------------------------------------------------------
+# the floor: the shared frame's up axis and each shape stood on its support plane
+
+FLOOR_NEAR = 0.05  # a point within this height (unit RMS radius) of the support plane is on the floor contact
+FLOOR_CLEAR = 1.5  # the best direction must have this many times the flat-contact share of the next one
+
+
+def _floor_samples(clouds: Sequence[np.ndarray], rotations: np.ndarray, indices: Sequence[int], points: int,
+                   seed: int) -> dict[int, np.ndarray]:
+    """Each shape's dense points (stray ones out), at unit RMS radius in the shared frame."""
+    out = {}
+    for i in indices:
+        c = clouds[i]
+        sub = c if len(c) <= points else c[np.random.default_rng([seed, i]).choice(len(c), points, replace=False)]
+        out[i] = _dense_subset(_unit(sub @ rotations[i].T))
+    return out
+
+
+def _contact(points: np.ndarray, up: np.ndarray, snap: float) -> tuple[float, np.ndarray | None]:
+    """The share of ``points`` within FLOOR_NEAR of their support plane with ``up`` up, and its normal (None when
+    there is no stable support that way)."""
+    found = support_plane(points, up, max_angle=snap)
+    if not found.count or not found.stability > 0:
+        return 0.0, None
+    height = points @ found.normal
+    return float(np.mean(height - height.min() < FLOOR_NEAR)), found.normal
+
+
+def floor_up(clouds: Sequence[np.ndarray], rotations: np.ndarray, decided: Sequence[int], *, snap: float = 25.0,
+             points: int = 2000, seed: int = 0) -> tuple[np.ndarray | None, dict]:
+    """The up axis of a collection's shared frame, from the floor its shapes stand on.
+
+    Objects are scanned standing on something, and what they stand on is flat: a shoe's sole, a box's base, the
+    plane through a chair's leg tips. The candidates are the six signed principal axes of the decided shapes pooled
+    in the shared frame; for each, every decided shape is stood on its support plane with that axis up
+    (:func:`kpd.scan.support_plane`, hull faces within ``snap`` degrees) and the share of its points within
+    FLOOR_NEAR (unit RMS radius) of that plane is taken: large for a flat contact, small for a curved side. The
+    direction with the highest median share is the floor when that median is FLOOR_CLEAR times the next
+    direction's; the up axis is then the mean support normal of the decided shapes with that direction up.
+
+    Returns
+    -------
+    up : (3,) unit vector in the shared frame, or None when no direction is a clear floor
+    info : {"shares": the six medians, best first, "directions": the candidates in that order, "up": ...}
+    """
+    decided = [int(i) for i in decided]
+    if len(decided) < 2:
+        return None, {"shares": [], "directions": [], "up": None, "note": "fewer than 2 decided shapes"}
+    work = _floor_samples(clouds, rotations, decided, points, seed)
+    pool = np.concatenate([work[i] for i in decided])
+    axes = np.linalg.eigh(pool.T @ pool)[1].T  # (3, 3) rows
+    candidates = [sign * a for a in axes for sign in (1.0, -1.0)]
+    shares = np.array([np.median([_contact(work[i], u, snap)[0] for i in decided]) for u in candidates])
+    order = np.argsort(-shares)
+    info = {"shares": [float(shares[k]) for k in order],
+            "directions": [candidates[k].round(4).tolist() for k in order], "up": None}
+    if not shares[order[0]] > 0 or shares[order[0]] < FLOOR_CLEAR * shares[order[1]]:
+        info["note"] = "no direction is a clear floor"
+        return None, info
+    up = candidates[order[0]]
+    for _ in range(2):  # the mean support normal, then once more from it
+        normals = [n for n in (_contact(work[i], up, snap)[1] for i in decided) if n is not None]
+        if not normals:
+            break
+        mean = np.mean(normals, axis=0)
+        up = mean / np.linalg.norm(mean)
+    info["up"] = up.tolist()
+    return up, info
+
+
+def stand_collection(clouds: Sequence[np.ndarray], rotations: np.ndarray, indices: Sequence[int], up: Any, *,
+                     snap: float = 25.0, points: int = 2000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Stand shapes on their support planes in the shared frame.
+
+    Each shape of ``indices`` (turned into the shared frame by ``rotations``) is found its support plane with
+    ``up`` (3,) up (:func:`kpd.scan.support_plane`, hull faces within ``snap`` degrees, a stable support only) and
+    turned by the smallest rotation taking that plane's normal to ``up``; its turn about ``up`` is kept.
+
+    Returns
+    -------
+    rotations : (S, 3, 3) float64, the stood rotations (others unchanged)
+    tilts : (S,) float64, degrees each shape was turned (nan: not stood)
+    """
+    up = parse_axis(up)
+    out = np.array(rotations, dtype=np.float64, copy=True)
+    tilts = np.full(len(out), math.nan)
+    work = _floor_samples(clouds, out, indices, points, seed)
+    for i, pts in work.items():
+        normal = _contact(pts, up, snap)[1]
+        if normal is None:
+            continue
+        turn = _rotation_between(normal, up)
+        out[i] = turn @ out[i]
+        tilts[i] = rotation_angle(turn)
+    return out, tilts
+
+
+# --------------------------------------------------------------------------------------------------------------------
 # the alignment
 
 _WORKER: dict = {}
@@ -353,6 +465,7 @@ def align_collection(
     progress: bool = False,
     seed: int = 0,
     neighbours: int = 8,
+    stand: bool = True,
     **aligner_params: Any,
 ) -> CollectionAlignment:
     """Groupwise alignment of a collection (see the module docstring).
@@ -372,6 +485,9 @@ def align_collection(
     neighbours : after each round, a flagged shape is settled by its ``neighbours`` nearest decided look-alikes
         (by descriptor) when one of its distinct candidate rotations fits them better than the others by the
         ambiguity margin (0 turns this off); such shapes are reported with ``decided_by: neighbours``.
+    stand : without ``up``, after the rounds: find the shared frame's up axis from the floor the decided shapes
+        stand on (:func:`floor_up`) and stand each decided shape on its own support plane (:func:`stand_collection`;
+        the shapes' ``tilt``, the alignment's ``floor``). Not part of the resumable state: it is recomputed.
     aligner_params : further :class:`kpd.scan.ScanAligner` parameters (``ambiguity_margin``, ``n_points``, ...).
 
     Returns
@@ -466,8 +582,26 @@ def align_collection(
             converged = True
             break
         template = following
-    shapes = [CollectionShape.from_dict({**results[n], "template": n == templates[-1]}) for n in names]
-    return CollectionAlignment(shapes, rotations, templates, changed, converged, seconds)
+    tilts = np.full(len(names), math.nan)
+    floor = None
+    if stand and up is None:
+        decided = [i for i, n in enumerate(names) if not results[n]["ambiguous"]]
+        floor_axis, floor = floor_up(clouds, rotations, decided, seed=seed)
+        if floor_axis is not None:
+            rotations, tilts = stand_collection(clouds, rotations, decided, floor_axis, seed=seed)
+            stood = tilts[np.isfinite(tilts)]
+            floor.update(stood=int(len(stood)), tilt_median_deg=float(np.median(stood)) if len(stood) else None,
+                         tilt_max_deg=float(stood.max()) if len(stood) else None)
+            log.info("floor: up %s in the shared frame, %d shapes stood (median tilt %.1f deg)",
+                     np.round(floor_axis, 3).tolist(), len(stood), floor["tilt_median_deg"] or 0.0)
+    shapes = []
+    for i, n in enumerate(names):
+        transform = np.eye(4)
+        transform[:3, :3] = rotations[i]
+        shapes.append(CollectionShape.from_dict({**results[n], "template": n == templates[-1],
+                                                 "transform": transform.tolist(),
+                                                 "tilt": None if not np.isfinite(tilts[i]) else float(tilts[i])}))
+    return CollectionAlignment(shapes, rotations, templates, changed, converged, seconds, floor)
 
 
 def pairwise_rotation_errors(estimated: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
