@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, NamedTuple, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, cKDTree
 
 from kpd.errors import DataError, InputError
 from kpd.geometry import as_points, as_rng, sample_surface
@@ -287,38 +287,74 @@ def _contact(points: np.ndarray, up: np.ndarray, snap: float) -> tuple[float, np
     return float(np.mean(height - height.min() < FLOOR_NEAR)), found.normal
 
 
+def _sphere_directions(n: int) -> np.ndarray:
+    """(n, 3) near-uniform unit vectors (a Fibonacci lattice)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    a = np.pi * (3.0 - math.sqrt(5.0)) * i
+    return np.stack([r * np.cos(a), r * np.sin(a), z], axis=1)
+
+
+def _contact_shares(points: np.ndarray, directions: np.ndarray, snap: float) -> np.ndarray:
+    """(D,) for each candidate up direction: the share of ``points`` within FLOOR_NEAR of the support plane under
+    them (the area-weighted mean plane of the hull faces within ``snap`` degrees of facing down; 0 without)."""
+    try:
+        hull = ConvexHull(points)
+    except Exception as exc:  # noqa: BLE001 - qhull raises its own QhullError for flat or degenerate input
+        if type(exc).__name__ != "QhullError":
+            raise
+        return np.zeros(len(directions))
+    outward = hull.equations[:, :3]  # (F, 3)
+    a, b, c = (points[hull.simplices[:, i]] for i in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)  # (F,)
+    below = (outward @ -directions.T) >= math.cos(math.radians(snap))  # (F, D)
+    normals = -(below * area[:, None]).T @ outward  # (D, 3)
+    length = np.linalg.norm(normals, axis=1)
+    found = length > 0
+    normals[found] /= length[found, None]
+    height = points @ normals.T  # (N, D)
+    shares = np.mean(height - height.min(axis=0) < FLOOR_NEAR, axis=0)
+    return np.where(found, shares, 0.0)
+
+
+FLOOR_DIRECTIONS = 200  # candidate up directions (about 14 degrees apart, within the 25 degree snap of any axis)
+FLOOR_APART = 45.0  # a rival floor lies more than this many degrees from the best
+
+
 def floor_up(clouds: Sequence[np.ndarray], rotations: np.ndarray, decided: Sequence[int], *, snap: float = 25.0,
              points: int = 2000, seed: int = 0) -> tuple[np.ndarray | None, dict]:
     """The up axis of a collection's shared frame, from the floor its shapes stand on.
 
     Objects are scanned standing on something, and what they stand on is flat: a shoe's sole, a box's base, the
-    plane through a chair's leg tips. The candidates are the six signed principal axes of the decided shapes pooled
-    in the shared frame; for each, every decided shape is stood on its support plane with that axis up
-    (:func:`kpd.scan.support_plane`, hull faces within ``snap`` degrees) and the share of its points within
-    FLOOR_NEAR (unit RMS radius) of that plane is taken: large for a flat contact, small for a curved side. The
-    direction with the highest median share is the floor when that median is FLOOR_CLEAR times the next
-    direction's; the up axis is then the mean support normal of the decided shapes with that direction up.
+    plane through a chair's leg tips. For each of FLOOR_DIRECTIONS candidate up directions of the shared frame,
+    every decided shape is stood on its support plane with that direction up (the hull faces within ``snap``
+    degrees of facing down, as :func:`kpd.scan.support_plane`) and the share of its points within FLOOR_NEAR (unit
+    RMS radius) of that plane is taken: large for a flat contact, small for a curved side. The direction with the
+    highest median share is the floor when that median is FLOOR_CLEAR times the best one FLOOR_APART degrees or
+    more away; the up axis is then the mean support normal of the decided shapes with that direction up.
 
     Returns
     -------
     up : (3,) unit vector in the shared frame, or None when no direction is a clear floor
-    info : {"shares": the six medians, best first, "directions": the candidates in that order, "up": ...}
+    info : {"share": the best direction's median share, "rival_share": the best rival's, "up": ...}
     """
     decided = [int(i) for i in decided]
+    info: dict = {"share": None, "rival_share": None, "up": None}
     if len(decided) < 2:
-        return None, {"shares": [], "directions": [], "up": None, "note": "fewer than 2 decided shapes"}
+        info["note"] = "fewer than 2 decided shapes"
+        return None, info
     work = _floor_samples(clouds, rotations, decided, points, seed)
-    pool = np.concatenate([work[i] for i in decided])
-    axes = np.linalg.eigh(pool.T @ pool)[1].T  # (3, 3) rows
-    candidates = [sign * a for a in axes for sign in (1.0, -1.0)]
-    shares = np.array([np.median([_contact(work[i], u, snap)[0] for i in decided]) for u in candidates])
-    order = np.argsort(-shares)
-    info = {"shares": [float(shares[k]) for k in order],
-            "directions": [candidates[k].round(4).tolist() for k in order], "up": None}
-    if not shares[order[0]] > 0 or shares[order[0]] < FLOOR_CLEAR * shares[order[1]]:
+    directions = _sphere_directions(FLOOR_DIRECTIONS)
+    shares = np.median(np.stack([_contact_shares(work[i], directions, snap) for i in decided]), axis=0)  # (D,)
+    best = int(np.argmax(shares))
+    apart = directions @ directions[best] < math.cos(math.radians(FLOOR_APART))
+    rival = float(shares[apart].max()) if apart.any() else 0.0
+    info.update(share=float(shares[best]), rival_share=rival)
+    if not shares[best] > 0 or shares[best] < FLOOR_CLEAR * rival:
         info["note"] = "no direction is a clear floor"
         return None, info
-    up = candidates[order[0]]
+    up = directions[best]
     for _ in range(2):  # the mean support normal, then once more from it
         normals = [n for n in (_contact(work[i], up, snap)[1] for i in decided) if n is not None]
         if not normals:

@@ -55,6 +55,8 @@ __all__ = [
     "icosahedral_rotations",
     "Support",
     "support_plane",
+    "candidate_rotations",
+    "reorient",
 ]
 
 log = logging.getLogger(__name__)
@@ -1196,6 +1198,43 @@ def preprocess(
     aligned = points @ forward[:3, :3].T + forward[:3, 3]
     return ScanResult(_with_points(cleaned, aligned, forward[:3, :3]), aligned, forward, inverse, rotation,
                       normalizer, orientation, report)
+
+
+def candidate_rotations(orientation: Orientation, margin: float | None = None,
+                        distinct_angle: float = 30.0) -> list[tuple[np.ndarray, float]]:
+    """The distinct rotations an ambiguous orientation hesitates between: (rotation, score) pairs, best first.
+
+    The first is the chosen rotation; then every refined hypothesis whose score is within ``margin`` (relative, as
+    :attr:`Orientation.margin`; default the aligner's :data:`DEFAULT_AMBIGUITY_MARGIN`) of the best and that lies
+    more than ``distinct_angle`` degrees from every rotation listed before it. A shape that is not ambiguous (or has
+    no such hypothesis) gives the chosen rotation alone. What settles the choice is up to the caller: a model's
+    keypoint prior (``kpd keypoints --scan``), the shape's look-alikes (``kpd scan FOLDER``).
+    """
+    margin = DEFAULT_AMBIGUITY_MARGIN if margin is None else float(margin)
+    out = [(orientation.rotation, float(orientation.score))]
+    if not orientation.ambiguous or not np.isfinite(orientation.score):
+        return out
+    for h in orientation.hypotheses:
+        if h.score > orientation.score * (1.0 + margin):
+            break  # hypotheses are sorted best first
+        if all(rotation_angle(h.rotation, r) > distinct_angle for r, _ in out):
+            out.append((h.rotation, float(h.score)))
+    return out
+
+
+def reorient(result: ScanResult, rotation: np.ndarray) -> ScanResult:
+    """``result``'s cleaned scan turned by another ``rotation`` (3, 3) (a runner-up hypothesis, say) and normalised
+    again: the :class:`ScanResult` :func:`preprocess` would have returned had it chosen that rotation."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    if rotation.shape != (3, 3) or not np.isfinite(rotation).all() or abs(np.linalg.det(rotation) - 1.0) > 1e-6:
+        raise InputError(f"a rotation must be a proper (3, 3) rotation matrix; got shape {rotation.shape}")
+    points = result.to_original(result.points)  # the cleaned scan
+    normalizer = Normalizer().fit(points @ rotation.T)
+    forward, inverse = similarity_matrices(rotation, normalizer)
+    aligned = points @ forward[:3, :3].T + forward[:3, 3]
+    linear = forward[:3, :3] @ result.inverse[:3, :3]  # old aligned frame -> new aligned frame
+    return ScanResult(_with_points(result.shape, aligned, linear), aligned, forward, inverse, rotation, normalizer,
+                      result.orientation, result.clean)
 
 
 # --------------------------------------------------------------------------------------------------------------------

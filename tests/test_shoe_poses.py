@@ -48,7 +48,7 @@ def test_the_floor_of_tilted_shoes_is_found_and_standing_them_on_it_removes_the_
     identity = np.repeat(np.eye(3)[None], len(clouds), axis=0)
     everyone = list(range(len(clouds)))
     up, info = floor_up(clouds, identity, everyone)
-    assert up is not None and info["shares"][0] >= 1.5 * info["shares"][1]
+    assert up is not None and info["share"] >= 1.5 * info["rival_share"]
     mean_up = turns[:, :, 1].sum(axis=0)  # where the shoes' own up axes (y) point, on average
     mean_up /= np.linalg.norm(mean_up)
     assert np.degrees(np.arccos(np.clip(up @ mean_up, -1, 1))) < 3.0  # the soles' mean normal

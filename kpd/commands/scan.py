@@ -52,6 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--processes", type=int, default=1,
                    help="worker processes orienting shapes (default 1; each uses one core)")
     g.add_argument("--points", type=int, default=5000, help="surface points sampled per shape (default 5000)")
+    g.add_argument("--no-stand", action="store_true",
+                   help="without --up, do not stand the aligned shapes on the floor they share (kpd.collection."
+                        "floor_up; default: the shared frame's up axis is found from the decided shapes' flat "
+                        "contact and each is turned onto its own support plane)")
     g.add_argument("--all-surface", action="store_true",
                    help="sample every face, also those inside the shape (default: the outer surface only)")
 
@@ -178,6 +182,8 @@ def run_collection(args: argparse.Namespace) -> int:
     import time
     from pathlib import Path
 
+    import numpy as np
+
     from kpd.collection import align_collection, collection_points, contact_sheet, find_shapes
     from kpd.errors import InputError, KpdError
     from kpd.io import Mesh, read_shape, write_mesh, write_points
@@ -227,7 +233,7 @@ def run_collection(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     result = align_collection(clouds, [n for n, _ in shapes], up=args.up, rounds=args.rounds,
                               processes=args.processes, state=staging / "state.json", progress=True,
-                              seed=args.seed)
+                              seed=args.seed, stand=not args.no_stand)
     align_seconds = time.perf_counter() - started
 
     rows = []
@@ -247,7 +253,8 @@ def run_collection(args: argparse.Namespace) -> int:
                           "per_shape": float(result.seconds.mean())},
               **{k: v for k, v in result.to_dict().items() if k != "shapes"}, "shapes": rows}
     (staging / "alignment.json").write_text(json.dumps(report, indent=1) + "\n")
-    contact_sheet(clouds, result, staging / "contact_sheet.png", up=args.up, seed=args.seed)
+    floor_up = (result.floor or {}).get("up")
+    contact_sheet(clouds, result, staging / "contact_sheet.png", up=args.up or floor_up, seed=args.seed)
     (staging / "state.json").unlink()
     if out.exists():
         shutil.rmtree(out)
@@ -260,5 +267,8 @@ def run_collection(args: argparse.Namespace) -> int:
     print(f"aligned {len(shapes) - flagged} shapes, {flagged} flagged ambiguous (in {out / 'ambiguous'}); "
           f"{len(result.templates)} round(s), templates {', '.join(result.templates)}; "
           f"{result.seconds.mean():.2f} s per shape")
+    if floor_up is not None:
+        print(f"stood {result.floor['stood']} shapes on the floor they share (up {np.round(floor_up, 3).tolist()} in "
+              f"the shared frame; median tilt {result.floor['tilt_median_deg']:.1f} degrees)")
     print(f"wrote {out} (alignment.json, contact_sheet.png)")
     return 0
