@@ -25,7 +25,8 @@ def add_scan_arguments(parser: argparse.ArgumentParser) -> None:
     add_check(parser, check_scan_arguments)
     parser.add_argument("--scan", action="store_true",
                         help="treat the input as a real scan: clean it and orient it to the model's template first "
-                             "(kpd.scan); results are mapped back onto the scan")
+                             "(kpd.scan; an orientation the shape leaves ambiguous is settled by the model); results "
+                             "are mapped back onto the scan")
     parser.add_argument("--up", default=None, metavar="AXIS",
                         help="with --scan: the scan's known up axis (x, y, z, -z...), restricting the orientation search")
 
@@ -86,10 +87,72 @@ def check_suffix(path: str, formats: tuple, what: str, option: str = "--out") ->
         raise InputError(f"{option} {path}: a {what} file must end in one of {' '.join(formats)}")
 
 
-class ScanFrame:
-    """A scan oriented into the model's frame: ``shape`` there, and the maps to and from the scan's own frame."""
+SETTLE_POINTS = 2048  # surface points of the deformed scan compared with the template
 
-    def __init__(self, model, shape, up: str | None) -> None:
+
+def settle_orientation(model, result, *, seed: int = 0):
+    """An ambiguous orientation settled by the model: the candidate rotation whose scan, deformed by the model onto
+    the template's keypoints, fits the template best.
+
+    The shape alone cannot tell them apart (a ballet flat fits the template about as well back to front), but the
+    model knows the category: for each distinct rotation within the ambiguity margin
+    (:func:`kpd.scan.candidate_rotations`) the scan is turned that way, its keypoints are predicted, its rig
+    (cage, influence) deforms it so that its keypoints go where the template's are (``kpd align``, the paper's
+    §4.2), and the chamfer distance (the training loss) between the deformed scan and the template is taken. A
+    correctly turned scan deforms into the template; a turned-around one keeps its heel where the template has its
+    toe. Calibrated on training shoes, not on the held-out ones (README, Shoes).
+
+    Returns
+    -------
+    result : the :class:`kpd.scan.ScanResult` of the chosen rotation (``result`` itself when it stays)
+    record : None when there was nothing to settle (not ambiguous, one candidate, a point scan: a rig needs a
+        mesh), else {"candidates": [{"angle_deg", "score", "fit"}...], "chosen": index, "margin": the runner-up's
+        fit / the chosen one's - 1}
+    """
+    import numpy as np
+
+    from kpd.geometry import Normalizer, chamfer, sample_surface
+    from kpd.scan import candidate_rotations, reorient, rotation_angle
+
+    orientation = result.orientation
+    if orientation is None or not orientation.ambiguous or model.template_points is None:
+        return result, None
+    shape = result.shape
+    if not (hasattr(shape, "triangles") and len(shape.triangles)):
+        return result, None
+    candidates = candidate_rotations(orientation)
+    if len(candidates) < 2:
+        return result, None
+    template = model.template_points
+    target = Normalizer().fit(template).apply(template)
+    target_keypoints = model.predict(template, seed=seed).keypoints  # the template's, in its model frame
+    fits, turned = [], []
+    for rotation, _ in candidates:
+        alt = result if rotation is orientation.rotation else reorient(result, rotation)
+        prediction = model.predict(alt.shape, seed=seed)
+        rig = model.rig(alt.shape, prediction=prediction, enclose=False)
+        deformed = alt.shape.with_vertices(rig.deform(rig.normalizer.invert(target_keypoints)))
+        points = sample_surface(deformed.vertices, deformed.triangles, SETTLE_POINTS, seed=seed,
+                                outer=model.outer_surface).points
+        fits.append(chamfer(Normalizer().fit(points).apply(points), target))
+        turned.append(alt)
+    order = np.argsort(fits)
+    chosen = int(order[0])
+    best = fits[chosen]
+    record = {"candidates": [{"angle_deg": rotation_angle(r, orientation.rotation), "score": float(score),
+                              "fit": float(fit)} for (r, score), fit in zip(candidates, fits)],
+              "chosen": chosen, "margin": float(fits[int(order[1])] / best - 1.0) if best > 0 else float("inf")}
+    return turned[chosen], record
+
+
+class ScanFrame:
+    """A scan oriented into the model's frame: ``shape`` there, and the maps to and from the scan's own frame.
+
+    An orientation the shape alone leaves ambiguous is settled by the model (:func:`settle_orientation`) unless
+    ``settle`` is off; ``settled`` holds what was decided (None: nothing to settle) and ``rigid`` the result of the
+    best rigid fit alone."""
+
+    def __init__(self, model, shape, up: str | None, *, settle: bool = True, seed: int = 0) -> None:
         from kpd.errors import BundleError
         from kpd.scan import preprocess
 
@@ -103,9 +166,21 @@ class ScanFrame:
         if model.up is not None:  # as kpd scan --model: the model's up axis turns on the support prior
             params["reference_up"] = model.up
         self.result = preprocess(shape, reference, outer=model.outer_surface, **params)
+        self.rigid = self.result  # the best rigid fit, before any settling
+        self.settled = None
+        if settle:
+            self.result, self.settled = settle_orientation(model, self.result, seed=seed)
         orientation = self.result.orientation
         if orientation is not None and orientation.ambiguous:
-            print(f"warning: {ambiguity_advice(up is not None)}", file=sys.stderr)
+            if self.settled is None:
+                print(f"warning: {ambiguity_advice(up is not None)}", file=sys.stderr)
+            else:
+                s = self.settled
+                print(f"note: the orientation was ambiguous by shape alone ({len(s['candidates'])} candidate "
+                      f"rotations); settled by the model (the scan deformed onto the template fits it best, "
+                      f"{s['margin']:.0%} better than the next; the candidate "
+                      f"{s['candidates'][s['chosen']]['angle_deg']:.0f} degrees from the best rigid fit)",
+                      file=sys.stderr)
 
     def to_aligned(self, points):
         return self.result.to_aligned(points)
@@ -122,7 +197,7 @@ class ScanFrame:
         return vectors @ self.result.inverse[:3, :3].T
 
     def report(self) -> dict:
-        return self.result.to_dict()
+        return {**self.result.to_dict(), "settled": self.settled}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -137,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
         meta = {"model": str(args.model), "category": model.category, "shape": str(args.shape), "frame": "input",
                 "seed": args.seed}
         if args.scan:
-            scan = ScanFrame(model, shape, args.up)
+            scan = ScanFrame(model, shape, args.up, seed=args.seed)
             keypoints = scan.to_original(model.keypoints(scan.result.shape, seed=args.seed))
             meta["scan"] = scan.report()
         else:
