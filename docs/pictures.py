@@ -160,6 +160,57 @@ def editor_sneaker(tmp: Path) -> None:
     _editor_shot(tmp, DOCS / "editor_sneaker.png", ["--rig", tmp / "sneaker_rig.npz", "--view-up", "+y"])
 
 
+def _samples(tmp: Path, category: str, name: str, out: str, scale: str = "0.5") -> None:
+    mesh = DATA / "modelnet10" / category / "test" / f"{name}.ply"
+    kpd("sample", category, mesh, "--n", "8", "--scale", scale, "--out", tmp / out)
+    shutil.copy(tmp / out / "contact_sheet.png", DOCS / f"{out}.png")
+
+
+def samples_chair(tmp: Path) -> None:
+    _samples(tmp, "chair", "chair_0896", "samples_chair")
+
+
+def samples_chair_scale1(tmp: Path) -> None:
+    _samples(tmp, "chair", "chair_0896", "samples_chair_scale1", "1.0")
+
+
+def samples_table(tmp: Path) -> None:
+    _samples(tmp, "table", "table_0396", "samples_table")
+
+
+def _edits(tmp: Path, category: str, names: list[str]) -> None:
+    """The semantic edits of bench_edits on held-out shapes, rigged with the training cage and with the shipped rig
+    (its cage fitted at 0.2, the learned influence transferred), each keypoint of the edit moved by 0.2 of the box."""
+    from kpd.io import Mesh, read_mesh
+    from kpd.metrics import keypoint_roles, semantic_edits
+    from kpd.runtime import Model
+    from kpd.viewer.pictures import render_sheet
+
+    kpd("export", category, "--rig-cage-distance", "0", "--out", tmp / f"{category}-loose.kpd")
+    meshes, titles, keypoints = [], [], []
+    for name in names:
+        mesh = read_mesh(DATA / "modelnet10" / category / "test" / f"{name}.ply")
+        for label, bundle in (("training cage", tmp / f"{category}-loose.kpd"), ("shipped rig", category)):
+            model = Model.load(bundle, threads=1)
+            rig = model.rig(mesh)
+            edits = semantic_edits(keypoint_roles(model.prior.mean_), category, 0.2)
+            for edit, moves in edits.items():
+                moved = rig.moved({i: np.asarray(o) * rig.normalizer.scale_ for i, o in moves.items()})
+                meshes.append(Mesh(rig.normalizer.apply(rig.deform(moved)), mesh.triangles))
+                keypoints.append(rig.normalizer.apply(moved))
+                titles.append(f"{name}: {edit.replace('_', ' ')}, {label}")
+    render_sheet(meshes, DOCS / f"edits_{category}.png", titles=titles, keypoints=keypoints,
+                 columns=len(meshes) // len(names), cell=2.6)
+
+
+def edits_chair(tmp: Path) -> None:
+    _edits(tmp, "chair", ["chair_0891", "chair_0896"])
+
+
+def edits_table(tmp: Path) -> None:
+    _edits(tmp, "table", ["table_0396", "table_0401"])
+
+
 def chair_alignment(tmp: Path) -> None:
     _alignment(tmp, "chair")
 
@@ -186,7 +237,9 @@ def galleries(tmp: Path, runs: Path) -> None:
 
 PICTURES = {"demo": demo, "render_chair": render_chair, "sample_chair": sample_chair,
             "scan_chair_ambiguous": scan_chair_ambiguous, "scan_sneaker": scan_sneaker, "editor_chair": editor_chair,
-            "editor_sneaker": editor_sneaker, "chair_alignment": chair_alignment, "table_alignment": table_alignment}
+            "editor_sneaker": editor_sneaker, "chair_alignment": chair_alignment, "table_alignment": table_alignment,
+            "samples_chair": samples_chair, "samples_chair_scale1": samples_chair_scale1,
+            "samples_table": samples_table, "edits_chair": edits_chair, "edits_table": edits_table}
 
 
 def main() -> None:

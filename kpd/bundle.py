@@ -245,14 +245,14 @@ def _check_manifest(manifest: dict, files: dict[str, bytes]) -> None:
     if faces.shape != (f, 3) or faces.dtype.kind not in "iu" or faces.min() < 0 or faces.max() >= c:
         raise ValueError(f"cage faces must be integers in [0, {c}) with shape (F, 3) = ({f}, 3); got {faces.shape}")
     for entry, keys in (("fit", ("distance", "iterations", "step")),
-                        ("rig", ("distance", "iterations", "step", "sigma", "ridge"))):
+                        ("rig", ("distance", "iterations", "step", "sigma", "ridge", "support"))):
         fit = manifest["cage"].get(entry) or {}
         for key, value in fit.items():
             if key not in keys or isinstance(value, bool) or \
                     not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
                 raise ValueError(f"cage {entry} setting {key}={value!r} is not one of {'/'.join(keys)} >= 0")
-        if entry == "rig" and fit.get("sigma") == 0:
-            raise ValueError("cage rig setting sigma must be > 0")
+        if entry == "rig" and (fit.get("sigma") == 0 or fit.get("support") == 0):
+            raise ValueError("cage rig settings sigma and support must be > 0")
     shared = np.asarray(manifest["shared_influence"], dtype=np.float64)
     if shared.shape != (k, c) or not np.isfinite(shared).all():
         raise ValueError(f"shared_influence (W_C) must be finite with shape (K, C) = ({k}, {c}); got {shared.shape}")

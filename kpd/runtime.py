@@ -28,7 +28,7 @@ from kpd.errors import BundleError, InputError
 from kpd.geometry import Normalizer, as_points, as_rng, sample_surface
 from kpd.io import Mesh, PointSet
 from kpd.prior import KeypointPrior
-from kpd.rig import TRANSFER_RIDGE, TRANSFER_SIGMA, Rig, transfer_influence
+from kpd.rig import TRANSFER_RIDGE, TRANSFER_SIGMA, TRANSFER_SUPPORT, Rig, transfer_influence
 
 __all__ = ["Model", "Prediction", "Shape"]
 
@@ -107,7 +107,7 @@ class Model:
         # influence is then transferred to that cage (kpd.rig.transfer_influence)
         rig = bundle.manifest["cage"].get("rig") or {}
         self._rig_fit = {key: rig[key] for key in ("distance", "iterations", "step") if key in rig}
-        self._transfer = {key: float(rig[key]) for key in ("sigma", "ridge") if key in rig}
+        self._transfer = {key: float(rig[key]) for key in ("sigma", "ridge", "support") if key in rig}
 
     @classmethod
     def load(cls, path: str | os.PathLike, *, threads: int | None = None, inter_op_threads: int | None = None,
@@ -312,9 +312,12 @@ class Model:
             rig_cage = fit_cage(prediction.points, template=self._cage, **{**self._cage_fit, **self._rig_fit})
             if enclose:
                 rig_cage = fit_cage(vertices, template=rig_cage, iterations=0, enclose=True)
+            support = min(self.num_cage_vertices, int(round(self._transfer.get("support", TRANSFER_SUPPORT) * self.m)))
             influence = transfer_influence(influence, prediction.keypoints, prediction.points, cage, rig_cage,
-                                           self.m, **self._transfer)
-            cage = rig_cage
+                                           self.m, sigma=self._transfer.get("sigma", TRANSFER_SIGMA),
+                                           ridge=self._transfer.get("ridge", TRANSFER_RIDGE), support=support)
+            return Rig.bind(mesh, prediction.keypoints, influence, normalizer=prediction.normalizer,
+                            cage=rig_cage, m=support)
         return Rig.bind(mesh, prediction.keypoints, influence, normalizer=prediction.normalizer,
                         cage=cage, m=self.m)
 
@@ -322,7 +325,8 @@ class Model:
     def rig_settings(self) -> dict:
         """How :meth:`rig` fits the cage: the training fit, and the tighter rig fit with its transfer, if any."""
         return {"fit": dict(self._cage_fit), "rig": dict(self._rig_fit),
-                "transfer": {"sigma": TRANSFER_SIGMA, "ridge": TRANSFER_RIDGE, **self._transfer}
+                "transfer": {"sigma": TRANSFER_SIGMA, "ridge": TRANSFER_RIDGE, "support": TRANSFER_SUPPORT,
+                             **self._transfer}
                 if self._rig_fit else None}
 
     def align(self, source: Mesh | str | os.PathLike, target: Shape, *, seed: int = 0) -> Mesh:
