@@ -7,6 +7,8 @@ Every shoe is sampled (5000 points, the outer surface unless ``--surface all``),
 rotation Q_i and aligned without a reference. For two decided (not flagged) shapes i, j the pairwise relative
 rotation error is the angle of (E_i Q_i)(E_j Q_j)^T, E the estimated rotations: zero when both come back into one
 frame. A shape counts as right when the median of its errors against the other decided shapes is at most 10 degrees.
+Without an up axis kpd.collection stands the aligned shapes on the floor they share (``floor``); the same rounds
+(from the state) scored without that step are in ``rotated.without_standing``.
 
 The originals are not all in one frame themselves: the run also aligns the *unrotated* shoes (same settings), and a
 shoe whose own rotation there is more than 30 degrees is counted as an original that was off. The errors are given
@@ -86,6 +88,8 @@ def main() -> None:
     result = align_collection(turned, names, rounds=args.rounds, processes=args.processes,
                               state=state / f"rotated_{tag}.json", progress=True, seed=0)
     seconds_rotated = time.perf_counter() - started
+    unstood = align_collection(turned, names, rounds=args.rounds, processes=args.processes,
+                               state=state / f"rotated_{tag}.json", seed=0, stand=False)  # the same rounds, kept
     started = time.perf_counter()
     originals = align_collection(clouds, names, rounds=args.original_rounds, processes=args.processes,
                                  state=state / f"originals_{tag}.json", progress=True, seed=0)
@@ -106,6 +110,10 @@ def main() -> None:
                     "decided_by_neighbours": int(sum(s.decided_by == "neighbours" for s in result.shapes)),
                     "raw": score(result.rotations, truth, result.ambiguous),
                     "corrected_for_off_originals": score(result.rotations, corrected, result.ambiguous),
+                    "floor": result.floor,
+                    "without_standing": {
+                        "raw": score(unstood.rotations, truth, unstood.ambiguous),
+                        "corrected_for_off_originals": score(unstood.rotations, corrected, unstood.ambiguous)},
                     "seconds": seconds_rotated, "seconds_per_shape": seconds_rotated / len(clouds),
                     "seconds_per_shape_per_round": seconds_rotated / len(clouds) / len(result.templates)},
         "originals": {"templates": originals.templates, "flagged": int(originals.ambiguous.sum()),
@@ -114,14 +122,22 @@ def main() -> None:
                       "seconds": seconds_originals},
         "sampling_seconds": sampling,
         "shapes_detail": [{"name": s.name, "score": s.score, "margin": s.margin, "ambiguous": s.ambiguous,
-                           "decided_by": s.decided_by, "runner_up_angle": s.runner_up_angle if np.isfinite(s.runner_up_angle) else None}
+                           "decided_by": s.decided_by, "tilt": s.tilt if np.isfinite(s.tilt) else None,
+                           "runner_up_angle": s.runner_up_angle if np.isfinite(s.runner_up_angle) else None}
                           for s in result.shapes],
     }
     if args.out:
         write_json(args.out, report, indent=1)
     brief = {k: v for k, v in report.items() if k != "shapes_detail"}
+
+    def strip(d: dict) -> dict:
+        return {k: v for k, v in d.items() if k != "per_shape_median_error_deg"}
+
+    rotated = dict(report["rotated"])
     for key in ("raw", "corrected_for_off_originals"):
-        brief["rotated"][key] = {k: v for k, v in brief["rotated"][key].items() if k != "per_shape_median_error_deg"}
+        rotated[key] = strip(rotated[key])
+    rotated["without_standing"] = {k: strip(v) for k, v in rotated["without_standing"].items()}
+    brief["rotated"] = rotated
     print(json.dumps(brief, indent=1))
 
 
