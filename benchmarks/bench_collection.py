@@ -99,9 +99,9 @@ def main() -> None:
                     for r, s in zip(originals.rotations, originals.shapes)])
     corrected = np.where(off[:, None, None], np.einsum("sij,skj->sik", truth, originals.rotations), truth)
     if args.sheet:
-        contact_sheet(turned, result, args.sheet, title=f"{len(clouds)} GSO shoes turned at random (seed "
-                                                        f"{args.seed}) and aligned groupwise: "
-                                                        f"{int(result.ambiguous.sum())} flagged (red)")
+        contact_sheet(turned, result, args.sheet, up=(result.floor or {}).get("up"),
+                      title=f"{len(clouds)} GSO shoes turned at random (seed {args.seed}) and aligned groupwise, "
+                            f"stood on their floor: {int(result.ambiguous.sum())} flagged (red)")
     report = {
         "benchmark": "collection", "shapes": len(clouds), "points": args.points, "surface": args.surface,
         "rotation_seed": args.seed, "rounds_limit": args.rounds, "processes": args.processes,
