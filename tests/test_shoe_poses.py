@@ -97,7 +97,7 @@ def test_an_orientation_the_shape_leaves_ambiguous_is_settled_by_the_model(shoe_
     truth = shoe_model.keypoints(mesh, seed=0)
     q = Rotation.from_rotvec([-1.54208, 0.023441, -2.089215]).as_matrix()
     turned = mesh.with_vertices(mesh.vertices @ q.T)
-    plain = ScanFrame(shoe_model, turned, None, settle=False)
+    plain = ScanFrame(shoe_model, turned, None)  # --scan: the rigid fit, nothing settled
     assert plain.settled is None and plain.result is plain.rigid
 
     def error(result):  # mean keypoint distance to the truth, in shares of the shoe's size
@@ -122,6 +122,6 @@ def test_an_orientation_the_shape_leaves_ambiguous_is_settled_by_the_model(shoe_
     again = reorient(plain.result, plain.result.rotation)
     assert np.allclose(again.points, plain.result.points, atol=1e-9)
     assert np.allclose(again.transform, plain.result.transform, atol=1e-12)
-    # ScanFrame settles by default, and reports it
-    frame = ScanFrame(shoe_model, turned, None)
+    # ScanFrame(settle=True) settles, and reports it
+    frame = ScanFrame(shoe_model, turned, None, settle=True)
     assert frame.settled is not None and frame.report()["settled"] == frame.settled and error(frame.result) < 0.05
