@@ -25,8 +25,7 @@ def add_scan_arguments(parser: argparse.ArgumentParser) -> None:
     add_check(parser, check_scan_arguments)
     parser.add_argument("--scan", action="store_true",
                         help="treat the input as a real scan: clean it and orient it to the model's template first "
-                             "(kpd.scan; an orientation the shape leaves ambiguous is settled by the model); results "
-                             "are mapped back onto the scan")
+                             "(kpd.scan); results are mapped back onto the scan")
     parser.add_argument("--up", default=None, metavar="AXIS",
                         help="with --scan: the scan's known up axis (x, y, z, -z...), restricting the orientation search")
 
