@@ -201,9 +201,10 @@ def test_transfer_influence_keeps_the_near_motion_and_shortens_the_reach(data_di
     tight = fit_cage(points, template=model._cage, distance=0.2)
     m = model.m
     learned = prediction.influence * influence_mask(prediction.keypoints, loose.vertices, m)
-    moved = transfer_influence(prediction.influence, prediction.keypoints, points, loose, tight, m)
+    moved = transfer_influence(prediction.influence, prediction.keypoints, points, loose, tight, m, support=2 * m)
     assert moved.shape == learned.shape
-    assert np.array_equal(moved != 0, influence_mask(prediction.keypoints, tight.vertices, m))  # the same locality M
+    assert np.array_equal(moved != 0, influence_mask(prediction.keypoints, tight.vertices, 2 * m))  # the runtime's 2M
+    assert np.abs(moved).max() < np.abs(learned).max()  # no overshoot
     # surface motion per keypoint through each cage, on a second, independent surface sample
     check = sample_surface(prediction.normalizer.apply(mesh.vertices), mesh.triangles, 4096, seed=7).points
     before = mvc_weights(check, loose.vertices, loose.faces) @ learned.T  # (P, K)
@@ -212,7 +213,7 @@ def test_transfer_influence_keeps_the_near_motion_and_shortens_the_reach(data_di
     dist = np.linalg.norm(check[:, None, :] - prediction.keypoints[None], axis=2)  # (P, K)
     near, far = dist < 0.2, dist > np.median(dist, axis=0)
     assert np.abs(after - before)[near].mean() < 0.1 * np.abs(before[near]).mean()
-    assert np.abs(after[far]).mean() < 0.6 * np.abs(before[far]).mean()
+    assert np.abs(after[far]).mean() < 0.7 * np.abs(before[far]).mean()
     # the learned W put on the tight cage as it is overshoots near the keypoint; the transfer does not
     assert np.abs(raw - before)[near].mean() > 2 * np.abs(after - before)[near].mean()
     with pytest.raises(InputError, match="sigma"):
