@@ -13,8 +13,17 @@ With ``--chamfer DATA``: what outer-surface *training* does to the learned align
 more bundles on the same held-out shapes, the same seeded pairs and the same target point sets::
 
     .venv/bin/python benchmarks/bench_outer.py --chamfer runs/data/shoe \
-        --split-file benchmarks/results/shoe_split_shipped.txt --model outer=shoe \
-        --model plain=runs/shoe-plain/shoe-plain.kpd --out benchmarks/results/outer_training.json
+        --split-file benchmarks/results/shoe_split_shipped.txt \
+        --model outer-0=shoe --model plain-0=runs/shoe-plain/shoe-plain.kpd \
+        --model outer-1=runs/shoe-plain/seeds/outer-1/outer-1.kpd --model plain-1=runs/shoe-plain/seeds/plain-1/plain-1.kpd \
+        --model outer-2=runs/shoe-plain/seeds/outer-2/outer-2.kpd --model plain-2=runs/shoe-plain/seeds/plain-2/plain-2.kpd \
+        --out benchmarks/results/outer_training.json
+
+(``shoe`` is the shipped bundle, trained with ``--outer-surface``; the others are ``kpd train runs/data/shoe
+--split-file benchmarks/results/shoe_split_shipped.txt --keypoints 12 [--outer-surface] --seed S --out ...`` and
+``kpd export RUN --out RUN/NAME.kpd --up +y``; the split file is the shipped model's 150/17/18 split.) Models named
+``ARM-SEED`` are also summarised per arm ("by_arm"): each arm over its seeds, and the arms seed by seed, so that the
+difference between arms can be read against the spread between training seeds of one arm.
 
 Each model sees each test mesh as it was trained to (:meth:`kpd.runtime.Model.predict`: outer-surface samples for a
 bundle trained with ``--outer-surface``, every face otherwise) and rigs it (:meth:`kpd.runtime.Model.rig`, the cage
@@ -182,10 +191,45 @@ def chamfer_comparison(root: str, models: dict[str, str], *, pairs: int, seed: i
                                                    for name in names}
         result["paired"][mode] = {f"{a} vs {b}": _paired(per[a], per[b], index[:, 0])
                                   for k, a in enumerate(names) for b in names[k + 1:]}
+    result["by_arm"] = _by_arm(names, scores)
     result["per_pair"] = [{"source": test[s].name, "target": test[t].name,
                            **{f"{mode}/{name}": float(1e3 * per[name][i]) for mode, per in scores.items()
                               for name in per}} for i, (s, t) in enumerate(index)]
     return result
+
+
+def _by_arm(names: list[str], scores: dict) -> dict | None:
+    """Models named ``ARM-SEED`` (e.g. outer-0, plain-0, outer-1, ...): each arm's mean chamfer over its training seeds,
+    and the first arm against each other one seed by seed (same seed, same pairs), which sets the difference between
+    arms beside the spread between seeds of one arm."""
+    arms: dict[str, dict[str, str]] = {}
+    for name in names:
+        arm, sep, seed = name.rpartition("-")
+        if not sep or not arm:
+            return None
+        arms.setdefault(arm, {})[seed] = name
+    if len(arms) < 2:
+        return None
+    first, *others = arms
+    out = {}
+    for mode in (m for m, _ in SCORING):
+        per = scores[mode]
+        entry = {arm: {"seeds": list(members), "means_x1e3": [float(1e3 * per[n].mean()) for n in members.values()]}
+                 for arm, members in arms.items()}
+        for arm in entry.values():
+            arm["mean_of_means_x1e3"] = float(np.mean(arm["means_x1e3"]))
+            arm["spread_x1e3"] = float(np.ptp(arm["means_x1e3"]))
+        for other in others:
+            seeds = [seed for seed in arms[first] if seed in arms[other]]
+            a = [per[arms[first][seed]] for seed in seeds]
+            b = [per[arms[other][seed]] for seed in seeds]
+            entry[f"{first} vs {other}, same seed"] = {
+                "seeds": seeds, "ratio_of_means": [float(x.mean() / y.mean()) for x, y in zip(a, b)],
+                "share_of_pairs_better": [float(np.mean(x < y)) for x, y in zip(a, b)],
+                "pooled_share_of_pairs_better": float(np.mean(np.concatenate(a) < np.concatenate(b))),
+                "seeds_better": int(sum(x.mean() < y.mean() for x, y in zip(a, b)))}
+        out[mode] = entry
+    return out
 
 
 def _training(model) -> dict:
@@ -200,6 +244,8 @@ def _training(model) -> dict:
 
 def _summary_lines(result: dict) -> dict:
     out = {mode: {name: round(s["mean"], 3) for name, s in per.items()} for mode, per in result["chamfer_x1e3"].items()}
+    if result.get("by_arm"):
+        return {"chamfer_x1e3_mean": out, "by_arm": result["by_arm"]}
     return {"chamfer_x1e3_mean": out, "paired": result["paired"],
             "ratio_to_no_deformation": result["ratio_to_no_deformation"]}
 
