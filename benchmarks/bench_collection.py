@@ -115,7 +115,11 @@ def main() -> None:
                         "raw": score(unstood.rotations, truth, unstood.ambiguous),
                         "corrected_for_off_originals": score(unstood.rotations, corrected, unstood.ambiguous)},
                     "seconds": seconds_rotated, "seconds_per_shape": seconds_rotated / len(clouds),
-                    "seconds_per_shape_per_round": seconds_rotated / len(clouds) / len(result.templates)},
+                    "seconds_per_shape_per_round": seconds_rotated / len(clouds) / len(result.templates),
+                    # each shape's orientation time over the rounds, as measured when it was oriented (also by an
+                    # earlier run whose state this one continued: then "seconds" above is only this run's)
+                    "orientation_seconds_per_shape": float(result.seconds.mean()),
+                    "orientation_seconds_per_shape_per_round": float(result.seconds.mean()) / len(result.templates)},
         "originals": {"templates": originals.templates, "flagged": int(originals.ambiguous.sum()),
                       "off": int(off.sum()), "off_names": [n for n, o in zip(names, off) if o],
                       "off_angles_deg": [round(rotation_angle(r), 1) for r, o in zip(originals.rotations, off) if o],
