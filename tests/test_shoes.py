@@ -200,6 +200,11 @@ def test_kpd_scan_on_a_folder_writes_an_aligned_folder_kpd_train_reads(turned_sh
     report = __import__("json").loads((out / "alignment.json").read_text())
     assert [row["name"] for row in report["shapes"]] == names
     assert (out / "contact_sheet.png").stat().st_size > 0 and not (tmp_path / ".shoe.partial").exists()
+    floor = report["floor"]  # without --up: the floor the shoes share, or why none was clear (three shoes)
+    if floor["up"] is None:
+        assert floor["note"] and all(r["tilt"] is None for r in report["shapes"])
+    else:
+        assert floor["stood"] == sum(not r["ambiguous"] for r in report["shapes"])
     rotations = np.array([np.asarray(row["transform"])[:3, :3] for row in report["shapes"]])
     decided = [not row["ambiguous"] for row in report["shapes"]]
     assert sum(decided) >= 2
