@@ -98,7 +98,9 @@ def evaluate_alignment(run: str | os.PathLike, baseline: str | os.PathLike | Non
     for name, predictor in models.items():
         deformed, kp_src, kp_tgt = _align_all(predictor, data[name].samples["test"], index)
         outputs[name] = (deformed, kp_src, kp_tgt)
-        targets = data[name].samples["test"].points[index[:, 1], 0]
+        # every run is scored against the same targets, the model run's samples: a baseline sampled otherwise (say
+        # without --outer-surface) sees its own samples but is not scored against a different point set
+        targets = test.points[index[:, 1], 0]
         scores[name] = np.array([alignment_chamfer(d, t) for d, t in zip(deformed, targets)])
     none = scores["no_deformation"].mean()
     result = {
@@ -112,6 +114,7 @@ def evaluate_alignment(run: str | os.PathLike, baseline: str | os.PathLike | Non
         "notes": pair_notes(len(test), pairs, len(index), data["model"].category.split_source),
         "seed": int(seed),
         "runs": {name: str(p.path) for name, p in models.items()},
+        "targets": "sample 0 of each target as the model run samples it (also for the baseline)",
         "keypoint_source": {name: p.keypoint_source for name, p in models.items()},
         "chamfer_x1e3": {name: _summary(1e3 * v) for name, v in scores.items()},
         "ratio_to_no_deformation": {name: float(v.mean() / none) for name, v in scores.items()},
