@@ -156,10 +156,11 @@ def measure_deformer(rest: np.ndarray, triangles: np.ndarray, areas: np.ndarray,
         offsets = np.zeros_like(keypoints)
         for index, offset in edit.items():
             offsets[index] = offset
-        dist = edit_distortion(rest, rest + basis @ offsets, triangles)
+        deformed = rest + basis @ offsets
+        dist = edit_distortion(rest, deformed, triangles)
         for field in ("folded", "edge", "dihedral"):
             acc.setdefault(f"{name}_{field}", []).append(getattr(dist, field))
-        acc.setdefault(f"{name}_folded_area", []).append(folded_area_share(rest, rest + basis @ offsets, triangles))
+        acc.setdefault(f"{name}_folded_area", []).append(folded_area_share(rest, deformed, triangles))
 
 
 def response(prior: KeypointPrior, keypoint_sets: np.ndarray, permutation: np.ndarray, move: float) -> dict:

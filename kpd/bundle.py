@@ -10,6 +10,7 @@ Bundles trained by the project ship inside the package (``kpd/models/<name>.kpd`
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import io
 import json
@@ -374,9 +375,14 @@ def build_manifest(
         manifest["frame_check"] = dict(frame_check)
     if rig_fit:
         manifest["cage"]["rig"] = dict(rig_fit)
+    _seal(manifest, files)
+    return manifest, files
+
+
+def _seal(manifest: dict, files: dict[str, bytes]) -> None:
+    """Put the manifest's checksum in it and its JSON into ``files``."""
     manifest[_CHECKSUM_KEY] = manifest_checksum(manifest)
     files[contract.MANIFEST_FILE] = (json.dumps(manifest, indent=1, allow_nan=False) + "\n").encode("utf-8")
-    return manifest, files
 
 
 def with_rig_fit(bundle: Bundle, rig_fit: Mapping | None, note: str | None = None) -> tuple[dict, dict[str, bytes]]:
@@ -385,17 +391,15 @@ def with_rig_fit(bundle: Bundle, rig_fit: Mapping | None, note: str | None = Non
     ``rig_fit`` : e.g. ``{"distance": 0.2}`` (the cage fitted for each rig; the learned influence is transferred to
     it, :func:`kpd.rig.transfer_influence`), or None to rig with the training cage. ``note`` is recorded beside it.
     """
-    manifest = json.loads(json.dumps(bundle.manifest))
+    manifest = copy.deepcopy(bundle.manifest)
     manifest["cage"].pop("rig", None)
     manifest["cage"].pop("rig_note", None)
     if rig_fit:
         manifest["cage"]["rig"] = dict(rig_fit)
         if note:
             manifest["cage"]["rig_note"] = str(note)
-    manifest.pop(_CHECKSUM_KEY, None)
-    manifest[_CHECKSUM_KEY] = manifest_checksum(manifest)
     files = {name: data for name, data in bundle.files.items() if name != contract.MANIFEST_FILE}
-    files[contract.MANIFEST_FILE] = (json.dumps(manifest, indent=1, allow_nan=False) + "\n").encode("utf-8")
+    _seal(manifest, files)
     _check_manifest(manifest, files)
     return manifest, files
 

@@ -36,12 +36,12 @@ from pathlib import Path
 from typing import Any, NamedTuple, Sequence
 
 import numpy as np
-from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial import cKDTree
 
 from kpd.errors import DataError, InputError
 from kpd.geometry import as_points, as_rng, sample_surface
 from kpd.scan import (DEFAULT_AMBIGUITY_MARGIN, ScanAligner, _dense_subset, _rotation_between, parse_axis,
-                      rotation_angle, support_plane)
+                      hull_faces, rotation_angle, support_plane)
 
 __all__ = [
     "CollectionShape",
@@ -299,15 +299,10 @@ def _sphere_directions(n: int) -> np.ndarray:
 def _contact_shares(points: np.ndarray, directions: np.ndarray, snap: float) -> np.ndarray:
     """(D,) for each candidate up direction: the share of ``points`` within FLOOR_NEAR of the support plane under
     them (the area-weighted mean plane of the hull faces within ``snap`` degrees of facing down; 0 without)."""
-    try:
-        hull = ConvexHull(points)
-    except Exception as exc:  # noqa: BLE001 - qhull raises its own QhullError for flat or degenerate input
-        if type(exc).__name__ != "QhullError":
-            raise
+    faces = hull_faces(points)
+    if faces is None:
         return np.zeros(len(directions))
-    outward = hull.equations[:, :3]  # (F, 3)
-    a, b, c = (points[hull.simplices[:, i]] for i in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)  # (F,)
+    outward, area, _ = faces  # (F, 3), (F,)
     below = (outward @ -directions.T) >= math.cos(math.radians(snap))  # (F, D)
     normals = -(below * area[:, None]).T @ outward  # (D, 3)
     length = np.linalg.norm(normals, axis=1)

@@ -624,7 +624,7 @@ def far_side_leakage(rest: Any, deformed: Any, keypoint: Any, move: float, weigh
 def folded_share(rest: Any, deformed: Any, triangles: Any) -> float:
     """Share of the (non-degenerate) triangles whose normal turned by more than 90 degrees in an edit (folded)."""
     v0, v1, tri = _mesh_pair(rest, deformed, triangles)
-    return _folded(v0, v1, tri)
+    return _fold_share(_normals(v0, tri), _normals(v1, tri))
 
 
 def folded_area_share(rest: Any, deformed: Any, triangles: Any) -> float:
@@ -639,16 +639,21 @@ def folded_area_share(rest: Any, deformed: Any, triangles: Any) -> float:
     size = np.linalg.norm(n0, axis=1)
     if not size.sum() > 0:
         return 0.0
-    return float(size[np.einsum("ij,ij->i", n0, n1) < 0.0].sum() / size.sum())
+    return float(size[_turned(n0, n1)].sum() / size.sum())
 
 
-def _folded(v0: np.ndarray, v1: np.ndarray, tri: np.ndarray) -> float:
-    n0, n1 = _normals(v0, tri), _normals(v1, tri)
+def _turned(n0: np.ndarray, n1: np.ndarray) -> np.ndarray:
+    """(T,) bool: the triangles whose normal turned by more than 90 degrees (normals before and after, (T, 3))."""
+    return np.einsum("ij,ij->i", n0, n1) < 0.0
+
+
+def _fold_share(n0: np.ndarray, n1: np.ndarray) -> float:
+    """Share of the non-degenerate triangles (rest normals n0, deformed n1) that turned over."""
     size = np.linalg.norm(n0, axis=1)
     valid = size > 1e-12 * max(float(size.max()), 1e-300)
     if not valid.any():
         return 0.0
-    return float(np.mean(np.einsum("ij,ij->i", n0[valid], n1[valid]) < 0.0))
+    return float(np.mean(_turned(n0[valid], n1[valid])))
 
 
 class EditDistortion(NamedTuple):
@@ -676,7 +681,7 @@ def edit_distortion(rest: Any, deformed: Any, triangles: Any) -> EditDistortion:
     n0, n1 = _normals(v0, tri), _normals(v1, tri)
     size0, size1 = np.linalg.norm(n0, axis=1), np.linalg.norm(n1, axis=1)
     valid = size0 > 1e-12 * max(float(size0.max()), 1e-300)
-    folded = _folded(v0, v1, tri)
+    folded = _fold_share(n0, n1)
     edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)  # (3T, 2)
     unique, inverse, counts = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
     l0 = np.linalg.norm(v0[unique[:, 0]] - v0[unique[:, 1]], axis=1)

@@ -55,6 +55,7 @@ __all__ = [
     "icosahedral_rotations",
     "Support",
     "support_plane",
+    "hull_faces",
     "candidate_rotations",
     "reorient",
 ]
@@ -187,6 +188,19 @@ class Support(NamedTuple):
     count: int
 
 
+def hull_faces(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The faces of the convex hull of ``points`` (N, 3): (F, 3) unit outward normals, (F,) areas and (F, 3) vertex
+    indices; None when the points are flat or degenerate (qhull refuses them)."""
+    try:
+        hull = ConvexHull(points)
+    except Exception as exc:  # noqa: BLE001 - qhull raises its own QhullError for flat or degenerate input
+        if type(exc).__name__ != "QhullError":
+            raise
+        return None
+    a, b, c = (points[hull.simplices[:, i]] for i in range(3))
+    return hull.equations[:, :3], 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1), hull.simplices
+
+
 def support_plane(points: Any, up: Any, *, max_angle: float = 25.0) -> Support:
     """The support plane of ``points`` (N, 3) standing roughly with ``up`` (3,) up: where the object touches the floor.
 
@@ -202,21 +216,16 @@ def support_plane(points: Any, up: Any, *, max_angle: float = 25.0) -> Support:
     guess = parse_axis(up)
     center = points.mean(axis=0)
     radius = float(np.sqrt(((points - center) ** 2).sum(axis=1).mean())) or 1.0
-    try:
-        hull = ConvexHull(points)
-    except Exception as exc:  # noqa: BLE001 - qhull raises its own QhullError for flat or degenerate input
-        if type(exc).__name__ != "QhullError":
-            raise
+    faces = hull_faces(points)
+    if faces is None:
         return Support(guess, -math.inf, 0)
-    outward = hull.equations[:, :3]  # (F, 3) unit outward normals
-    a, b, c = (points[hull.simplices[:, i]] for i in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)  # (F,)
+    outward, area, simplices = faces
     below = outward @ -guess >= math.cos(math.radians(max_angle))  # (F,) faces that face down
     if not below.any() or not area[below].sum() > 0:
         return Support(guess, -math.inf, 0)
     normal = -(outward[below] * area[below, None]).sum(axis=0)
     normal /= np.linalg.norm(normal)
-    contact = points[np.unique(hull.simplices[below])]  # (n, 3)
+    contact = points[np.unique(simplices[below])]  # (n, 3)
     basis = np.linalg.svd(normal[None, :])[2][1:]  # (2, 3) in-plane axes
     flat, middle = contact @ basis.T, center @ basis.T  # (n, 2), (2,)
     try:
@@ -1193,11 +1202,17 @@ def preprocess(
     else:
         orientation = None
     rotation = np.eye(3) if orientation is None else orientation.rotation
-    normalizer = Normalizer().fit(points @ rotation.T)
-    forward, inverse = similarity_matrices(rotation, normalizer)
-    aligned = points @ forward[:3, :3].T + forward[:3, 3]
+    normalizer, forward, inverse, aligned = _aligned_frame(points, rotation)
     return ScanResult(_with_points(cleaned, aligned, forward[:3, :3]), aligned, forward, inverse, rotation,
                       normalizer, orientation, report)
+
+
+def _aligned_frame(points: np.ndarray, rotation: np.ndarray) -> tuple[Normalizer, np.ndarray, np.ndarray, np.ndarray]:
+    """The scan's points turned by ``rotation`` and normalised: the normaliser, the 4x4 maps to the aligned frame and
+    back, and the aligned points."""
+    normalizer = Normalizer().fit(points @ rotation.T)
+    forward, inverse = similarity_matrices(rotation, normalizer)
+    return normalizer, forward, inverse, points @ forward[:3, :3].T + forward[:3, 3]
 
 
 def candidate_rotations(orientation: Orientation, margin: float | None = None,
@@ -1229,9 +1244,7 @@ def reorient(result: ScanResult, rotation: np.ndarray) -> ScanResult:
     if rotation.shape != (3, 3) or not np.isfinite(rotation).all() or abs(np.linalg.det(rotation) - 1.0) > 1e-6:
         raise InputError(f"a rotation must be a proper (3, 3) rotation matrix; got shape {rotation.shape}")
     points = result.to_original(result.points)  # the cleaned scan
-    normalizer = Normalizer().fit(points @ rotation.T)
-    forward, inverse = similarity_matrices(rotation, normalizer)
-    aligned = points @ forward[:3, :3].T + forward[:3, 3]
+    normalizer, forward, inverse, aligned = _aligned_frame(points, rotation)
     linear = forward[:3, :3] @ result.inverse[:3, :3]  # old aligned frame -> new aligned frame
     return ScanResult(_with_points(result.shape, aligned, linear), aligned, forward, inverse, rotation, normalizer,
                       result.orientation, result.clean)

@@ -46,12 +46,14 @@ def run(args: argparse.Namespace) -> int:
     if (args.checkpoint is None) == (args.from_authors is None):
         raise InputError("give either RUN_OR_CHECKPOINT or --from-authors PTH")
     source = args.checkpoint or args.from_authors
-    if args.checkpoint is not None and not Path(source).exists() and "/" not in source:
-        from kpd.bundle import MODELS_DIR
+    if args.checkpoint is not None and not Path(source).exists():
+        from kpd.bundle import resolve_bundle
+        from kpd.errors import BundleError
 
-        shipped = MODELS_DIR / (source if source.endswith(".kpd") else source + ".kpd")
-        if shipped.is_dir():  # a shipped bundle by name (kpd export chair --rig-cage-distance 0 --out loose.kpd)
-            source = str(shipped)
+        try:  # a shipped bundle by name (kpd export chair --rig-cage-distance 0 --out loose.kpd)
+            source = str(resolve_bundle(source))
+        except BundleError:
+            pass  # refused just below, as a missing run
     if not Path(source).exists():
         raise InputError(f"{source}: no such run folder or checkpoint")
     is_bundle = args.checkpoint is not None and (
