@@ -217,7 +217,7 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
         samples = {scale: {"folded": [], "folded_area": [], "intersecting": [], "distance": []} for scale in SAMPLE_SCALES}
         test_sets = []
         for mesh in tqdm(meshes, desc=f"{category} {label}", leave=False):
-            rig = model.rig(mesh)
+            rig = model.rig(mesh, straighten=label not in args.no_straighten)
             rest = rig.normalizer.apply(mesh.vertices)  # (V, 3) model frame
             keypoints = rig.normalizer.apply(rig.keypoints)
             test_sets.append(keypoints)
@@ -244,6 +244,7 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
             "cage_vertices": model.num_cage_vertices, "m": model.m,
             "rig_cage_distance": model.rig_settings["rig"].get("distance", model.rig_settings["fit"].get("distance")),
             "rig_settings": model.rig_settings,
+            "straightened": label not in args.no_straighten,
             "roles": {k: (v.tolist()) for k, v in roles.items()},
             "semantic_edits": {name: {str(i): o.tolist() for i, o in e.items()} for name, e in edits.items()},
             "mirror_permutation": permutation.tolist(),
@@ -295,6 +296,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="fit the rigs' cages of variant NAME with stop distance D and transfer the influence "
                              "to them, as kpd export --rig-cage-distance D records it; 0: the training cage "
                              "(repeatable)")
+    parser.add_argument("--no-straighten", action="append", default=[], metavar="NAME",
+                        help="bind the rigs of variant NAME without straightening their slivers "
+                             "(kpd.rig.straighten_basis), as kpd did before it (repeatable)")
     parser.add_argument("--out", help="also write the JSON here")
     args = parser.parse_args(argv)
     args.distances = {name: float(d) for name, d in (item.split("=", 1) for item in args.rig_cage_distance)}
@@ -305,7 +309,8 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     result: dict = {
         "benchmark": "edits",
-        "settings": {"variants": variants, "rig_cage_distance": args.distances, "shapes": args.shapes,
+        "settings": {"variants": variants, "rig_cage_distance": args.distances,
+                     "no_straighten": args.no_straighten, "shapes": args.shapes,
                      "train_shapes": args.train_shapes, "move": args.move, "samples": args.samples, "sample_scales": list(SAMPLE_SCALES), "frame": "model [-1, 1] box"},
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "load": os.getloadavg()},
         "categories": {},

@@ -287,7 +287,7 @@ class Model:
     # --- rigs, alignment and the prior -------------------------------------------------------------------------
 
     def rig(self, mesh: Mesh | str | os.PathLike, *, seed: int = 0, enclose: bool = True,
-            prediction: Prediction | None = None) -> Rig:
+            prediction: Prediction | None = None, straighten: bool = True) -> Rig:
         """Bind a mesh for editing: predicted keypoints, the cage fitted to the sampled points, the influence W.
 
         Parameters
@@ -296,6 +296,7 @@ class Model:
         seed : surface-sampling seed.
         enclose : grow the cage until every mesh vertex is inside (MVC misplaces vertices outside the cage).
         prediction : reuse a :meth:`predict` result of this mesh.
+        straighten : keep the mesh's sliver triangles from turning over in edits (:func:`kpd.rig.straighten_basis`).
         """
         mesh = _as_shape(mesh)
         if not isinstance(mesh, Mesh) or not len(mesh.triangles):
@@ -317,9 +318,9 @@ class Model:
                                            self.m, sigma=self._transfer.get("sigma", TRANSFER_SIGMA),
                                            ridge=self._transfer.get("ridge", TRANSFER_RIDGE), support=support)
             return Rig.bind(mesh, prediction.keypoints, influence, normalizer=prediction.normalizer,
-                            cage=rig_cage, m=support)
+                            cage=rig_cage, m=support, straighten=straighten)
         return Rig.bind(mesh, prediction.keypoints, influence, normalizer=prediction.normalizer,
-                        cage=cage, m=self.m)
+                        cage=cage, m=self.m, straighten=straighten)
 
     @property
     def rig_settings(self) -> dict:

@@ -220,3 +220,116 @@ def test_transfer_influence_keeps_the_near_motion_and_shortens_the_reach(data_di
         transfer_influence(prediction.influence, prediction.keypoints, points, loose, tight, m, sigma=0.0)
     with pytest.raises(InputError, match="influence must be"):
         transfer_influence(prediction.influence[:, :5], prediction.keypoints, points, loose, tight, m)
+
+
+def panel_with_slivers():
+    """A flat panel (the xz plane) of well-shaped triangles under a thin slat (0.01 high, 2 long) whose bottom edge
+    is the panel's top row and whose top edge has only its two ends: the slat is a fan of long slivers from its top
+    left corner, as CAD triangulations make them. Returns vertices (V, 3), triangles (T, 3) and the slat's rows."""
+    xs = np.linspace(-1.0, 1.0, 9)
+    zs = np.linspace(0.0, 0.99, 5)
+    grid = np.array([[x, 0.0, z] for z in zs for x in xs])  # row r, column c at 9 r + c; the top row at z = 0.99
+    vertices = np.concatenate([grid, [[-1.0, 0.0, 1.0], [1.0, 0.0, 1.0]]])  # 45, 46: the slat's top corners
+    triangles = []
+    for r in range(4):
+        for c in range(8):
+            i = 9 * r + c
+            triangles += [[i, i + 1, i + 10], [i, i + 10, i + 9]]
+    top = 36 + np.arange(9)
+    triangles += [[45, int(top[c]), int(top[c + 1])] for c in range(8)]
+    triangles += [[45, int(top[8]), 46]]
+    return vertices, np.array(triangles), np.arange(32 * 2, len(triangles))
+
+
+def test_straighten_basis_keeps_slivers_from_turning_over_and_leaves_affine_motion_alone():
+    from kpd.metrics import _normals, _turned
+    from kpd.rig import straighten_basis
+
+    vertices, triangles, slat = panel_with_slivers()
+    sag = 1.0 - vertices[:, [0]] ** 2  # (V, 1): a bend along the slat, largest in the middle
+    affine = np.stack([0.3 * vertices[:, 0] - vertices[:, 2] + 0.5, 0.1 + 0.0 * vertices[:, 0]], axis=1)
+    out = straighten_basis(np.concatenate([sag, affine], axis=1), vertices, triangles)
+    # an affine motion turns no triangle over: it changes by less than the slivers' thickness changes (1% here)
+    assert np.abs(out[:, 1:] - affine).max() < 0.01 * np.ptp(affine)
+    np.testing.assert_allclose(out[:, 2], 0.1, atol=1e-12)  # a translation exactly
+    lift = np.array([[0.0, 0.0, 0.2]])  # the bend as an edit: the middle of the slat rises by 0.2
+
+    def turned(basis):
+        return _turned(_normals(vertices, triangles), _normals(vertices + basis[:, :1] @ lift, triangles))
+
+    assert turned(sag)[slat].sum() >= 3 and not turned(sag)[~np.isin(np.arange(len(triangles)), slat)].any()
+    assert not turned(out).any()
+    # the slat's bottom row now moves as the line between its ends does; the panel's bottom row keeps its bend
+    top = out[36:45, 0]
+    assert np.abs(top - np.interp(vertices[36:45, 0], [-1, 1], [top[0], top[-1]])).max() < 0.01 * np.ptp(sag)
+    np.testing.assert_allclose(out[:9, 0], sag[:9, 0], atol=0.25)
+    assert np.ptp(out[:9, 0]) > 0.5
+    # no sliver (a box): the basis comes back as it is
+    box = box_mesh()
+    basis = np.random.default_rng(0).random((8, 3))
+    np.testing.assert_array_equal(straighten_basis(basis, box.vertices, box.triangles), basis)
+    with pytest.raises(InputError, match="thinness"):
+        straighten_basis(basis, box.vertices, box.triangles, thinness=0.0)
+    with pytest.raises(InputError, match=r"basis must be \(V, K\)"):
+        straighten_basis(basis[:5], box.vertices, box.triangles)
+
+
+def test_straighten_basis_merges_coincident_corners():
+    """A mesh stored with one vertex per triangle corner (as CAD files are) gets the same correction as the merged
+    mesh, the same at every copy of a corner, so the edited mesh has no cracks."""
+    from kpd.rig import straighten_basis
+
+    vertices, triangles, _ = panel_with_slivers()
+    basis = np.stack([1.0 - vertices[:, 0] ** 2, vertices[:, 0] * vertices[:, 2]], axis=1)
+    merged = straighten_basis(basis, vertices, triangles)
+    corners = triangles.ravel()
+    split = straighten_basis(basis[corners], vertices[corners], np.arange(len(corners)).reshape(-1, 3))
+    np.testing.assert_allclose(split, merged[corners], atol=1e-10)
+
+
+def test_rig_straightens_a_real_table_so_semantic_edits_do_not_fold(data_dir, tmp_path):
+    """ModelNet10 table_0411 (a test table with lattice panels, 1,242 triangles): raising the top or widening it
+    turns 14 of its slivers over (1.1%) without straightening, none with it; single moves reach no farther than
+    1.5 times as far; the correction is saved with the rig."""
+    from kpd.metrics import folded_share, keypoint_roles, semantic_edits
+    from kpd.runtime import Model
+
+    model = Model.load("table", threads=1)
+    mesh = read_mesh(data_dir / "modelnet10" / "table" / "test" / "table_0411.ply")
+    prediction = model.predict(mesh)
+    plain = model.rig(mesh, prediction=prediction, straighten=False)
+    rig = model.rig(mesh, prediction=prediction)
+    assert plain.correction is None and rig.correction is not None
+    rest = rig.normalizer.apply(mesh.vertices)
+    keypoints = rig.normalizer.apply(rig.keypoints)
+    edits = semantic_edits(keypoint_roles(model.prior.mean_), "table", 0.2)
+    for name, edit in edits.items():
+        offsets = np.zeros_like(keypoints)
+        for index, offset in edit.items():
+            offsets[index] = offset
+        assert folded_share(rest, rest + plain.basis @ offsets, mesh.triangles) > 0.01, name
+        assert folded_share(rest, rest + rig.basis @ offsets, mesh.triangles) <= 0.005, name
+    far = np.linalg.norm(rest[:, None] - keypoints[None], axis=2) > 1.0  # (V, K)
+    assert np.abs(rig.basis)[far].mean() < 1.5 * np.abs(plain.basis)[far].mean()
+    np.testing.assert_array_equal(rig.deform(rig.keypoints), mesh.vertices)
+    rig.save(tmp_path / "table.npz")
+    back = Rig.load(tmp_path / "table.npz")
+    moved = rig.moved({0: [0.0, 0.0, 0.1 * rig.normalizer.scale_]})
+    np.testing.assert_array_equal(back.deform(moved), rig.deform(moved))
+
+
+def test_a_rig_file_of_the_first_format_still_loads(tmp_path):
+    """kpd-rig/1 files (written before the basis correction) load as they were written."""
+    rig = corner_rig()
+    rig.save(tmp_path / "rig.npz")
+    arrays = dict(np.load(tmp_path / "rig.npz"))
+    assert "basis_correction" not in arrays  # a box has no slivers: nothing to store
+    from kpd.io.integrity import HASH_KEY, content_hash
+
+    arrays["format"] = np.array("kpd-rig/1")
+    del arrays[HASH_KEY]
+    arrays[HASH_KEY] = np.array(content_hash(arrays))
+    np.savez(tmp_path / "old.npz", **arrays)
+    back = Rig.load(tmp_path / "old.npz")
+    kp = rig.moved({1: [0.2, 0.0, 0.0]})
+    np.testing.assert_array_equal(back.deform(kp), rig.deform(kp))
