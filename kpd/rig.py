@@ -155,8 +155,8 @@ class Rig:
         correction = None
         if straighten:
             basis = weights @ masked.T
-            correction = straighten_basis(basis, vertices, mesh.triangles) - basis
-            correction = correction if correction.any() else None  # no sliver: nothing to store
+            straightened = straighten_basis(basis, vertices, mesh.triangles)
+            correction = None if straightened is basis else straightened - basis  # no sliver: nothing to store
         return cls(mesh, normalizer, keypoints, cage, masked, weights, correction)
 
     # --- editing ----------------------------------------------------------------------------------------------
@@ -443,7 +443,7 @@ def straighten_basis(
 
     Returns
     -------
-    (V, K) float64, the corrected basis (the basis itself when the mesh has no sliver).
+    (V, K) float64, the corrected basis (``basis`` itself, not a copy, when the mesh has no sliver).
     """
     import scipy.sparse as sparse
     from scipy.sparse.linalg import splu
@@ -462,7 +462,7 @@ def straighten_basis(
     tri = inverse[triangles]
     tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 2] != tri[:, 0])]
     if not len(tri):
-        return basis.copy()
+        return basis
     n = len(points)
     a, b, c = (points[tri[:, i]] for i in range(3))
     opposite = np.stack([np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1),
@@ -473,7 +473,7 @@ def straighten_basis(
     height = twice_area / np.maximum(longest, 1e-300)
     sliver = np.flatnonzero(height < thinness * longest)
     if not len(sliver):
-        return basis.copy()
+        return basis
     corner = tri[sliver, apex[sliver]]
     start, end = tri[sliver, (apex[sliver] + 1) % 3], tri[sliver, (apex[sliver] + 2) % 3]
     edge = points[end] - points[start]
