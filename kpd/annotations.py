@@ -1063,7 +1063,7 @@ def chamfer_protocol(model: Any, root: str | os.PathLike, category: str | None =
     none, scores = [], []
     for s, t in index:
         if s not in deformers:
-            rig = model.rig(meshes[s], seed=seed, prediction=predictions[s])
+            rig = model.rig(meshes[s], seed=seed, prediction=predictions[s], straighten=False)  # cage and W only
             weights = mvc_weights(predictions[s].points, rig.cage.vertices, rig.cage.faces)  # (N, C)
             deformers[s] = (weights, rig.cage.vertices, rig.influence)
         weights, cage, influence = deformers[s]

@@ -379,10 +379,12 @@ def farthest_point_sampling(
     indices = np.empty(k, dtype=np.int64)
     indices[0] = first
     dist = np.sum((points - points[first]) ** 2, axis=1)  # (N,)
+    dist[first] = -1.0  # a chosen point is never chosen again, even where squared distances underflow to 0
     for i in range(1, k):
         nxt = int(np.argmax(dist))
         indices[i] = nxt
         np.minimum(dist, np.sum((points - points[nxt]) ** 2, axis=1), out=dist)
+        dist[nxt] = -1.0
     return indices
 
 
@@ -396,6 +398,8 @@ def farthest_point_sampling_naive(
     while len(chosen) < k:
         best, best_d = -1, -1.0
         for j in range(len(points)):
+            if j in chosen:
+                continue
             d = min(float(np.sum((points[j] - points[c]) ** 2)) for c in chosen)
             if d > best_d:
                 best, best_d = j, d
