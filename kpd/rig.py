@@ -458,20 +458,16 @@ def straighten_basis(
         raise InputError(f"triangles must be (T, 3) indices into {len(vertices)} vertices")
     if not (np.isfinite(thinness) and 0 < thinness <= 1 and np.isfinite(reach) and reach > 0):
         raise InputError(f"straightening needs 0 < thinness <= 1 and reach > 0; got {thinness!r}, {reach!r}")
+    if not len(triangles) or not _thin_triangles(vertices, triangles, thinness)[0].any():
+        return basis  # no sliver (the cheap test first: merging below does not make new ones)
     points, inverse = _merge_coincident(vertices)
     tri = inverse[triangles]
     tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 2] != tri[:, 0])]
     if not len(tri):
         return basis
     n = len(points)
-    a, b, c = (points[tri[:, i]] for i in range(3))
-    opposite = np.stack([np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1),
-                         np.linalg.norm(b - a, axis=1)], axis=1)  # (T, 3) edge opposite each corner
-    twice_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)  # (T,)
-    apex = np.argmax(opposite, axis=1)
-    longest = opposite[np.arange(len(tri)), apex]
-    height = twice_area / np.maximum(longest, 1e-300)
-    sliver = np.flatnonzero(height < thinness * longest)
+    thin, apex, longest, height, twice_area = _thin_triangles(points, tri, thinness)
+    sliver = np.flatnonzero(thin)
     if not len(sliver):
         return basis
     corner = tri[sliver, apex[sliver]]
@@ -505,6 +501,19 @@ def straighten_basis(
               + straight.T @ sparse.diags(weight) @ straight).tocsc()
     correction = splu(system).solve(-(straight.T @ (weight[:, None] * residual)))  # (n, K)
     return basis + correction[inverse]
+
+
+def _thin_triangles(points: np.ndarray, tri: np.ndarray, thinness: float) -> tuple[np.ndarray, ...]:
+    """Per triangle: sliver or not, the corner opposite the longest edge, that edge's length, the height over it
+    and twice the area, all (T,)."""
+    a, b, c = (points[tri[:, i]] for i in range(3))
+    opposite = np.stack([np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1),
+                         np.linalg.norm(b - a, axis=1)], axis=1)  # (T, 3) edge opposite each corner
+    twice_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)  # (T,)
+    apex = np.argmax(opposite, axis=1)
+    longest = opposite[np.arange(len(tri)), apex]
+    height = twice_area / np.maximum(longest, 1e-300)
+    return height < thinness * longest, apex, longest, height, twice_area
 
 
 def _merge_coincident(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
