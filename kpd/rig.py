@@ -27,7 +27,7 @@ from kpd.io.integrity import HASH_KEY, check_hash, content_hash, load_numpy
 from kpd.mvc import mvc_weights
 
 __all__ = ["Rig", "RIG_FORMAT", "transfer_influence", "TRANSFER_SIGMA", "TRANSFER_RIDGE", "TRANSFER_SUPPORT",
-           "straighten_basis", "STRAIGHTEN_THINNESS", "STRAIGHTEN_REACH"]
+           "straighten_basis", "STRAIGHTEN_THINNESS", "STRAIGHTEN_REACH", "coincident_mvc_weights", "distinct_points"]
 
 log = logging.getLogger(__name__)
 
@@ -151,7 +151,7 @@ class Rig:
             raise InputError(f"influence must have shape (K, C) = ({k}, {c}); got {influence.shape}")
         m = default_m(c, k) if m is None else int(m)
         masked = influence * influence_mask(keypoints, cage.vertices, m)
-        weights = mvc_weights(vertices, cage.vertices, cage.faces)
+        weights = coincident_mvc_weights(vertices, cage)
         correction = None
         if straighten:
             basis = weights @ masked.T
@@ -503,6 +503,20 @@ def straighten_basis(
     return basis + correction[inverse]
 
 
+def coincident_mvc_weights(vertices: Any, cage: Cage) -> np.ndarray:
+    """(V, C) mean value coordinates of ``vertices`` in ``cage``, computed once per distinct position.
+
+    CAD meshes store one vertex per triangle corner (ModelNet10's chairs have about four vertices per position), and
+    the coordinates of a position do not depend on how often it is stored: this is :func:`kpd.mvc.mvc_weights` at a
+    quarter of the cost on such meshes, with the same result.
+    """
+    vertices = as_points(vertices, "vertices")
+    points, inverse = _merge_coincident(vertices)
+    if len(points) == len(vertices):
+        return mvc_weights(vertices, cage.vertices, cage.faces)
+    return mvc_weights(points, cage.vertices, cage.faces)[inverse]
+
+
 def _thin_triangles(points: np.ndarray, tri: np.ndarray, thinness: float) -> tuple[np.ndarray, ...]:
     """Per triangle: sliver or not, the corner opposite the longest edge, that edge's length, the height over it
     and twice the area, all (T,)."""
@@ -514,6 +528,11 @@ def _thin_triangles(points: np.ndarray, tri: np.ndarray, thinness: float) -> tup
     longest = opposite[np.arange(len(tri)), apex]
     height = twice_area / np.maximum(longest, 1e-300)
     return height < thinness * longest, apex, longest, height, twice_area
+
+
+def distinct_points(vertices: Any) -> np.ndarray:
+    """(n, 3) the distinct positions among ``vertices`` (V, 3), in lexicographic order."""
+    return _merge_coincident(as_points(vertices, "vertices"))[0]
 
 
 def _merge_coincident(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
