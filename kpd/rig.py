@@ -151,13 +151,13 @@ class Rig:
             raise InputError(f"influence must have shape (K, C) = ({k}, {c}); got {influence.shape}")
         m = default_m(c, k) if m is None else int(m)
         masked = influence * influence_mask(keypoints, cage.vertices, m)
-        weights = coincident_mvc_weights(vertices, cage)
-        correction = None
+        rig = cls(mesh, normalizer, keypoints, cage, masked, coincident_mvc_weights(vertices, cage))
         if straighten:
-            basis = weights @ masked.T
-            straightened = straighten_basis(basis, vertices, mesh.triangles)
-            correction = None if straightened is basis else straightened - basis  # no sliver: nothing to store
-        return cls(mesh, normalizer, keypoints, cage, masked, weights, correction)
+            straightened = straighten_basis(rig._basis, vertices, mesh.triangles)
+            if straightened is not rig._basis:  # no sliver: nothing to store
+                rig.correction = straightened - rig._basis
+                rig._basis = np.ascontiguousarray(straightened)
+        return rig
 
     # --- editing ----------------------------------------------------------------------------------------------
 
