@@ -1,10 +1,12 @@
 """kpd.io: real files, round trips through every format, clear errors, atomic writes, keypoint files."""
 
 import dataclasses
+import errno
 import json
 import logging
 import os
 import re
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -716,9 +718,16 @@ def test_failed_mesh_write_leaves_existing_files_untouched(ext, tmp_path, monkey
             fh.write("half")
         return False
 
+    def fail_bytes(self, data):  # kpd's own glTF writer: the disk fills up halfway through a file
+        with open(self, "wb") as fh:
+            fh.write(data[: len(data) // 2])
+        raise OSError(errno.ENOSPC, "No space left on device", str(self))
+
     monkeypatch.setattr(o3d.io, "write_triangle_mesh", fail_write)
     monkeypatch.setattr(o3d.io, "write_image", fail_write)
-    with pytest.raises(KpdError, match=r"cannot write .*Open3D failed"):
+    monkeypatch.setattr(Path, "write_bytes", fail_bytes)
+    reason = "the disk is full|no space left" if ext == "gltf" else "Open3D failed"
+    with pytest.raises(KpdError, match=rf"cannot write .*({reason})"):
         write_mesh(tmp_path / f"chair.{ext}", mesh.with_vertices(mesh.vertices + 1))
     assert {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path)} == before
 

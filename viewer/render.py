@@ -36,7 +36,6 @@ import subprocess
 import sys
 import tempfile
 import time
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Sequence
@@ -44,6 +43,7 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 
 from kpd.errors import InputError, KpdError
+from kpd.io.images import read_png, write_png
 
 __all__ = [
     "ViewSettings", "RigScene", "Frame", "render_rig", "render_frames", "write_png", "read_png", "keypoint_palette",
@@ -654,43 +654,6 @@ def label_image_at(image: np.ndarray, keypoints: Any, radius: float, camera: Cam
     pixels = pixels + np.stack([1.1 * r, -0.9 * r], axis=1)
     labels = [str(i) for i in range(len(keypoints))]
     return overlay_labels(image, pixels, labels, keypoint_palette(len(keypoints)), visible=depth > 0)
-
-
-# --- PNG ---------------------------------------------------------------------------------------------------------
-
-
-def write_png(path: str | os.PathLike, image: Any) -> Path:
-    """Write an (H, W, 3) or (H, W, 4) uint8 image as PNG, atomically."""
-    from kpd.io import atomic_output
-
-    array = np.asarray(image)
-    if array.dtype != np.uint8 or array.ndim != 3 or array.shape[2] not in (3, 4):
-        raise InputError(f"image must be (H, W, 3|4) uint8; got {array.shape} {array.dtype}")
-    h, w, c = array.shape
-    raw = b"".join(b"\x00" + array[y].tobytes() for y in range(h))
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-
-    header = struct.pack(">IIBBBBB", w, h, 8, 6 if c == 4 else 2, 0, 0, 0)
-    data = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
-    path = Path(path)
-    with atomic_output(path) as tmp:
-        tmp.write_bytes(data)
-    return path
-
-
-def read_png(path: str | os.PathLike) -> np.ndarray:
-    """(H, W, 3) uint8 of a PNG file (through Open3D's reader)."""
-    import open3d as o3d
-
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: no such image")
-    image = np.asarray(o3d.io.read_image(str(path)))
-    if image.ndim != 3 or image.shape[2] < 3:
-        raise InputError(f"{path}: not an RGB image (shape {image.shape})")
-    return image[:, :, :3].copy()
 
 
 # --- rendering -----------------------------------------------------------------------------------------------------

@@ -1,0 +1,40 @@
+"""kpd.grouping: one answer to "which rows are the same?", -0.0 and 0.0 included."""
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from kpd.grouping import first_occurrence_groups, merge_coincident
+
+small = st.sampled_from([-1.5, -0.0, 0.0, 0.25, 2.0])
+
+
+def test_signed_zeros_are_one_position_in_every_grouper():
+    rows = np.array([[0.0, 1.0, -0.0], [-0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    first, index = first_occurrence_groups(rows)
+    assert first.tolist() == [0, 3] and index.tolist() == [0, 0, 0, 1]
+    points, inverse = merge_coincident(rows)
+    assert len(points) == 2 and inverse.tolist() == [0, 0, 0, 1]
+    assert not np.signbit(points).any()  # zeros come out as 0.0
+
+
+def test_first_occurrence_order_and_integer_keys():
+    keys = np.array([5, 3, 5, 7, 3])
+    first, index = first_occurrence_groups(keys)
+    assert first.tolist() == [0, 1, 3] and index.tolist() == [0, 1, 0, 2, 1]
+    first, index = first_occurrence_groups(np.zeros((0, 3)))
+    assert first.size == 0 and index.size == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(arrays(np.float64, st.tuples(st.integers(1, 40), st.just(3)), elements=small))
+def test_groupers_agree_and_reproduce_the_rows(rows):
+    first, index = first_occurrence_groups(rows)
+    points, inverse = merge_coincident(rows)
+    np.testing.assert_array_equal(rows[first][index], rows)  # equal as numbers (-0.0 == 0.0)
+    np.testing.assert_array_equal(points[inverse], rows)
+    assert len(first) == len(points) == len({tuple(r) for r in (rows + 0.0).tolist()})
+    # the same partition: two rows share a group in one exactly when they do in the other
+    assert np.array_equal(index[:, None] == index[None, :], inverse[:, None] == inverse[None, :])
+    assert (np.diff(np.lexsort(points.T[::-1])) > 0).all()  # distinct positions in lexicographic order
