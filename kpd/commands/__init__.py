@@ -24,6 +24,7 @@ COMMANDS = {
     "align": "kpd.commands.align",
     "sample": "kpd.commands.sample",
     "scan": "kpd.commands.scan",
+    "rig": "kpd.commands.rig",
     "view": "kpd.commands.view",
     "render": "kpd.commands.render",
     "eval": "kpd.commands.eval",

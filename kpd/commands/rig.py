@@ -1,0 +1,82 @@
+"""kpd rig: a shape's rig, as glTF morph targets (Blender, engines, the browser) or as kpd's own ``.npz``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from kpd.errors import InputError
+
+HELP = ("rig a shape for editing anywhere: glTF morph targets (.glb, .gltf: Blender shape keys, three.js, game "
+        "engines) or kpd's own rig (.npz)")
+EXAMPLE = ("kpd rig chair my_chair.obj --out my_chair.glb    (then Blender's File > Import > glTF 2.0: the shape keys "
+           "keypoint_<i>_x|y|z move keypoint i by their value in the shape's units, prior_<i>_x|y|z with the others "
+           "following the category prior, pca_<c> by standard deviations of the prior; docs/rigs.md)")
+
+RIG_FORMATS = (".glb", ".gltf", ".npz")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from kpd.commands.keypoints import add_model_arguments, add_scan_arguments
+
+    add_model_arguments(parser)
+    parser.add_argument("shape", metavar="SHAPE", help="the mesh to rig (.obj .ply .off .stl .gltf .glb)")
+    parser.add_argument("--out", required=True, help="the rig to write: .glb (one file), .gltf (with a .bin beside "
+                                                     "it) or .npz (kpd's rig, for kpd deform/view/render --rig)")
+    parser.add_argument("--view-up", default="+z", metavar="AXIS",
+                        help="the shape's up axis (default +z, as ModelNet); glTF files turn it to glTF's +Y with "
+                             "a root node, so that Blender and web viewers show the shape upright")
+    add_scan_arguments(parser)
+    parser.add_argument("--force", action="store_true", help="replace --out (and a .gltf's .bin) if it exists")
+
+
+def morph_rig(rig: Any, prior: Any, meta: dict):
+    """The :class:`kpd.morph.MorphRig` of a rig, in the user's frame: a rig made on an aligned scan (``kpd view``'s
+    ``ScanRig``, which keeps the scan's own mesh and its alignment) gives its targets in the scan's frame."""
+    from kpd.morph import MorphRig
+
+    if hasattr(rig, "aligned"):
+        return MorphRig.from_rig(rig.aligned, prior, mesh=rig.mesh, frame=rig.scan.result.transform, meta=meta)
+    return MorphRig.from_rig(rig, prior, meta=meta)
+
+
+def run(args: argparse.Namespace) -> int:
+    from kpd.commands.keypoints import ScanFrame, load_model, warn_frame
+    from kpd.io import Outputs, read_mesh
+    from kpd.morph import MorphRig, up_rotation, write_gltf
+
+    with Outputs(force=args.force, inputs=(args.shape,)) as outputs:
+        out = outputs.file(args.out, "--out", formats=RIG_FORMATS, what="rig")
+        ext = out.suffix.lower()
+        if ext == ".npz" and args.scan:
+            raise InputError(f"--out {out}: kpd's .npz rig holds no scan frame; with --scan write .glb or .gltf "
+                             "(in the scan's own frame)")
+        if ext == ".gltf":
+            outputs.companions(out, [out.stem + ".bin"])
+        up_rotation(args.view_up)  # a bad axis ends here, before any work
+        model = load_model(args)
+        mesh = read_mesh(args.shape)
+        frame = None
+        if args.scan:
+            # orient with the scan pipeline, rig the whole mesh there, write the targets in the scan's own frame
+            scan = ScanFrame(model, mesh, args.up)
+            rig = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
+            frame = scan.result.transform
+        else:
+            warn_frame(model, mesh, args.seed, args.shape)
+            rig = model.rig(mesh, seed=args.seed)
+        if ext == ".npz":
+            rig.save(outputs.stage(out))
+            what = f"{rig.num_keypoints} keypoints"
+        else:
+            meta = {"model": str(args.model), "category": model.category, "shape": Path(args.shape).name,
+                    "seed": args.seed, "scan": bool(args.scan)}
+            morph = MorphRig.from_rig(rig, model.prior, mesh=mesh if frame is not None else None, frame=frame,
+                                      meta=meta)
+            write_gltf(outputs.stage(out), morph, name=Path(args.shape).stem, up=args.view_up)
+            what = f"{len(morph.names)} morph targets"
+    companion = f" and {out.with_suffix('.bin').name}" if ext == ".gltf" else ""
+    prior_note = "" if ext == ".npz" or model.prior is not None else " (the bundle has no prior: keypoint targets only)"
+    print(f"wrote {out}{companion} ({len(mesh.vertices)} vertices, {what}{prior_note})")
+    return 0

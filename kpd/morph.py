@@ -1,0 +1,525 @@
+"""A rig as glTF 2.0 morph targets: kpd's edits in Blender, game engines and web pages, without kpd.
+
+A rig's edit is linear in the keypoint offsets (:mod:`kpd.rig`): ``vertices = V₀ + B · Δp`` with ``B`` the (V, K)
+basis. A synchronised edit through the category prior and each principal component of the prior are linear too, so
+every edit kpd offers is a weighted sum of fixed vertex displacements, which is what a glTF morph target is (Blender
+shape keys, three.js ``morphTargetInfluences``, Unity and Unreal blend shapes). A :class:`MorphRig` holds, per
+target ``t``, the keypoint offsets ``Δ_t`` (K, 3) of one unit of its weight; its vertex displacement is ``B · Δ_t``,
+and weights ``w`` give
+
+    vertices(w) = V₀ + B · Σ_t w_t Δ_t,        keypoints(w) = P₀ + Σ_t w_t Δ_t          # (V, 3), (K, 3)
+
+The targets, in this order, named in ``meshes[0].extras.targetNames`` (the names Blender's importer and three.js
+read):
+
+* ``keypoint_<i>_x``, ``keypoint_<i>_y``, ``keypoint_<i>_z``: weight ``w`` moves keypoint ``i`` by ``w`` user units
+  along that axis and the vertices as :meth:`kpd.rig.Rig.deform` moves them;
+* ``prior_<i>_x|y|z`` (with a prior): the same move of keypoint ``i`` with the other keypoints following the
+  category prior (:meth:`kpd.runtime.Model.sync` of that single move; the synchronised edit is linear in the move);
+* ``pca_<c>`` (with a prior): principal component ``c`` of the prior, weight 1 = one standard deviation.
+
+Several ``prior_`` targets of different keypoints add their synchronised edits, which is not the synchronised edit
+of the keypoints moved together (:meth:`kpd.prior.KeypointPrior.sync` conditions on every edited keypoint at once).
+
+The file (:func:`write_gltf`: ``.glb``, or ``.gltf`` with a ``.bin`` beside it) holds the mesh with its UVs, vertex
+colours and textures (one primitive per material, vertices split where UVs differ), stored relative to its
+bounding-box centre (the centre is the mesh node's translation, so float32 keeps the shape exact far from the
+origin), under a root node that turns the shape's up axis to glTF's +Y; the keypoints as nodes ``keypoint_<i>``
+(children of the mesh node, at their rest positions); and the model, category, kpd version and the targets' keypoint
+offsets in ``asset.extras.kpd``. Vertex normals are not written: a stored normal would not follow the morphs, and
+glTF consumers compute normals of the deformed surface themselves when none are given. Positions and displacements
+are float32: weights equal to an edit's offsets reproduce ``Rig.deform`` within about 1e-7 of the box diagonal
+(``docs/rigs.md`` has the measured error and sizes).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import struct
+from pathlib import Path
+from typing import Any, Mapping, NamedTuple, Sequence
+
+import numpy as np
+
+from kpd.errors import InputError
+from kpd.io import Mesh, atomic_files, atomic_output
+
+__all__ = ["MorphRig", "GltfRig", "write_gltf", "gltf_bytes", "read_gltf", "GLTF_FORMATS", "up_rotation"]
+
+log = logging.getLogger(__name__)
+
+GLTF_FORMATS = (".glb", ".gltf")
+_GLB_MAGIC, _GLB_JSON, _GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
+_FLOAT, _UINT, _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 5126, 5125, 34962, 34963
+_AXES = {"x": 0, "y": 1, "z": 2}
+_BLOCK = 65536  # mesh vertices per product in MorphRig.vertices
+
+
+class MorphRig:
+    """A rig's edits as morph targets: per target, the keypoint offsets of one unit of its weight.
+
+    Parameters
+    ----------
+    mesh : Mesh, the rest shape in the user's frame and units.
+    keypoints : (K, 3) float64, the rest keypoints in the user's frame.
+    basis : (V, K) float64, vertex offset per unit keypoint offset (:attr:`kpd.rig.Rig.basis`).
+    names : (T,) target names.
+    offsets : (T, K, 3) float64, keypoint offsets per unit weight of each target, user units.
+    meta : JSON-safe dict written to ``asset.extras.kpd`` (model, category, version...).
+
+    :meth:`from_rig` builds one from a :class:`kpd.rig.Rig` and a prior.
+    """
+
+    def __init__(self, mesh: Mesh, keypoints: Any, basis: Any, names: Sequence[str], offsets: Any,
+                 meta: Mapping | None = None) -> None:
+        if not isinstance(mesh, Mesh):
+            raise InputError(f"mesh must be a kpd.io.Mesh; got {type(mesh).__name__}")
+        keypoints = np.asarray(keypoints, dtype=np.float64)
+        basis = np.asarray(basis, dtype=np.float64)
+        offsets = np.asarray(offsets, dtype=np.float64)
+        v, k = len(mesh.vertices), len(keypoints)
+        if keypoints.shape != (k, 3) or not np.isfinite(keypoints).all():
+            raise InputError(f"keypoints must be (K, 3) finite numbers; got {keypoints.shape}")
+        if basis.shape != (v, k):
+            raise InputError(f"basis must have shape (V, K) = ({v}, {k}); got {basis.shape}")
+        names = [str(n) for n in names]
+        if offsets.shape != (len(names), k, 3) or not np.isfinite(offsets).all():
+            raise InputError(f"offsets must be (T, K, 3) = ({len(names)}, {k}, 3) finite numbers; got {offsets.shape}")
+        if len(set(names)) != len(names):
+            raise InputError("target names must be distinct")
+        self.mesh = mesh
+        self.keypoints = keypoints
+        self.basis = basis
+        self.names = names
+        self.offsets = offsets
+        self.meta = dict(meta or {})
+
+    @classmethod
+    def from_rig(cls, rig: Any, prior: Any = None, *, mesh: Mesh | None = None, frame: Any = None,
+                 meta: Mapping | None = None) -> "MorphRig":
+        """The targets of a rig: its keypoints, and with a prior the synchronised moves and the components.
+
+        Parameters
+        ----------
+        rig : kpd.rig.Rig.
+        prior : kpd.prior.KeypointPrior of the rig's model (``Model.prior``), or None (keypoint targets only).
+        mesh : the user's mesh when ``frame`` is given (same topology as ``rig.mesh``); default ``rig.mesh``.
+        frame : (4, 4) float64 or None, the affine map from the user's frame to the rig's (a scan's alignment,
+            ``ScanResult.transform``); the targets are then in the user's frame, as every other output of a scan.
+        meta : extra entries for ``asset.extras.kpd``.
+
+        Returns
+        -------
+        MorphRig with targets ``keypoint_<i>_<axis>``, then ``prior_<i>_<axis>`` and ``pca_<c>`` with a prior.
+        """
+        k = rig.num_keypoints
+        linear = np.eye(3)  # user -> rig frame, for offsets
+        if frame is None:
+            mesh = rig.mesh if mesh is None else mesh
+            keypoints = rig.keypoints
+        else:
+            frame = np.asarray(frame, dtype=np.float64)
+            if frame.shape != (4, 4) or not np.isfinite(frame).all():
+                raise InputError(f"frame must be a finite (4, 4) matrix; got shape {frame.shape}")
+            if mesh is None:
+                raise InputError("a MorphRig in another frame needs the user's mesh (mesh=...)")
+            linear = frame[:3, :3]
+            keypoints = np.linalg.solve(linear, (rig.keypoints - frame[:3, 3]).T).T  # (K, 3)
+        if not isinstance(mesh, Mesh) or len(mesh.vertices) != len(rig.mesh.vertices):
+            raise InputError(f"mesh must be a kpd.io.Mesh of the rig's {len(rig.mesh.vertices)} vertices")
+        inverse = np.linalg.inv(linear)
+        names, offsets = [], []
+        for i in range(k):
+            for a, axis in enumerate("xyz"):
+                delta = np.zeros((k, 3))
+                delta[i, a] = 1.0
+                names.append(f"keypoint_{i}_{axis}")
+                offsets.append(delta)
+        if prior is not None:
+            if prior.num_keypoints != k:
+                raise InputError(f"the prior has {prior.num_keypoints} keypoints; the rig has {k}")
+            normalizer = rig.normalizer
+            rest = normalizer.apply(rig.keypoints)  # (K, 3) model frame
+
+            def to_user(model_offsets: np.ndarray) -> np.ndarray:  # (K, 3) model-frame offsets -> user units
+                return normalizer.invert_vectors(model_offsets) @ inverse.T
+
+            for i in range(k):
+                for a, axis in enumerate("xyz"):
+                    move = normalizer.apply_vectors((linear[:, a])[None])[0]  # unit user move, in the model frame
+                    # the synchronised edit is linear in the move: a move of one model unit keeps its digits
+                    length = float(np.linalg.norm(move))
+                    synced = prior.sync(rest, {i: rest[i] + move / length})
+                    delta = to_user((synced - rest) * length)
+                    delta[i] = 0.0
+                    delta[i, a] = 1.0  # the edited keypoint moves exactly as asked (as Model.sync)
+                    names.append(f"prior_{i}_{axis}")
+                    offsets.append(delta)
+            for c, (component, variance) in enumerate(zip(prior.components_, prior.explained_variance_)):
+                names.append(f"pca_{c}")
+                offsets.append(to_user(np.sqrt(variance) * component))
+        return cls(mesh, keypoints, rig.basis, names, np.stack(offsets), meta)
+
+    # --- what the targets do ------------------------------------------------------------------------------------
+
+    def weight_vector(self, weights: Mapping[str, float] | Any) -> np.ndarray:
+        """(T,) float64 from ``{name: weight}`` (missing names weigh 0) or a (T,) sequence."""
+        t = len(self.names)
+        if isinstance(weights, Mapping):
+            vector = np.zeros(t)
+            index = {n: j for j, n in enumerate(self.names)}
+            for name, value in weights.items():
+                if name not in index:
+                    raise InputError(f"unknown morph target {name!r}; targets are keypoint_<i>_<axis>, "
+                                     f"prior_<i>_<axis>, pca_<c> (this rig has {t})")
+                vector[index[name]] = float(value)
+        else:
+            vector = np.asarray(weights, dtype=np.float64).reshape(-1)
+        if vector.shape != (t,) or not np.isfinite(vector).all():
+            raise InputError(f"weights must be {t} finite numbers; got shape {vector.shape}")
+        return vector
+
+    def keypoint_offsets(self, weights: Mapping[str, float] | Any) -> np.ndarray:
+        """(K, 3) float64: ``Σ_t w_t Δ_t``, the keypoint offsets of the weights (user units)."""
+        return np.tensordot(self.weight_vector(weights), self.offsets, axes=1)
+
+    def keypoints_at(self, weights: Mapping[str, float] | Any) -> np.ndarray:
+        """(K, 3) float64: the keypoints the weights move to."""
+        return self.keypoints + self.keypoint_offsets(weights)
+
+    def vertices_at(self, weights: Mapping[str, float] | Any) -> np.ndarray:
+        """(V, 3) float64: the mesh vertices of the weights, ``V₀ + B Σ_t w_t Δ_t`` (the rig's own edit)."""
+        delta = self.keypoint_offsets(weights)
+        out = np.empty_like(self.mesh.vertices)
+        for start in range(0, len(out), _BLOCK):
+            block = slice(start, start + _BLOCK)
+            np.matmul(self.basis[block], delta, out=out[block])
+        return np.add(out, self.mesh.vertices, out=out)
+
+    def displacement(self, target: int | str) -> np.ndarray:
+        """(V, 3) float64: the vertex displacement of one unit of a target's weight."""
+        index = self.names.index(target) if isinstance(target, str) else int(target)
+        return self.basis @ self.offsets[index]
+
+    def __repr__(self) -> str:
+        return (f"MorphRig({len(self.mesh.vertices)} vertices, K={len(self.keypoints)}, {len(self.names)} targets: "
+                f"{sum(n.startswith('keypoint_') for n in self.names)} keypoint, "
+                f"{sum(n.startswith('prior_') for n in self.names)} prior, "
+                f"{sum(n.startswith('pca_') for n in self.names)} pca)")
+
+
+# --- writing -----------------------------------------------------------------------------------------------------
+
+
+def up_rotation(up: str) -> list[float] | None:
+    """The glTF rotation (x, y, z, w) that turns a named axis (``+z``, ``-y``...) to glTF's +Y; None for +y."""
+    text = str(up).strip().lower()
+    sign = -1.0 if text.startswith("-") else 1.0
+    key = text.lstrip("+-")
+    if key not in _AXES or len(text) - len(key) > 1:
+        raise InputError(f"up axis must be one of x, y, z, -x, -y, -z; got {up!r}")
+    u = np.zeros(3)
+    u[_AXES[key]] = sign
+    y = np.array([0.0, 1.0, 0.0])
+    if u[1] == 1.0:
+        return None
+    if u[1] == -1.0:
+        return [1.0, 0.0, 0.0, 0.0]  # half a turn about x
+    axis = np.cross(u, y)  # unit: u is perpendicular to y here
+    return [*(axis * np.sqrt(0.5)).tolist(), float(np.sqrt(0.5))]  # a quarter turn
+
+
+class _Builder:
+    """Binary pieces (numpy arrays or bytes, each 4-byte aligned) with their buffer views and accessors."""
+
+    def __init__(self) -> None:
+        self.pieces: list[Any] = []
+        self.length = 0
+        self.views: list[dict] = []
+        self.accessors: list[dict] = []
+
+    def view(self, data: Any, target: int | None = None) -> int:
+        nbytes = data.nbytes if isinstance(data, np.ndarray) else len(data)
+        view = {"buffer": 0, "byteOffset": self.length, "byteLength": int(nbytes)}
+        if target is not None:
+            view["target"] = target
+        self.pieces.append(data)
+        self.length += nbytes
+        pad = -nbytes % 4
+        if pad:
+            self.pieces.append(b"\0" * pad)
+            self.length += pad
+        self.views.append(view)
+        return len(self.views) - 1
+
+    def accessor(self, array: np.ndarray, kind: str, component: int, target: int | None,
+                 bounds: bool = False) -> int:
+        array = np.ascontiguousarray(array)
+        entry = {"bufferView": self.view(array, target), "componentType": component, "count": len(array),
+                 "type": kind}
+        if bounds:
+            entry["min"] = [float(x) for x in array.min(axis=0)] if len(array) else [0.0] * array.shape[1]
+            entry["max"] = [float(x) for x in array.max(axis=0)] if len(array) else [0.0] * array.shape[1]
+        self.accessors.append(entry)
+        return len(self.accessors) - 1
+
+    def write(self, fh) -> None:
+        for piece in self.pieces:
+            fh.write(memoryview(piece).cast("B") if isinstance(piece, np.ndarray) else piece)
+
+
+def _primitive_groups(mesh: Mesh) -> list[tuple[int | None, np.ndarray, np.ndarray, np.ndarray | None]]:
+    """Per primitive: material (or None), source vertex of each written vertex (n,), triangles (t, 3) into the
+    written vertices, UVs (n, 2) of the written vertices (or None)."""
+    textured = bool(mesh.textures) and mesh.triangle_uvs is not None
+    ids = mesh.triangle_material_ids
+    if textured and ids is None:
+        ids = np.zeros(len(mesh.triangles), dtype=np.int64)
+    groups = [(int(u), np.flatnonzero(ids == u)) for u in np.unique(ids)] if textured else [(None, None)]
+    result = []
+    for material, rows in groups:
+        tri = mesh.triangles if rows is None else mesh.triangles[rows]  # (t, 3)
+        corner = tri.reshape(-1)  # (3t,)
+        if mesh.triangle_uvs is not None:
+            uv = mesh.triangle_uvs.reshape(-1, 3, 2)
+            corner_uv = np.ascontiguousarray((uv if rows is None else uv[rows]).reshape(-1, 2))  # (3t, 2)
+            keys = np.empty(len(corner), dtype=[("v", "<i8"), ("u", "<f8"), ("w", "<f8")])
+            keys["v"], keys["u"], keys["w"] = corner, corner_uv[:, 0], corner_uv[:, 1]
+        else:
+            corner_uv, keys = None, corner
+        _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+        order = np.argsort(first, kind="stable")  # written vertices in order of first use
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        first = first[order]
+        result.append((material, corner[first], rank[inverse.reshape(-1)].reshape(-1, 3),
+                       None if corner_uv is None else corner_uv[first]))
+    return result
+
+
+def _png(texture: np.ndarray) -> bytes:
+    from PIL import Image
+
+    image = np.asarray(texture)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None) -> tuple[dict, _Builder]:
+    mesh = morph.mesh
+    rotation = up_rotation(up)
+    vertices = mesh.vertices
+    used = np.unique(mesh.triangles) if len(mesh.triangles) else np.arange(len(vertices))
+    if not len(used):
+        raise InputError("a glTF rig needs a mesh with vertices")
+    center = (vertices[used].min(axis=0) + vertices[used].max(axis=0)) / 2.0  # (3,)
+    builder = _Builder()
+    displacements = [morph.basis @ morph.offsets[t] for t in range(len(morph.names))]  # T x (V, 3)
+    primitives = []
+    for material, source, triangles, uv in _primitive_groups(mesh):
+        attributes = {"POSITION": builder.accessor((vertices[source] - center).astype(np.float32), "VEC3", _FLOAT,
+                                                   _ARRAY_BUFFER, bounds=True)}
+        if mesh.vertex_colors is not None:
+            attributes["COLOR_0"] = builder.accessor(mesh.vertex_colors[source].astype(np.float32), "VEC3", _FLOAT,
+                                                     _ARRAY_BUFFER)
+        if uv is not None:
+            st = uv * [1.0, -1.0] + [0.0, 1.0]  # glTF puts the UV origin at the top left
+            attributes["TEXCOORD_0"] = builder.accessor(st.astype(np.float32), "VEC2", _FLOAT, _ARRAY_BUFFER)
+        indices = builder.accessor(triangles.reshape(-1).astype(np.uint32), "SCALAR", _UINT, _ELEMENT_ARRAY_BUFFER)
+        targets = [{"POSITION": builder.accessor(d[source].astype(np.float32), "VEC3", _FLOAT, _ARRAY_BUFFER,
+                                                 bounds=True)} for d in displacements]
+        primitive = {"attributes": attributes, "indices": indices, "mode": 4, "targets": targets}
+        if material is not None:
+            primitive["material"] = material
+        primitives.append(primitive)
+    del displacements
+    doc: dict[str, Any] = {
+        "asset": {"version": "2.0", "generator": f"kpd {_version()}",
+                  "extras": {"kpd": {**morph.meta, "version": _version(), "frame": "input",
+                                     "keypoints": morph.keypoints.tolist(),
+                                     "targets": list(morph.names),
+                                     "keypointOffsets": morph.offsets.tolist()}}},
+        "scene": 0,
+        "scenes": [{"name": name, "nodes": [0]}],
+    }
+    root: dict[str, Any] = {"name": name, "children": [1]}
+    if rotation is not None:
+        root["rotation"] = rotation
+    node = {"name": f"{name}_mesh", "mesh": 0, "children": list(range(2, 2 + len(morph.keypoints)))}
+    if np.any(center != 0):
+        node["translation"] = center.tolist()
+    doc["nodes"] = [root, node] + [{"name": f"keypoint_{i}", "translation": (p - center).tolist()}
+                                   for i, p in enumerate(morph.keypoints)]
+    doc["meshes"] = [{"name": name, "primitives": primitives, "weights": [0.0] * len(morph.names),
+                      "extras": {"targetNames": list(morph.names)}}]
+    if bool(mesh.textures) and mesh.triangle_uvs is not None:
+        doc["images"] = [{"bufferView": builder.view(_png(t)), "mimeType": "image/png"} for t in mesh.textures]
+        doc["samplers"] = [{"magFilter": 9729, "minFilter": 9987, "wrapS": 10497, "wrapT": 10497}]
+        doc["textures"] = [{"source": i, "sampler": 0} for i in range(len(mesh.textures))]
+        doc["materials"] = [{"name": f"{name}_{i}", "pbrMetallicRoughness": {
+            "baseColorTexture": {"index": i}, "metallicFactor": 0.0, "roughnessFactor": 1.0}}
+            for i in range(len(mesh.textures))]
+    doc["bufferViews"] = builder.views
+    doc["accessors"] = builder.accessors
+    buffer: dict[str, Any] = {"byteLength": builder.length}
+    if bin_uri is not None:
+        buffer["uri"] = bin_uri
+    doc["buffers"] = [buffer]
+    return doc, builder
+
+
+def _version() -> str:
+    from kpd import __version__
+
+    return __version__
+
+
+def _write_glb(fh, doc: dict, builder: _Builder) -> None:
+    text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    fh.write(struct.pack("<III", _GLB_MAGIC, 2, 12 + 8 + len(text) + 8 + builder.length))
+    fh.write(struct.pack("<II", len(text), _GLB_JSON) + text)
+    fh.write(struct.pack("<II", builder.length, _GLB_BIN))
+    builder.write(fh)
+
+
+def gltf_bytes(morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z") -> bytes:
+    """The GLB file of a rig (what :func:`write_gltf` writes to a ``.glb``), in memory."""
+    doc, builder = _document(morph, name=name, up=up, bin_uri=None)
+    out = io.BytesIO()
+    _write_glb(out, doc, builder)
+    return out.getvalue()
+
+
+def write_gltf(path: str | os.PathLike, morph: MorphRig, *, name: str | None = None, up: str = "+z") -> Path:
+    """Write a rig as glTF 2.0 with morph targets, atomically.
+
+    Parameters
+    ----------
+    path : ``.glb`` (one file), or ``.gltf`` (JSON) with ``<stem>.bin`` beside it.
+    morph : MorphRig.
+    name : the scene's, root node's and mesh's name; the file's stem by default.
+    up : the shape's up axis (``+z`` for ModelNet); a root node turns it to glTF's +Y, so that viewers show the
+        shape upright. The mesh node's coordinates stay the user's.
+
+    Returns
+    -------
+    The path written.
+    """
+    p = Path(path)
+    ext = p.suffix.lower()
+    if ext not in GLTF_FORMATS:
+        raise InputError(f"{p}: a glTF rig file must end in .glb or .gltf; got {ext or 'no extension'!r}")
+    name = p.stem if name is None else name
+    if ext == ".glb":
+        doc, builder = _document(morph, name=name, up=up, bin_uri=None)
+        with atomic_output(p) as tmp:
+            with open(tmp, "wb") as fh:
+                _write_glb(fh, doc, builder)
+        return p
+    bin_name = p.stem + ".bin"
+    doc, builder = _document(morph, name=name, up=up, bin_uri=_uri(bin_name))
+    with atomic_files(p) as target:
+        with open(target.parent / bin_name, "wb") as fh:
+            builder.write(fh)
+        target.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+    return p
+
+
+def _uri(name: str) -> str:
+    import urllib.parse
+
+    return urllib.parse.quote(name)
+
+
+# --- reading -----------------------------------------------------------------------------------------------------
+
+
+class GltfRig(NamedTuple):
+    """A glTF rig file as its consumers see it (:func:`read_gltf`).
+
+    document : dict, the glTF JSON.
+    names : (T,) target names from ``meshes[0].extras.targetNames``.
+    positions : per primitive, (n, 3) float64 positions in the mesh node's frame (the user's coordinates: the mesh
+        node's translation added).
+    targets : per primitive, (T, n, 3) float64 displacements.
+    indices : per primitive, (t, 3) int64 triangles.
+    keypoints : (K, 3) float64, the ``keypoint_<i>`` nodes' positions in the mesh node's frame (user coordinates).
+    """
+
+    document: dict
+    names: list
+    positions: list
+    targets: list
+    indices: list
+    keypoints: np.ndarray
+
+    def morphed(self, weights: Mapping[str, float]) -> list[np.ndarray]:
+        """Per primitive, (n, 3) positions for ``{name: weight}``, as a glTF consumer computes them (float64)."""
+        w = np.zeros(len(self.names))
+        for name, value in weights.items():
+            w[self.names.index(name)] = value
+        return [p + np.tensordot(w, t, axes=1) for p, t in zip(self.positions, self.targets)]
+
+
+def read_gltf(path: str | os.PathLike) -> GltfRig:
+    """Read a glTF rig written by :func:`write_gltf` (a ``.glb``, or a ``.gltf`` with its buffers)."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such glTF file")
+    raw = p.read_bytes()
+    chunk = None
+    try:
+        if raw[:4] == b"glTF":
+            _, _, total = struct.unpack_from("<III", raw, 0)
+            length, kind = struct.unpack_from("<II", raw, 12)
+            doc = json.loads(raw[20:20 + length])
+            offset = 20 + length
+            if offset + 8 <= total:
+                blength, bkind = struct.unpack_from("<II", raw, offset)
+                chunk = raw[offset + 8: offset + 8 + blength] if bkind == _GLB_BIN else None
+        else:
+            doc = json.loads(raw.decode("utf-8"))
+        buffers = []
+        for buffer in doc["buffers"]:
+            if "uri" in buffer:
+                import urllib.parse
+
+                buffers.append((p.parent / urllib.parse.unquote(buffer["uri"])).read_bytes())
+            else:
+                buffers.append(chunk)
+
+        def accessor(index: int) -> np.ndarray:
+            acc = doc["accessors"][index]
+            view = doc["bufferViews"][acc["bufferView"]]
+            dtype = {_FLOAT: np.float32, _UINT: np.uint32, 5123: np.uint16}[acc["componentType"]]
+            width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}[acc["type"]]
+            if view.get("byteStride", width * np.dtype(dtype).itemsize) != width * np.dtype(dtype).itemsize:
+                raise InputError(f"{p}: interleaved accessors are not read here")
+            start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+            data = np.frombuffer(buffers[view["buffer"]], dtype=dtype, count=acc["count"] * width, offset=start)
+            return data.reshape(acc["count"], width) if width > 1 else data
+
+        gltf_mesh = doc["meshes"][0]
+        names = list(gltf_mesh.get("extras", {}).get("targetNames", []))
+        nodes = doc["nodes"]
+        mesh_node = next(n for n in nodes if n.get("mesh") == 0)
+        translation = np.asarray(mesh_node.get("translation", [0.0, 0.0, 0.0]), dtype=np.float64)
+        positions, targets, indices = [], [], []
+        for primitive in gltf_mesh["primitives"]:
+            positions.append(accessor(primitive["attributes"]["POSITION"]).astype(np.float64) + translation)
+            targets.append(np.stack([accessor(t["POSITION"]).astype(np.float64) for t in primitive.get("targets", [])])
+                           if primitive.get("targets") else np.zeros((0, len(positions[-1]), 3)))
+            indices.append(accessor(primitive["indices"]).astype(np.int64).reshape(-1, 3))
+        points = {n["name"]: n.get("translation", [0.0, 0.0, 0.0]) for n in nodes if n.get("name", "").startswith(
+            "keypoint_")}
+        keypoints = np.array([points[f"keypoint_{i}"] for i in range(len(points))], dtype=np.float64).reshape(-1, 3)
+    except (KeyError, IndexError, ValueError, StopIteration, struct.error, UnicodeDecodeError, OSError) as exc:
+        raise InputError(f"{p}: not a glTF rig written by kpd ({type(exc).__name__}: {exc})") from exc
+    return GltfRig(doc, names, positions, targets, indices, keypoints + translation)
