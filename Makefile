@@ -3,11 +3,20 @@ SHELL := /bin/bash
 VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
-APT_PACKAGES := libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libegl-mesa0 libgl1-mesa-dri libtk8.6 xvfb xdotool
+APT_PACKAGES := libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libegl-mesa0 libgl1-mesa-dri libtk8.6 xvfb xdotool chromium chromium-driver
 TORCH := torch==2.13.0
 STAMP := $(VENV)/.kpd-installed
+# Blender as a Python module (bpy 4.2 LTS, for Python 3.11) in a venv of its own: the glTF rig tests import kpd's
+# files with Blender's own importer. npm installs three.js (the browser editor) and the Khronos glTF Validator from
+# package-lock.json; the files of three.js the page loads are copied into the package (viewer/web/vendor).
+BLENDER_VENV := .venv-blender
+BLENDER_STAMP := $(BLENDER_VENV)/.kpd-installed
+BPY := bpy==4.2.23
+WEB_STAMP := viewer/web/vendor/.kpd-installed
+THREE_FILES := LICENSE build/three.module.js build/three.core.js examples/jsm/loaders/GLTFLoader.js \
+	examples/jsm/utils/BufferGeometryUtils.js examples/jsm/utils/SkeletonUtils.js examples/jsm/controls/OrbitControls.js
 
-.PHONY: demo test bench system venv clean
+.PHONY: demo test bench system venv web blender clean
 
 # System packages: installed when missing and we are root (open3d needs libusb; rendering needs vulkan/mesa, and
 # EGL + Mesa GL for the OpenGL pictures; the editor's panel needs Tk;
@@ -31,16 +40,33 @@ $(STAMP): pyproject.toml | $(PY)
 
 venv: system $(STAMP)
 
+$(WEB_STAMP): package.json package-lock.json
+	npm ci --no-audit --no-fund --loglevel=error
+	rm -rf viewer/web/vendor/three
+	for f in $(THREE_FILES); do mkdir -p viewer/web/vendor/three/$$(dirname $$f) && \
+	  cp node_modules/three/$$f viewer/web/vendor/three/$$f; done
+	touch $(WEB_STAMP)
+
+web: $(WEB_STAMP)
+
+$(BLENDER_STAMP):
+	python3 -m venv $(BLENDER_VENV)
+	$(BLENDER_VENV)/bin/pip install -q --upgrade pip
+	$(BLENDER_VENV)/bin/pip install -q $(BPY)
+	touch $(BLENDER_STAMP)
+
+blender: $(BLENDER_STAMP)
+
 demo: venv
 	$(VENV)/bin/kpd demo --out demo-output --force
 
-test: venv
+test: venv web blender
 	$(PY) -m pytest -n 2 -q
 	$(VENV)/bin/lint-imports
 
-bench: venv
+bench: venv web blender
 	@mkdir -p benchmarks/results; for b in benchmarks/bench_*.py; do n=$$(basename $$b .py); n=$${n#bench_}; \
 	  echo "== $$b -> benchmarks/results/$$n.json"; $(PY) $$b > benchmarks/results/$$n.json.tmp && mv benchmarks/results/$$n.json.tmp benchmarks/results/$$n.json; done
 
 clean:
-	rm -rf $(VENV) demo-output .pytest_cache .hypothesis build *.egg-info
+	rm -rf $(VENV) $(BLENDER_VENV) node_modules viewer/web/vendor demo-output .pytest_cache .hypothesis build *.egg-info
