@@ -38,7 +38,7 @@ from kpd.collection import (align_collection, collection_points, contact_sheet, 
                             pairwise_rotation_errors)
 from kpd.io import read_mesh  # noqa: E402
 from kpd.scan import rotation_angle  # noqa: E402
-from kpd.commands.bench import write_json  # noqa: E402
+from kpd.benchmark import write_json  # noqa: E402
 
 OFF_ANGLE = 30.0  # an original turned by more than this against the shared frame was off
 

@@ -50,7 +50,7 @@ from kpd.metrics import (edit_distortion, far_side_leakage, fit_mirror_permutati
                          keypoint_set_distance, new_self_intersections, prior_response, semantic_edits, vertex_areas)
 from kpd.prior import KeypointPrior
 from kpd.runtime import Model
-from kpd.commands.bench import write_json
+from kpd.benchmark import write_json
 
 DATA = Path(os.environ.get("KPD_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 SAMPLE_SCALES = (0.5, 1.0)  # kpd sample's default scale, and one standard deviation

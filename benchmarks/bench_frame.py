@@ -32,7 +32,7 @@ from kpd.data import discover
 from kpd.frame import _aligner, _check, calibrate
 from kpd.io import Mesh, read_mesh, read_shape
 from kpd.runtime import Model
-from kpd.commands.bench import write_json
+from kpd.benchmark import write_json
 
 DATA = Path(os.environ.get("KPD_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 

@@ -55,7 +55,7 @@ sys.path.insert(0, str(REPO))
 
 from kpd.geometry import Normalizer, interior_mask, mesh_pieces, sample_surface  # noqa: E402
 from kpd.io import read_mesh  # noqa: E402
-from kpd.commands.bench import write_json  # noqa: E402
+from kpd.benchmark import write_json  # noqa: E402
 
 
 def measure(path: str, n: int, seed: int) -> dict:

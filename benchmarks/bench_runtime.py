@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpd.commands.bench import median_ms
+from kpd.benchmark import median_ms
 
 
 def solo_ms(side: str, bundle, run: str | None, threads: int, repeats: int) -> float:
@@ -94,7 +94,7 @@ def main() -> None:
 
     import torch
 
-    from kpd.commands.demo import procedural_chair
+    from kpd.procedural import procedural_chair
     from kpd.export.build import export_model, synthetic_clouds
     from kpd.io import write_mesh
     from kpd.runtime import Model

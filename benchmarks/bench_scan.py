@@ -63,7 +63,7 @@ sys.path.insert(0, str(REPO))
 from kpd.geometry import Normalizer, chamfer, sample_surface  # noqa: E402
 from kpd.io import read_mesh  # noqa: E402
 from kpd.scan import ScanAligner, preprocess, rotation_angle  # noqa: E402
-from kpd.commands.bench import write_json  # noqa: E402
+from kpd.benchmark import write_json  # noqa: E402
 
 RECOVERED_DEG = 10.0
 UP_AXIS = {"chair": np.array([0.0, 0.0, 1.0]), "table": np.array([0.0, 0.0, 1.0]),  # ModelNet10: z up

@@ -33,8 +33,8 @@ sys.path.insert(0, str(REPO))
 
 from bench_shoes import spread  # noqa: E402
 
-from kpd.commands.bench import write_json  # noqa: E402
-from kpd.commands.keypoints import ScanFrame  # noqa: E402
+from kpd.benchmark import write_json  # noqa: E402
+from kpd.frame import ScanFrame  # noqa: E402
 from kpd.data import discover  # noqa: E402
 from kpd.io import read_mesh  # noqa: E402
 from kpd.runtime import Model  # noqa: E402

@@ -11,7 +11,7 @@ SHAPE --scan`` does (kpd.scan orients it to the bundle's template, the model pre
 onto the turned copy), and the keypoints are turned back by the known rotation. The spread of a shoe is the mean
 over its keypoints of the RMS distance of the pose copies to their mean, in % of the shoe's bounding-box diagonal.
 ``scan_settled`` is the same with an ambiguous orientation settled by the model (ScanFrame(settle=True),
-kpd.commands.keypoints.settle_orientation; off in --scan). The same without --scan (the networks see the
+kpd.frame.settle_orientation; off in --scan). The same without --scan (the networks see the
 turned copy as it is) shows what the orientation step buys. Also:
 the distance of each held-out shoe's keypoints to its *outer* surface (in its [-1, 1] frame; ``kpd eval keypoints``
 measures to every face, interior ones included).
@@ -37,12 +37,12 @@ sys.path.insert(0, str(REPO))
 
 from scipy.spatial import cKDTree  # noqa: E402
 
-from kpd.commands.keypoints import ScanFrame  # noqa: E402
+from kpd.frame import ScanFrame  # noqa: E402
 from kpd.geometry import Normalizer, sample_surface  # noqa: E402
 from kpd.data import discover  # noqa: E402
 from kpd.io import read_mesh  # noqa: E402
 from kpd.runtime import Model  # noqa: E402
-from kpd.commands.bench import write_json  # noqa: E402
+from kpd.benchmark import write_json  # noqa: E402
 
 
 def spread(keypoints: np.ndarray, size: float) -> float:

@@ -107,7 +107,7 @@ def test_keypoints_of_a_turned_scan_follow_the_scan(chair_file, tmp_path, capsys
 
 def textured_chair(path: Path) -> Mesh:
     """The procedural demo chair with per-corner UVs, a texture and vertex colours, written to ``path``."""
-    from kpd.commands.demo import procedural_chair
+    from kpd.procedural import procedural_chair
 
     mesh = procedural_chair()
     t = len(mesh.triangles)
@@ -121,7 +121,7 @@ def textured_chair(path: Path) -> Mesh:
 
 def test_deform_keeps_topology_uvs_and_colours(toy, tmp_path):
     source = tmp_path / "chair.ply"
-    from kpd.commands.demo import procedural_chair
+    from kpd.procedural import procedural_chair
 
     write_mesh(source, procedural_chair())
     original = read_mesh(source)
@@ -211,18 +211,6 @@ def test_demo_with_a_given_model(toy, tmp_path, capsys):
     bare = tmp_path / "bare_demo"
     assert kpd("demo", "--model", make_toy_bundle(tmp_path / "np.kpd", prior=False), "--out", bare) == 0
     assert not (bare / "deformed.ply").exists() and (bare / "deformed_alone.ply").is_file()
-
-
-def test_procedural_chair_is_closed_and_outward():
-    from kpd.commands.demo import procedural_chair
-
-    mesh = procedural_chair()
-    v, t = mesh.vertices, mesh.triangles
-    signed_volume = np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() / 6
-    expected = 20 * 20 * 2 + 4 * 2 * 2 * 16 + 20 * 2 * 18  # seat + legs + back
-    assert signed_volume == pytest.approx(expected, rel=1e-9)
-    np.testing.assert_allclose(v.min(axis=0), [-10, -10, -18])
-    np.testing.assert_allclose(v.max(axis=0), [10, 10, 18])
 
 
 def test_demo_with_shipped_chair(tmp_path, capsys, monkeypatch):

@@ -165,7 +165,7 @@ def textured(mesh: Mesh) -> Mesh:
 def inputs(tmp_path_factory) -> Path:
     """chair.ply (432 vertices), tex.obj (textured, with .mtl and PNG), toy.kpd, rig.npz, data/chair/ (8 chairs,
     for training: ``data --category chair``), flat/ (15 chairs: a flat folder whose carved test split has 2)."""
-    from kpd.commands.demo import procedural_chair
+    from kpd.procedural import procedural_chair
     from kpd.runtime import Model
 
     root = tmp_path_factory.mktemp("inputs")
@@ -239,7 +239,7 @@ def test_full_disk(case, inputs, tiny_run, full_disk, capfd):
 def test_full_disk_library_writers(full_disk):
     """The library writers themselves (what every command calls, and the benchmarks' JSON) end in WriteError and leave
     nothing."""
-    from kpd.commands.bench import write_json
+    from kpd.benchmark import write_json
     from kpd.errors import WriteError
     from kpd.io import write_keypoints
     from kpd.viewer.session import EditSession

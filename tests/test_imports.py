@@ -32,7 +32,7 @@ def test_torch_check_sees_torch():  # the check above can fail: importing the tr
 
 
 def test_a_command_runs_without_torch(tmp_path):
-    from kpd.commands.demo import procedural_chair
+    from kpd.procedural import procedural_chair
     from kpd.io import write_mesh
 
     mesh = tmp_path / "chair.ply"

@@ -29,9 +29,9 @@ def model(bundle_path):
 
 def box_mesh(divisions: int = 6, size=(1.0, 2.0, 3.0)) -> Mesh:
     """A closed box surface made of a grid of triangles, with vertex colours."""
-    from kpd.commands.demo import _box
+    from kpd.procedural import box_mesh as grid_box
 
-    vertices, triangles = _box(np.zeros(3), np.asarray(size, float), edge=max(size) / divisions)
+    vertices, triangles = grid_box(np.zeros(3), np.asarray(size, float), edge=max(size) / divisions)
     colours = (vertices - vertices.min(0)) / np.ptp(vertices, axis=0)
     return Mesh(vertices=vertices, triangles=triangles, vertex_colors=colours)
 

@@ -85,8 +85,8 @@ def shoe_model():
     return Model.load("shoe", threads=1)
 
 
-def test_an_orientation_the_shape_leaves_ambiguous_is_settled_by_the_model(shoe_model, data_dir):
-    from kpd.commands.keypoints import ScanFrame, settle_orientation
+def test_an_orientation_the_shape_leaves_ambiguous_is_settled_by_the_model(shoe_model, data_dir, capfd):
+    from kpd.frame import ScanFrame, settle_orientation
     from kpd.io import read_mesh
     from kpd.scan import Hypothesis, candidate_rotations, reorient, rotation_angle
 
@@ -99,6 +99,9 @@ def test_an_orientation_the_shape_leaves_ambiguous_is_settled_by_the_model(shoe_
     turned = mesh.with_vertices(mesh.vertices @ q.T)
     plain = ScanFrame(shoe_model, turned, None)  # --scan: the rigid fit, nothing settled
     assert plain.settled is None and plain.result is plain.rigid
+    # the library returns what the user should hear; only the commands print it
+    assert len(plain.warnings) == 1 and "ambiguous" in plain.warnings[0] and "--up" in plain.warnings[0]
+    assert plain.notes == [] and capfd.readouterr().err == ""
 
     def error(result):  # mean keypoint distance to the truth, in shares of the shoe's size
         keypoints = result.to_original(shoe_model.keypoints(result.shape, seed=0)) @ q
@@ -125,3 +128,5 @@ def test_an_orientation_the_shape_leaves_ambiguous_is_settled_by_the_model(shoe_
     # ScanFrame(settle=True) settles, and reports it
     frame = ScanFrame(shoe_model, turned, None, settle=True)
     assert frame.settled is not None and frame.report()["settled"] == frame.settled and error(frame.result) < 0.05
+    assert frame.warnings == [] and len(frame.notes) == 1 and "settled by the model" in frame.notes[0]
+    assert capfd.readouterr().err == ""

@@ -242,7 +242,7 @@ def test_the_shipped_shoe_bundle_loads_with_its_prior_template_and_record(shoe_m
 def test_shoe_keypoints_on_the_real_sneaker_scan_lie_near_its_surface(shoe_model, data_dir):
     from scipy.spatial import cKDTree
 
-    from kpd.commands.keypoints import ScanFrame
+    from kpd.frame import ScanFrame
     from kpd.io import read_mesh
 
     scan = read_mesh(data_dir / "scans" / "sneaker.ply")

@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
     from pathlib import Path
 
-    from kpd.commands.keypoints import ambiguity_advice
+    from kpd.frame import ambiguity_advice
     from kpd.errors import InputError
     from kpd.geometry import sample_surface
     from kpd.io import MESH_FORMATS, POINT_FORMATS, Mesh, Outputs, mesh_companions, read_shape, write_mesh, write_points
@@ -178,6 +178,7 @@ def run_collection(args: argparse.Namespace) -> int:
     started again with the same arguments continues where it stopped; the folder appears at ``--out`` when complete.
     """
     import json
+    import os
     import shutil
     import time
     from pathlib import Path
@@ -186,7 +187,7 @@ def run_collection(args: argparse.Namespace) -> int:
 
     from kpd.collection import align_collection, collection_points, contact_sheet, find_shapes
     from kpd.errors import InputError, KpdError
-    from kpd.io import Mesh, read_shape, write_mesh, write_points
+    from kpd.io import Mesh, Outputs, read_shape, write_mesh, write_points
     from kpd.scan import parse_axis
 
     if args.reference is not None or args.model is not None:
@@ -203,17 +204,14 @@ def run_collection(args: argparse.Namespace) -> int:
     source = Path(args.scan).resolve()
     if out.resolve() == source or source in out.resolve().parents:
         raise InputError(f"--out {out} lies inside the collection {args.scan}; choose another folder")
-    if not out.parent.is_dir():
-        raise InputError(f"output folder {out.parent} does not exist")
-    if out.exists() and not args.force:
-        raise InputError(f"output {out} exists; pass --force to replace it")
-    for option, value, suffix in (("--report", args.report, ".json"), ("--picture", args.picture, ".png")):
-        if value is not None and Path(value).suffix.lower() != suffix:
-            raise InputError(f"{option} {value} must end in {suffix}")
-        if value is not None and Path(value).exists() and not args.force:
-            raise InputError(f"output {value} exists; pass --force to replace it")
+    outputs = Outputs(force=args.force, inputs=(args.scan,))
+    out = outputs.folder(out, "--out")
+    extra = {name: outputs.file(value, option, formats=(suffix,), what=what)
+             for option, value, suffix, what, name in (
+                 ("--report", args.report, ".json", "JSON", "alignment.json"),
+                 ("--picture", args.picture, ".png", "PNG", "contact_sheet.png")) if value is not None}
     shapes = find_shapes(args.scan)
-    staging = out.parent / f".{out.name}.partial"
+    staging = out.parent / f".{out.name}.partial"  # the run's work and state: a run stopped there continues
     staging.mkdir(exist_ok=True)
     (staging / "ambiguous").mkdir(exist_ok=True)
     print(f"{len(shapes)} shapes in {args.scan}; working in {staging} (a run stopped there continues)")
@@ -256,13 +254,11 @@ def run_collection(args: argparse.Namespace) -> int:
     floor_up = (result.floor or {}).get("up")
     contact_sheet(clouds, result, staging / "contact_sheet.png", up=args.up or floor_up, seed=args.seed)
     (staging / "state.json").unlink()
-    if out.exists():
-        shutil.rmtree(out)
-    staging.rename(out)
-    for option, value, name in (("--report", args.report, "alignment.json"), ("--picture", args.picture,
-                                                                             "contact_sheet.png")):
-        if value is not None:
-            shutil.copyfile(out / name, value)
+    with outputs:  # the finished folder and the copies placed by the one writer, all together or none
+        shutil.copytree(staging, outputs.stage(out), copy_function=os.link)  # hard links: no second copy on disk
+        for name, path in extra.items():
+            shutil.copyfile(staging / name, outputs.stage(path))
+    shutil.rmtree(staging)
     flagged = int(result.ambiguous.sum())
     print(f"aligned {len(shapes) - flagged} shapes, {flagged} flagged ambiguous (in {out / 'ambiguous'}); "
           f"{len(result.templates)} round(s), templates {', '.join(result.templates)}; "

@@ -78,7 +78,8 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False) -> Source
     """Resolve ``MODEL SHAPE`` (with ``--scan``) or ``--rig`` (with ``--model``) into a rig and an optional prior,
     as ``kpd deform`` does. Bad combinations and a model of another keypoint count end in :class:`InputError`."""
     from kpd.commands.deform import load_rig
-    from kpd.commands.keypoints import ScanFrame
+    from kpd.commands.keypoints import print_scan_messages
+    from kpd.frame import ScanFrame, ScanRig
     from kpd.io import read_mesh
     from kpd.runtime import Model
 
@@ -115,6 +116,7 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False) -> Source
     mesh = read_mesh(args.shape)
     if args.scan:
         scan = ScanFrame(model, mesh, args.up)
+        print_scan_messages(scan)
         aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
         rig = ScanRig(aligned, mesh, scan)
     else:
@@ -123,74 +125,6 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False) -> Source
         warn_frame(model, mesh, args.seed, args.shape)
         rig = model.rig(mesh, seed=args.seed)
     return Source(rig, model.prior, Path(args.shape).name)
-
-
-class _ScanFrameNormalizer:
-    """The scan's own frame -> the model frame: the scan alignment, then the aligned rig's normaliser."""
-
-    def __init__(self, scan: Any, normalizer: Any) -> None:
-        self.scan, self.normalizer = scan, normalizer
-        self._linear = np.asarray(scan.result.transform, dtype=np.float64)[:3, :3]  # (3, 3) original -> aligned
-        self._inverse = np.linalg.inv(self._linear)
-
-    def apply(self, x: Any) -> np.ndarray:
-        return self.normalizer.apply(self.scan.to_aligned(np.asarray(x, dtype=np.float64)))
-
-    def invert(self, y: Any) -> np.ndarray:
-        return self.scan.to_original(self.normalizer.invert(np.asarray(y, dtype=np.float64)))
-
-    def apply_vectors(self, d: Any) -> np.ndarray:
-        return self.normalizer.apply_vectors(np.asarray(d, dtype=np.float64) @ self._linear.T)
-
-    def invert_vectors(self, d: Any) -> np.ndarray:
-        return self.normalizer.invert_vectors(np.asarray(d, dtype=np.float64)) @ self._inverse.T
-
-
-class ScanRig:
-    """A rig made in the model's orientation (``kpd view --scan``) shown and saved in the scan's own frame and units.
-
-    It offers what the editor and the renderer use of :class:`kpd.rig.Rig`: ``mesh``, ``keypoints``, ``cage``,
-    ``normalizer``, ``num_keypoints``, ``deform``, ``deform_cage``, ``deformed_mesh``, ``moved``.
-    """
-
-    def __init__(self, aligned: Any, mesh: Any, scan: Any) -> None:
-        self.aligned, self.mesh, self.scan = aligned, mesh, scan
-        self.cage = aligned.cage
-        self.normalizer = _ScanFrameNormalizer(scan, aligned.normalizer)
-        self._rest = scan.to_original(aligned.keypoints)
-
-    @property
-    def num_keypoints(self) -> int:
-        return self.aligned.num_keypoints
-
-    @property
-    def keypoints(self) -> np.ndarray:
-        return self._rest.copy()
-
-    def deform(self, keypoints: Any, *, out: np.ndarray | None = None) -> np.ndarray:
-        keypoints = np.asarray(keypoints, dtype=np.float64)
-        if keypoints.shape != self._rest.shape:
-            raise InputError(f"keypoints must have shape ({self.num_keypoints}, 3); got {keypoints.shape}")
-        offsets = self.aligned.deform(self.scan.to_aligned(keypoints)) - self.aligned.mesh.vertices  # (V, 3)
-        result = self.mesh.vertices + self.scan.vector_to_original(offsets)
-        if out is not None:
-            out[...] = result
-            return out
-        return result
-
-    def deform_cage(self, keypoints: Any) -> np.ndarray:
-        return self.scan.to_original(self.aligned.deform_cage(self.scan.to_aligned(np.asarray(keypoints))))
-
-    def deformed_mesh(self, keypoints: Any) -> Any:
-        return self.mesh.with_vertices(self.deform(keypoints))
-
-    def moved(self, moves: dict) -> np.ndarray:
-        keypoints = self.keypoints
-        for index, delta in moves.items():
-            if not 0 <= index < self.num_keypoints:
-                raise InputError(f"keypoint index must lie in [0, {self.num_keypoints}); got {index}")
-            keypoints[index] += np.asarray(delta, dtype=np.float64)
-        return keypoints
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -242,3 +176,11 @@ def run(args: argparse.Namespace) -> int:
                     screenshot_path=args.screenshot, events=args.events, title=f"kpd view - {source.name}",
                     initial_session=args.load_session)
     return app.run()
+
+
+def __getattr__(name: str):  # ScanRig moved to kpd.frame; importable from here as before, without importing it early
+    if name == "ScanRig":
+        from kpd.frame import ScanRig
+
+        return ScanRig
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

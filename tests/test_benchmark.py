@@ -1,0 +1,35 @@
+"""kpd.benchmark: the JSON writer goes through the atomic writer; the timers time what they are given."""
+
+import json
+import time
+
+import pytest
+
+from kpd.benchmark import best_seconds, median_ms, write_json
+from kpd.errors import KpdError
+
+
+def test_write_json_makes_the_folder_and_replaces(tmp_path):
+    path = tmp_path / "results" / "x.json"
+    write_json(path, {"a": 1})
+    write_json(path, {"a": 2, "b": [1.5]})
+    assert json.loads(path.read_text()) == {"a": 2, "b": [1.5]}
+    assert [p.name for p in path.parent.iterdir()] == ["x.json"]
+
+
+def test_write_json_refuses_a_folder_in_one_error_and_leaves_it_as_it_was(tmp_path):
+    folder = tmp_path / "x.json"
+    folder.mkdir()
+    (folder / "inside").write_text("kept")
+    with pytest.raises(KpdError, match="x.json"):
+        write_json(folder, {"a": 1})
+    assert [p.name for p in folder.iterdir()] == ["inside"] and sorted(p.name for p in tmp_path.iterdir()) == ["x.json"]
+
+
+def test_timers_measure_the_call():
+    calls = []
+    ms = median_ms(lambda: (calls.append(1), time.sleep(0.002)), repeats=5, warmup=2)
+    assert len(calls) == 7 and 1.5 <= ms < 200
+    fast = best_seconds(lambda: None, repeats=3)
+    slow = best_seconds(lambda: time.sleep(0.003), repeats=3)
+    assert 0 <= fast < slow and slow >= 0.0025
