@@ -149,7 +149,11 @@ class ShadedMesh:
             local = self.triangles[chosen] if whole else np.searchsorted(used, self.triangles[chosen])
             part.triangles = o3d.utility.Vector3iVector(local.astype(np.int32))
             texture = mesh.textures[int(material)] if textured and 0 <= material < len(mesh.textures) else None
-            if texture is not None:
+            if texture is not None and texture.shape[0] * texture.shape[1] == 1:
+                # a material's plain colour (kpd.io reads an OBJ material without a map as a 1x1 image): shaded
+                rgb = texture.reshape(-1)[:3] if texture.shape[-1] >= 3 else np.repeat(texture.reshape(-1)[:1], 3)
+                albedo = np.tile(rgb.astype(np.float32) / 255.0, (len(used), 1))
+            elif texture is not None:
                 corners = (3 * chosen[:, None] + np.arange(3)).ravel()  # (3 Tp,)
                 uvs = np.array(mesh.triangle_uvs[corners], dtype=np.float64)
                 uvs[:, 1] = 1.0 - uvs[:, 1]  # the legacy renderer reads v from the top row down
