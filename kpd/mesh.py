@@ -77,6 +77,8 @@ class Mesh:
     triangle_uvs : (3T, 2) float64 or None, one row per triangle corner (origin bottom left)
     textures : list of (H, W, C) uint8, as in the image file (top row first)
     triangle_material_ids : (T,) int64 or None, indices into ``textures``
+    triangle_uv_mask : (T,) bool or None, which triangles have texture coordinates (None: all of them, when
+        ``triangle_uvs`` is given); the UVs of the others are zeros and mean nothing
     path : the file the mesh was read from, or None; used in error messages
 
     The constructor checks and converts every field and raises :class:`~kpd.errors.InputError` for a malformed one.
@@ -90,9 +92,15 @@ class Mesh:
     triangle_uvs: np.ndarray | None = None
     textures: list = field(default_factory=list)
     triangle_material_ids: np.ndarray | None = None
+    triangle_uv_mask: np.ndarray | None = None
     path: str | None = None
 
     def __post_init__(self) -> None:
+        # Not dataclass fields: the file the mesh was read from when its writer can write that file's own structure
+        # again with new positions (kpd.io.obj, kpd.io.gltf), and the image file of each texture (or None), so that
+        # writers copy a JPEG as it is. with_vertices hands both on; any other new Mesh starts without them.
+        self._source: Any = None
+        self._texture_files: list = []
         # Not a dataclass field: groups of vertices sharing a position and a normal (UV-seam copies), computed by
         # with_vertices on first use and handed on to the meshes it makes.
         self._normal_groups: np.ndarray | None = None
@@ -110,6 +118,14 @@ class Mesh:
         self.textures = [_texture(t, where, i) for i, t in enumerate(self.textures)]
         if self.triangle_material_ids is not None:
             self.triangle_material_ids = _material_ids(self.triangle_material_ids, T, len(self.textures), where)
+        if self.triangle_uv_mask is not None:
+            mask = np.asarray(self.triangle_uv_mask)
+            if mask.shape != (T,) or mask.dtype != np.bool_:
+                raise InputError(f"{where}triangle_uv_mask must be bool with shape ({T},); got {mask.dtype} "
+                                 f"{mask.shape}")
+            if self.triangle_uvs is None:
+                raise InputError(f"{where}triangle_uv_mask needs triangle_uvs")
+            self.triangle_uv_mask = None if mask.all() else np.ascontiguousarray(mask)
 
     def __repr__(self) -> str:
         extras = [

@@ -35,7 +35,7 @@ from typing import Callable, Iterable, Iterator
 
 from kpd.errors import InputError, WriteError
 
-__all__ = ["TEMP_MARK", "Outputs", "atomic_output", "atomic_files", "check_output", "remove_stale_temporaries",
+__all__ = ["TEMP_MARK", "Outputs", "user_path", "atomic_output", "atomic_files", "check_output", "remove_stale_temporaries",
            "describe_os_error"]
 
 log = logging.getLogger(__name__)
@@ -76,6 +76,17 @@ def _nothing_written(p: Path) -> WriteError:
 
 def _temp_name(target: Path, suffix: str = "") -> Path:
     return target.with_name(f".{target.name}{TEMP_MARK}{os.getpid()}-{secrets.token_hex(4)}{suffix}")
+
+
+def user_path(path: str | os.PathLike) -> Path:
+    """The path a user named for ``path``: a file inside a staging folder (``.<name>.kpd-tmp-<pid>-<hex>/<name>``,
+    see :class:`Outputs`) or a temporary file (``.<name>.kpd-tmp-<pid>-<hex>.ext``) is given its final name, so
+    that messages never name kpd's temporary files."""
+    p = Path(path)
+    if _TEMP_NAME.match(p.parent.name):
+        return p.parent.parent / p.name
+    match = re.match(r"^\.(.*)\.kpd-tmp-\d+-[0-9a-f]{8}", p.name)
+    return p.with_name(match.group(1)) if match else p
 
 
 def _alive(pid: int) -> bool:

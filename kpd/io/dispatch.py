@@ -13,7 +13,7 @@ import numpy as np
 
 from kpd.errors import InputError
 from kpd.io import gltf, obj, off, pcd, ply, stl
-from kpd.io.atomic import atomic_output
+from kpd.io.atomic import atomic_output, user_path
 from kpd.io.capture import failures, open3d_log, open3d_module, open3d_write
 from kpd.io.common import (MESH_FORMATS, POINT_FORMATS, check_header_counts, describe, incomplete, input_path,
                            output_path, read_table)
@@ -50,6 +50,8 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
         error: the mesh is read without it and a warning is logged.
     """
     p, ext = input_path(path, MESH_FORMATS, "mesh")
+    if ext == ".obj":
+        return obj.read(p, os.fspath(path))
     m = _read_open3d_mesh(p, ext)
     if len(m.triangles) == 0:
         raise InputError(
@@ -106,6 +108,8 @@ def read_shape(path: str | os.PathLike) -> Mesh | PointSet:
     p, ext = input_path(path, tuple(dict.fromkeys(MESH_FORMATS + POINT_FORMATS)), "shape")
     if ext not in MESH_FORMATS:
         return read_points(path)
+    if ext == ".obj":
+        return obj.read(p, os.fspath(path), points=True)
     m = _read_open3d_mesh(p, ext)
     if len(m.triangles) == 0:
         return PointSet(
@@ -120,14 +124,10 @@ def read_shape(path: str | os.PathLike) -> Mesh | PointSet:
 def _read_open3d_mesh(p: Path, ext: str) -> "open3d.geometry.TriangleMesh":
     """Open3D's mesh for a mesh file, after kpd's own checks; vertices may lack triangles (a .ply point cloud)."""
     o3d = open3d_module()
-    obj_data = None
     if ext == ".ply":
         ply.check_complete(p)
     elif ext == ".off":
         off.check_complete(p)
-    elif ext == ".obj":
-        obj_data = p.read_bytes()
-        obj.check_faces(p, obj_data)
     with open3d_log() as messages:
         m = o3d.io.read_triangle_mesh(str(p))
     failed = failures(messages)
@@ -137,8 +137,6 @@ def _read_open3d_mesh(p: Path, ext: str) -> "open3d.geometry.TriangleMesh":
         raise InputError(f"{p}: no vertices (empty geometry)")
     if ext == ".stl":
         m = stl.weld(m)
-    elif ext == ".obj":
-        obj.warn_missing_textures(p, obj_data)
     elif ext in (".gltf", ".glb"):
         gltf.fill_textures(p, m)
     return m
@@ -161,6 +159,11 @@ def _read_point_arrays(p: Path, ext: str) -> tuple[np.ndarray, np.ndarray | None
             np.array(pc.normals, dtype=np.float64) if pc.has_normals() else None,
             np.array(pc.colors, dtype=np.float64) if pc.has_colors() else None,
         )
+    if ext == ".obj":
+        shape = obj.read(p, os.fspath(p), points=True)
+        if isinstance(shape, PointSet):
+            return shape.points, shape.normals, shape.colors
+        return shape.vertices, shape.vertex_normals, shape.vertex_colors
     if ext in MESH_FORMATS:
         m = _read_open3d_mesh(p, ext)
         return (
@@ -248,10 +251,10 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh) -> None:
         )
         if present and ext not in kept_in
     ]
-    if ext == ".obj" and mesh.textures and mesh.triangle_uvs is None:
-        dropped.append("textures (the mesh has no UVs)")
+    if ext == ".obj" and mesh.triangle_uvs is None and any(t.shape[0] * t.shape[1] > 1 for t in mesh.textures):
+        dropped.append("texture images (the mesh has no UVs)")
     if dropped:
-        log.warning("%s: %s cannot store %s; written without them", p, ext, " and ".join(dropped))
+        log.warning("%s: %s cannot store %s; written without them", user_path(p), ext, " and ".join(dropped))
     if ext in (".gltf", ".glb"):
         gltf.write(p, mesh)
         return
@@ -308,7 +311,7 @@ def write_points(
              ".pts": ("normals",), ".npy": ("normals",), ".xyz": ()}[ext]
     dropped = [n for n in ("normals", "colors") if getattr(ps, n) is not None and n not in keeps]
     if dropped:
-        log.warning("%s: %s cannot store %s; written without them", p, ext, " and ".join(dropped))
+        log.warning("%s: %s cannot store %s; written without them", user_path(p), ext, " and ".join(dropped))
     normals_kept = ps.normals if "normals" in keeps else None
     with atomic_output(p, verify=lambda tmp: _verify_points_file(p, tmp, len(ps.points), ext)) as target:
         if ext in (".ply", ".pcd"):
