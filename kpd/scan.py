@@ -48,7 +48,6 @@ __all__ = [
     "orient",
     "normalize",
     "preprocess",
-    "alignment_picture",
     "parse_axis",
     "rotation_angle",
     "proper_signed_permutations",
@@ -284,9 +283,10 @@ def _take_triangles(mesh: Any, keep: np.ndarray) -> Any:
     uvs = getattr(mesh, "triangle_uvs", None)
     if uvs is not None and len(uvs) == 3 * len(keep):
         changes["triangle_uvs"] = np.asarray(uvs).reshape(-1, 3, 2)[keep].reshape(-1, 2)
-    materials = getattr(mesh, "triangle_material_ids", None)
-    if materials is not None and len(materials) == len(keep):
-        changes["triangle_material_ids"] = np.asarray(materials)[keep]
+    for field in ("triangle_material_ids", "triangle_uv_mask"):
+        value = getattr(mesh, field, None)
+        if value is not None and len(value) == len(keep):
+            changes[field] = np.asarray(value)[keep]
     return dataclasses.replace(mesh, **changes)
 
 
@@ -1248,60 +1248,3 @@ def reorient(result: ScanResult, rotation: np.ndarray) -> ScanResult:
     linear = forward[:3, :3] @ result.inverse[:3, :3]  # old aligned frame -> new aligned frame
     return ScanResult(_with_points(result.shape, aligned, linear), aligned, forward, inverse, rotation, normalizer,
                       result.orientation, result.clean)
-
-
-# --------------------------------------------------------------------------------------------------------------------
-# a picture to check an orientation by eye
-
-
-def alignment_picture(result: ScanResult, reference: Any, path: Any, *, up: Any = "z",
-                      max_points: int = 4000, seed: int = 0) -> None:
-    """Draw the scan as given, then over the reference (grey) as the best and as the runner-up rotation, to a PNG.
-
-    Both rotated scans are shown in the reference's [-1, 1] box with the reference's ``up`` axis vertical, so a wrong
-    or ambiguous orientation is seen at a glance (a chair upside down, a shoe back to front).
-
-    Parameters
-    ----------
-    result : :func:`preprocess`'s result (with an orientation); the scan is drawn as cleaned, in its own units.
-    reference : (M, 3) points in the model's frame.
-    path : the PNG to write (written as given; use :func:`kpd.io.atomic_output` around it).
-    """
-    from kpd.viewer.pictures import point_panels
-
-    if result.orientation is None:
-        raise InputError("no orientation to draw: preprocess was given no reference")
-    rng = as_rng(seed)
-
-    def thin(points: np.ndarray) -> np.ndarray:
-        return points if len(points) <= max_points else points[rng.choice(len(points), max_points, replace=False)]
-
-    points = result.to_original(result.points)
-    mesh = result.shape if _is_mesh(result.shape) and len(result.shape.triangles) else None
-    ref = thin(Normalizer().fit(as_points(reference, "reference")).apply(as_points(reference, "reference")))
-    up_axis = parse_axis(up, "up")
-    vertical = int(np.argmax(np.abs(up_axis)))
-    up_name = ("+" if up_axis[vertical] > 0 else "-") + "xyz"[vertical]
-
-    def shown(rotation: np.ndarray | None) -> dict:
-        """The scan (its mesh when it has one) turned by ``rotation`` into the reference's box."""
-        orange = (0.93, 0.55, 0.25)
-        if rotation is None:  # the mesh's vertices are the scan's points
-            return {"mesh": mesh.with_vertices(points), "tint": orange} if mesh is not None else {
-                "points": thin(points), "tint": orange}
-        turned = points @ rotation.T
-        normalizer = Normalizer().fit(turned)
-        if mesh is not None:
-            return {"mesh": mesh.with_vertices(normalizer.apply(turned)), "tint": orange}
-        return {"points": thin(normalizer.apply(turned)), "tint": orange}
-
-    o = result.orientation
-    panels = [{"title": "the scan as given", **shown(None)}]
-    panels.append({"title": f"best: score {o.score:.4f}", "behind": ref, **shown(o.rotation)})
-    if o.runner_up_rotation is not None:
-        flag = "  AMBIGUOUS" if o.ambiguous else ""
-        panels.append({"title": f"runner-up, {o.runner_up_angle:.0f} deg away: score {o.runner_up_score:.4f}\n"
-                                f"margin {o.margin:.3f}{flag}", "behind": ref,
-                       "color": (200, 20, 20) if o.ambiguous else (20, 20, 20), **shown(o.runner_up_rotation)})
-    point_panels(panels, path, up=up_name, cell=4.2, columns=len(panels),
-                 title="kpd scan: the scan (orange) turned into the reference's frame; grey points: the reference")
