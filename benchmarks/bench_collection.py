@@ -34,8 +34,9 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from kpd.collection import (align_collection, collection_points, contact_sheet, find_shapes,  # noqa: E402
+from kpd.collection import (align_collection, collection_points, find_shapes,  # noqa: E402
                             pairwise_rotation_errors)
+from kpd.viewer.figures import contact_sheet  # noqa: E402
 from kpd.io import read_mesh  # noqa: E402
 from kpd.scan import rotation_angle  # noqa: E402
 from kpd.benchmark import write_json  # noqa: E402

@@ -55,7 +55,7 @@ __all__ = [
     "stand_collection",
     "align_collection",
     "pairwise_rotation_errors",
-    "contact_sheet",
+    "rms_unit",
 ]
 
 log = logging.getLogger(__name__)
@@ -199,7 +199,8 @@ def collection_points(shape: Any, n: int = 5000, *, seed: int = 0, outer: bool =
 # templates
 
 
-def _unit(points: np.ndarray) -> np.ndarray:
+def rms_unit(points: np.ndarray) -> np.ndarray:
+    """(N, 3) ``points`` centred and scaled to unit root-mean-square radius."""
     centred = points - points.mean(axis=0)
     radius = math.sqrt(float((centred**2).sum(axis=1).mean()))
     if not radius > 0:
@@ -215,7 +216,7 @@ def shape_descriptor(points: Any, *, pairs: int = 20000, bins: int = 32, seed: i
     -------
     descriptor : (bins + 3,) float64
     """
-    unit = _unit(as_points(points, min_count=10))
+    unit = rms_unit(as_points(points, min_count=10))
     rng = as_rng(seed)
     i, j = rng.integers(len(unit), size=(2, pairs))
     d = np.linalg.norm(unit[i] - unit[j], axis=1)  # (pairs,)
@@ -245,7 +246,7 @@ def chamfer_medoid(clouds: Sequence[np.ndarray], rotations: np.ndarray, candidat
     for i in candidates:
         c = clouds[i]
         sub = c if len(c) <= points else c[rng.choice(len(c), points, replace=False)]
-        turned[i] = _unit(sub @ rotations[i].T)
+        turned[i] = rms_unit(sub @ rotations[i].T)
     trees = {i: cKDTree(p) for i, p in turned.items()}
     pool = candidates if len(candidates) <= others else list(rng.choice(candidates, others, replace=False))
     best, best_cost = candidates[0], math.inf
@@ -273,7 +274,7 @@ def _floor_samples(clouds: Sequence[np.ndarray], rotations: np.ndarray, indices:
     for i in indices:
         c = clouds[i]
         sub = c if len(c) <= points else c[np.random.default_rng([seed, i]).choice(len(c), points, replace=False)]
-        out[i] = _dense_subset(_unit(sub @ rotations[i].T))
+        out[i] = _dense_subset(rms_unit(sub @ rotations[i].T))
     return out
 
 
@@ -434,7 +435,7 @@ def _neighbour_vote(clouds: Sequence[np.ndarray], rotations: np.ndarray, results
     def unit_sample(i: int, rotation: np.ndarray) -> np.ndarray:
         c = clouds[i]
         sub = c if len(c) <= points else c[np.random.default_rng([seed, i]).choice(len(c), points, replace=False)]
-        return _unit(sub @ rotation.T)
+        return rms_unit(sub @ rotation.T)
 
     trees: dict[int, tuple[cKDTree, np.ndarray]] = {}
     for i, r in enumerate(results):
@@ -655,45 +656,3 @@ def pairwise_rotation_errors(estimated: np.ndarray, truth: np.ndarray, mask: np.
     relative = np.einsum("aij,bkj->abik", net, net)  # (S', S', 3, 3): net_a @ net_b.T
     cos = (np.trace(relative, axis1=2, axis2=3) - 1.0) / 2.0
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-
-
-# --------------------------------------------------------------------------------------------------------------------
-# a picture of the aligned collection
-
-
-def contact_sheet(clouds: Sequence[np.ndarray], alignment: CollectionAlignment, path: Any, *, up: Any = None,
-                  columns: int = 12, max_points: int = 1500, seed: int = 0, title: str | None = None,
-                  cell: float = 1.6) -> None:
-    """Draw every shape turned into the shared frame, side by side, to a PNG (flagged ones captioned in red).
-
-    Every cell shows its shape from one camera (kpd.viewer.pictures.point_panels, lit splats): the template's
-    longest principal axis across the picture and ``up`` (if given; else the template's middle principal axis)
-    upwards, so a shape turned back to front or upside down stands out among the others.
-    """
-    from kpd.viewer.pictures import point_panels
-
-    rng = as_rng(seed)
-    template = next((i for i, s in enumerate(alignment.shapes) if s.template), 0)
-    ref = _unit(clouds[template] @ alignment.rotations[template].T)
-    if up is not None:  # vertical: up; horizontal: the template's longest direction across it
-        vertical = parse_axis(up)
-        flat = ref - np.outer(ref @ vertical, vertical)
-        horizontal = np.linalg.eigh(flat.T @ flat)[1][:, -1]
-    else:  # the template's principal axes: longest horizontal, middle vertical
-        basis = np.linalg.eigh(ref.T @ ref)[1]
-        horizontal, vertical = basis[:, 2], basis[:, 1]
-    depth = np.cross(horizontal, vertical)
-    view = np.stack([horizontal, vertical, depth])  # (3, 3) rows: picture x, picture y (up), depth
-    panels = []
-    for i, shape in enumerate(alignment.shapes):
-        cloud = clouds[i]
-        if len(cloud) > max_points:
-            cloud = cloud[rng.choice(len(cloud), max_points, replace=False)]
-        label = shape.name if len(shape.name) <= 16 else shape.name[:15] + "…"
-        panels.append({"points": _unit(cloud @ alignment.rotations[i].T) @ view.T,
-                       "title": ("* " if shape.template else "") + label,
-                       "color": (200, 20, 20) if shape.ambiguous else (20, 20, 20)})
-    count = len(panels)
-    point_panels(panels, path, up="y", cell=cell, columns=max(1, min(columns, count)), shared_camera=True,
-                 title=title or f"{count} shapes in the shared frame ({int(alignment.ambiguous.sum())} flagged "
-                                f"ambiguous, in red; * the template)")

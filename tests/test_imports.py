@@ -1,8 +1,10 @@
 """The runtime never imports torch: fresh interpreters import the torch-free modules (and run a command) and check
-``sys.modules``; every subcommand the CLI lists exists."""
+``sys.modules``; the core never imports the viewer or the commands; every subcommand the CLI lists exists."""
 
+import ast
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -11,7 +13,8 @@ from kpd.commands import COMMANDS
 TORCH_FREE = [
     "kpd", "kpd.errors", "kpd.geometry", "kpd.io", "kpd.cage", "kpd.mvc", "kpd.rig", "kpd.cli", "kpd.prior",
     "kpd.bundle", "kpd.runtime", "kpd.onnx_contract", "kpd.scan", "kpd.metrics", "kpd.annotations", "kpd.data",
-    "kpd.viewer", "kpd.viewer.session", "kpd.viewer.render", "kpd.viewer.app",
+    "kpd.collection", "kpd.frame", "kpd.mesh", "kpd.grouping", "kpd.triangles", "kpd.procedural", "kpd.benchmark",
+    "kpd.viewer", "kpd.viewer.session", "kpd.viewer.render", "kpd.viewer.app", "kpd.viewer.figures",
     *(module for name, module in COMMANDS.items() if name not in ("train", "export")),
 ]
 
@@ -29,6 +32,55 @@ def test_runtime_modules_do_not_import_torch():
 
 def test_torch_check_sees_torch():  # the check above can fail: importing the trainer does load torch
     assert torch_loaded_after("import kpd.train.nets")
+
+
+ROOT = Path(__file__).resolve().parents[1]
+UPPER = ("kpd.viewer", "kpd.commands", "kpd.cli", "kpd.export")  # what the core may not import, not even lazily
+
+
+def imported_names(path: Path, package: str) -> set[str]:
+    """Every module an import statement in ``path`` names (function-level imports included)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative: resolve against the module's package
+                parts = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(parts + ([base] if base else []))
+            names.add(base)
+            names.update(f"{base}.{alias.name}" for alias in node.names)
+    return names
+
+
+def upward_imports(root: Path) -> list[str]:
+    found = []
+    for path in sorted((root / "kpd").rglob("*.py")):
+        relative = path.relative_to(root).with_suffix("")
+        module = ".".join(relative.parts).removesuffix(".__init__")
+        if module.startswith(("kpd.commands", "kpd.cli")):
+            continue
+        package = module if path.name == "__init__.py" else module.rsplit(".", 1)[0]
+        for name in imported_names(path, package):
+            if name.startswith(UPPER):
+                found.append(f"{module} imports {name}")
+    return found
+
+
+def test_the_core_never_imports_the_viewer_or_the_commands():
+    assert upward_imports(ROOT) == []
+
+
+def test_the_upward_import_check_can_fail(tmp_path):
+    (tmp_path / "kpd" / "deep").mkdir(parents=True)
+    (tmp_path / "kpd" / "scan.py").write_text("def f():\n    from kpd.viewer.pictures import point_panels\n")
+    (tmp_path / "kpd" / "deep" / "x.py").write_text("from ..commands import view\nimport kpd.cli\n")
+    (tmp_path / "kpd" / "commands.py").write_text("import kpd.viewer\n")  # the commands may
+    assert sorted(upward_imports(tmp_path)) == ["kpd.deep.x imports kpd.cli", "kpd.deep.x imports kpd.commands",
+                                                "kpd.deep.x imports kpd.commands.view",
+                                                "kpd.scan imports kpd.viewer.pictures",
+                                                "kpd.scan imports kpd.viewer.pictures.point_panels"]
 
 
 def test_a_command_runs_without_torch(tmp_path):

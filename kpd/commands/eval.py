@@ -70,12 +70,18 @@ def _run_run(args: argparse.Namespace, outputs, out: Path) -> None:
     from kpd.train import evaluate
 
     if args.task == "alignment":
-        gallery = None
+        gallery = draw = None
         if args.gallery:
             gallery = outputs.file(args.gallery, "--gallery", formats=(".png",), what="gallery (PNG)")
+
+            def draw(pairs) -> None:  # the library hands over the pairs; the viewer draws them
+                from kpd.viewer.figures import alignment_gallery
+
+                alignment_gallery(outputs.stage(gallery), pairs.sources, pairs.targets, pairs.deformed,
+                                  pairs.keypoints, titles=pairs.titles, scores=pairs.scores)
+
         result = evaluate.evaluate_alignment(args.run, args.baseline, pairs=args.pairs, seed=args.seed,
-                                             data_root=args.data, cache_dir=args.cache,
-                                             gallery=None if gallery is None else outputs.stage(gallery),
+                                             data_root=args.data, cache_dir=args.cache, gallery=draw,
                                              gallery_pairs=args.gallery_pairs, progress=not args.quiet)
         if gallery is not None:
             result["gallery"] = str(gallery)

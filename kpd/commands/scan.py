@@ -141,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
     }
     with outputs:
         if picture is not None:
-            from kpd.scan import alignment_picture
+            from kpd.viewer.figures import alignment_picture
 
             alignment_picture(result, reference, outputs.stage(picture), up=reference_up or args.up or "z",
                               seed=args.seed)
@@ -185,10 +185,11 @@ def run_collection(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from kpd.collection import align_collection, collection_points, contact_sheet, find_shapes
+    from kpd.collection import align_collection, collection_points, find_shapes
     from kpd.errors import InputError, KpdError
     from kpd.io import Mesh, Outputs, read_shape, write_mesh, write_points
     from kpd.scan import parse_axis
+    from kpd.viewer.figures import contact_sheet
 
     if args.reference is not None or args.model is not None:
         raise InputError("collection mode (SCAN is a folder) needs no --reference or --model: the collection's "

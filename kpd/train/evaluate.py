@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+from typing import Callable, NamedTuple
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ from kpd.metrics import (alignment_chamfer, fit_mirror_permutation, keypoint_sta
                          surface_distance)
 from kpd.train.predictor import CheckpointPredictor
 
-__all__ = ["run_data", "fixed_pairs", "evaluate_alignment", "evaluate_keypoints", "alignment_gallery"]
+__all__ = ["run_data", "fixed_pairs", "evaluate_alignment", "evaluate_keypoints", "GalleryPairs"]
 
 log = logging.getLogger(__name__)
 
@@ -69,15 +70,30 @@ def _summary(values: np.ndarray) -> dict:
             "min": float(values.min()), "max": float(values.max())}
 
 
+class GalleryPairs(NamedTuple):
+    """The first pairs of an alignment evaluation, for a picture: P pairs of N points, K keypoints."""
+
+    sources: np.ndarray  # (P, N, 3)
+    targets: np.ndarray  # (P, N, 3)
+    deformed: dict  # run name -> (P, N, 3), each source deformed to its target
+    keypoints: dict  # run name -> ((P, K, 3) source keypoints, (P, K, 3) target keypoints)
+    titles: list  # P captions
+    scores: dict  # method name -> (P,) alignment chamfer x1e3
+
+
 def evaluate_alignment(run: str | os.PathLike, baseline: str | os.PathLike | None = None, *, pairs: int = 200,
                        seed: int = 0, data_root: str | os.PathLike | None = None,
-                       cache_dir: str | os.PathLike | None = None, gallery: str | os.PathLike | None = None,
+                       cache_dir: str | os.PathLike | None = None,
+                       gallery: Callable[["GalleryPairs"], None] | None = None,
                        gallery_pairs: int = 8, processes: int = 2, progress: bool = True) -> dict:
     """Pairwise alignment on the test split (the paper's Fig. 7 protocol).
 
     ``pairs`` seeded source/target pairs of distinct test shapes (cached sample 0 of each); the source is deformed
     by the model and compared with the target by the chamfer distance of REFERENCE §6 in the [-1, 1] frame, reported
     ×10³, next to no deformation and, when given, a baseline run (e.g. ``--keypoint-source fps``).
+
+    ``gallery``, when given, is called once with the first ``gallery_pairs`` pairs (:class:`GalleryPairs`) to draw
+    them (``kpd eval alignment --gallery`` passes :func:`kpd.viewer.figures.alignment_gallery`).
 
     Returns
     -------
@@ -128,38 +144,13 @@ def evaluate_alignment(run: str | os.PathLike, baseline: str | os.PathLike | Non
         result["wins_vs_baseline"] = float(np.mean(scores["model"] < scores["baseline"]))
     if gallery is not None:
         count = min(gallery_pairs, len(index))
-        alignment_gallery(gallery, test.points[index[:count, 0], 0], test.points[index[:count, 1], 0],
-                          {name: out[0][:count] for name, out in outputs.items()},
-                          {name: (out[1][:count], out[2][:count]) for name, out in outputs.items()},
-                          titles=[f"{test.names[s]} -> {test.names[t]}" for s, t in index[:count]],
-                          scores={name: 1e3 * v[:count] for name, v in scores.items()})
-        result["gallery"] = str(gallery)
+        gallery(GalleryPairs(
+            sources=test.points[index[:count, 0], 0], targets=test.points[index[:count, 1], 0],
+            deformed={name: out[0][:count] for name, out in outputs.items()},
+            keypoints={name: (out[1][:count], out[2][:count]) for name, out in outputs.items()},
+            titles=[f"{test.names[s]} -> {test.names[t]}" for s, t in index[:count]],
+            scores={name: 1e3 * v[:count] for name, v in scores.items()}))
     return result
-
-
-def alignment_gallery(path: str | os.PathLike, sources: np.ndarray, targets: np.ndarray, deformed: dict,
-                      keypoints: dict, *, titles: list[str], scores: dict, up: str = "z") -> None:
-    """PNG grid, one row per pair: source with its keypoints, each method's deformed source, target with keypoints,
-    drawn as lit point splats by the editor's OpenGL path (:func:`kpd.viewer.pictures.point_panels`).
-
-    sources, targets : (P, N, 3); deformed : name -> (P, N, 3); keypoints : name -> ((P, K, 3), (P, K, 3)).
-    up : the data's up axis (ModelNet: z).
-    """
-    from kpd.viewer.pictures import point_panels
-
-    names = list(deformed)
-    first = names[0]
-    blue, green, red = (0.45, 0.6, 0.9), (0.45, 0.78, 0.5), (0.92, 0.5, 0.45)
-    panels = []
-    for i in range(len(sources)):
-        panels.append({"points": sources[i], "keypoints": keypoints[first][0][i], "tint": blue,
-                       "title": f"source {titles[i]}"})
-        for name in names:
-            panels.append({"points": deformed[name][i], "tint": green, "title": f"{name}: {scores[name][i]:.2f}"})
-        panels.append({"points": targets[i], "keypoints": keypoints[first][1][i], "tint": red,
-                       "title": f"target (undeformed {scores['no_deformation'][i]:.2f})"})
-    point_panels(panels, path, up=up, cell=2.6, columns=2 + len(names), shared_camera=True,
-                 title="alignment chamfer x10^3: source (blue), deformed to the target (green), target (red)")
 
 
 def _mirror(points: np.ndarray, axis: int) -> np.ndarray:
