@@ -155,7 +155,11 @@ class ShadedMesh:
                 albedo = np.tile(rgb.astype(np.float32) / 255.0, (len(used), 1))
             elif texture is not None:
                 corners = (3 * chosen[:, None] + np.arange(3)).ravel()  # (3 Tp,)
-                uvs = np.array(mesh.triangle_uvs[corners], dtype=np.float64)
+                uvs = np.array(mesh.triangle_uvs[corners], dtype=np.float64).reshape(-1, 3, 2)
+                # tiled maps (UVs beyond [0, 1], common in CAD models): the legacy renderer does not repeat a
+                # texture (black beyond it), so each triangle moves by whole tiles into the first one
+                uvs -= np.floor(uvs.min(axis=1, keepdims=True))
+                uvs = np.clip(uvs, 0.0, 1.0).reshape(-1, 2)
                 uvs[:, 1] = 1.0 - uvs[:, 1]  # the legacy renderer reads v from the top row down
                 part.triangle_uvs = o3d.utility.Vector2dVector(uvs)
                 image = np.ascontiguousarray(texture[:, :, :3] if texture.ndim == 3 else
