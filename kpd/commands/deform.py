@@ -114,7 +114,9 @@ def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray], ch
     scan = None
     if args.scan:
         # orient with the scan pipeline, but rig the whole input mesh (topology kept) in the model's orientation
-        scan = ScanFrame(model, mesh, args.up)
+        from kpd.io import file_up
+
+        scan = ScanFrame(model, mesh, args.up or file_up(args.shape))
         print_scan_messages(scan)
         moves = {i: scan.vector_to_aligned(d) for i, d in moves.items()}
         work = mesh.with_vertices(scan.to_aligned(mesh.vertices))

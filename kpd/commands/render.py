@@ -53,8 +53,9 @@ def _run(args: argparse.Namespace) -> int:
             selection = [int(s) for s in args.select.split(",") if s.strip()]
         except ValueError as exc:
             raise InputError(f"--select must be keypoint numbers like 0,3; got {args.select!r}") from exc
-    settings = view_settings(args)
+    view_settings(args)  # bad --size or --view-up ends here, before any work
     source = load_source(args, need_prior=args.prior)
+    settings = view_settings(args, source.up)
     rig = source.rig
     k = rig.num_keypoints
     for index in list(moves) + selection:

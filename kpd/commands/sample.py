@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
 
     from kpd.commands.keypoints import load_model
     from kpd.errors import InputError
-    from kpd.io import MESH_FORMATS, Outputs, read_mesh, write_mesh
+    from kpd.io import MESH_FORMATS, Outputs, file_up, read_mesh, write_mesh
 
     suffix = args.format or Path(args.mesh).suffix.lower()
     suffix = suffix if suffix.startswith(".") else "." + suffix
@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         (staging / "keypoints.json").write_text(json.dumps(record, indent=1) + "\n")
         render_sheet([mesh, *meshes], staging / "contact_sheet.png",
                      titles=["input", *[f"{i:03d}" for i in range(len(meshes))]],
-                     keypoints=[rig.keypoints, *keypoint_sets], up=model.up or "z")
+                     keypoints=[rig.keypoints, *keypoint_sets], up=file_up(args.mesh) or model.up or "z")
     print(f"wrote {len(meshes)} variants, keypoints.json and contact_sheet.png to {out}")
     return 0
 

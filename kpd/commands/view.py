@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from kpd.commands import integer
 from kpd.errors import InputError
 
 HELP = "edit a shape in a window: pick keypoints, drag them, watch the mesh deform; save the mesh and the session"
@@ -34,9 +35,9 @@ def add_source_arguments(parser: argparse.ArgumentParser) -> None:
 def add_view_arguments(parser: argparse.ArgumentParser) -> None:
     """What to show and from where (shared by ``kpd view`` and ``kpd render``)."""
     parser.add_argument("--size", default=None, metavar="WxH", help="size of the 3D view in pixels (default 960x720)")
-    parser.add_argument("--view-up", default="+z", metavar="AXIS", help="the shape's up axis for the camera "
-                                                                         "(default +z, as ModelNet; the sneaker scan: "
-                                                                         "+z)")
+    parser.add_argument("--view-up", default=None, metavar="AXIS",
+                        help="the shape's up axis for the camera (default: the axis --scan decided or --up gave, "
+                             "+y for .gltf/.glb files as glTF defines, else +z as ModelNet)")
     parser.add_argument("--azimuth", type=float, default=30.0, help="camera degrees around the up axis (default 30)")
     parser.add_argument("--elevation", type=float, default=20.0, help="camera degrees above the horizon (default 20)")
     parser.add_argument("--zoom", type=float, default=1.0, help="> 1 moves the camera closer")
@@ -58,20 +59,34 @@ def parse_size(text: str | None) -> tuple[int, int]:
     return width, height
 
 
-def view_settings(args: argparse.Namespace, **extra: Any):
+def view_settings(args: argparse.Namespace, up: str | None = None, **extra: Any):
+    """The view options; the camera's up axis is ``--view-up`` when given, else ``up`` (the source's, see
+    :attr:`Source.up`), else +z."""
     from kpd.viewer.render import ViewSettings
 
     width, height = parse_size(args.size)
-    return ViewSettings(width=width, height=height, up=args.view_up, azimuth=args.azimuth, elevation=args.elevation,
+    return ViewSettings(width=width, height=height, up=args.view_up or up or "+z", azimuth=args.azimuth, elevation=args.elevation,
                         zoom=args.zoom, show_cage=args.cage, show_ghost=args.ghost, show_labels=not args.no_labels,
                         **extra)
 
 
 class Source:
-    """The rig to show and, when a model is known, its category prior."""
+    """The rig to show and, when a model is known, its category prior; ``up`` is the shape's up axis when known
+    (the one ``--scan`` decided or ``--up`` gave, +y for glTF), else None."""
 
-    def __init__(self, rig: Any, prior: Any, name: str) -> None:
-        self.rig, self.prior, self.name = rig, prior, name
+    def __init__(self, rig: Any, prior: Any, name: str, up: str | None = None) -> None:
+        self.rig, self.prior, self.name, self.up = rig, prior, name, up
+
+
+def scan_up(scan: Any, model_up: str | None) -> str | None:
+    """The input's axis (``'+y'``, ``'-x'``...) that ``scan`` (a ScanFrame) turns to the model's up axis."""
+    from kpd.scan import parse_axis
+
+    if model_up is None:
+        return None
+    vector = scan.vector_to_original(parse_axis(model_up)[None, :])[0]  # (3,) in the input's frame
+    i = int(np.argmax(np.abs(vector)))
+    return ("-" if vector[i] < 0 else "+") + "xyz"[i]
 
 
 def load_source(args: argparse.Namespace, *, need_prior: bool = False) -> Source:
@@ -108,23 +123,27 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False) -> Source
         if need_prior and prior is None:
             raise InputError("--prior needs a category prior: pass --model MODEL with --rig")
         return Source(rig, prior, Path(args.rig).name)
+    if Path(args.shape).is_dir():
+        raise InputError(f"{args.shape}: is a folder, not a mesh file (give one of the mesh files in it)")
     if not Path(args.shape).is_file():
         raise InputError(f"{args.shape}: no such file")
     model = Model.load(args.model, threads=args.threads)
     if need_prior and model.prior is None:
         raise InputError(f"{args.model}: this bundle has no category prior; drop --prior")
+    from kpd.io import file_up
+
     mesh = read_mesh(args.shape)
     if args.scan:
-        scan = ScanFrame(model, mesh, args.up)
+        scan = ScanFrame(model, mesh, args.up or file_up(args.shape))
         print_scan_messages(scan)
         aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
         rig = ScanRig(aligned, mesh, scan)
-    else:
-        from kpd.commands.keypoints import warn_frame  # kpd view and kpd render: the frame and category check
+        return Source(rig, model.prior, Path(args.shape).name, scan_up(scan, model.up) or args.up)
+    from kpd.commands.keypoints import warn_frame  # kpd view and kpd render: the frame and category check
 
-        warn_frame(model, mesh, args.seed, args.shape)
-        rig = model.rig(mesh, seed=args.seed)
-    return Source(rig, model.prior, Path(args.shape).name)
+    warn_frame(model, mesh, args.seed, args.shape)
+    rig = model.rig(mesh, seed=args.seed)
+    return Source(rig, model.prior, Path(args.shape).name, file_up(args.shape))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -144,10 +163,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="append one JSON line per editor event (selection, keypoints, camera) to this file")
     parser.add_argument("--force", action="store_true", help="let 'save mesh' and 'save session' replace existing "
                                                              "files")
+    parser.add_argument("--browser", action="store_true",
+                        help="instead of a window: serve the editor as a page for your own browser (three.js, drawn on "
+                             "your GPU; works through an SSH port forward); prints the URL")
+    parser.add_argument("--host", default="127.0.0.1", help="with --browser: the address to listen on (default "
+                                                            "127.0.0.1, this machine only)")
+    parser.add_argument("--port", type=integer(0, 65535), default=8765,
+                        help="with --browser: the port (default 8765; 0 picks a free one)")
 
 
 def run(args: argparse.Namespace) -> int:
     import os
+
+    if args.browser:
+        from kpd.commands.rig import browse
+
+        return browse(args)
 
     from kpd.commands import check_output
     from kpd.commands.keypoints import check_suffix
@@ -165,8 +196,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"{args.load_session}: no such session file")
     if not (args.step > 0 and np.isfinite(args.step)):
         raise InputError(f"--step must be a positive number; got {args.step}")
-    settings = view_settings(args, prior=bool(args.prior), nudge_step=float(args.step))
+    view_settings(args)  # bad --size or --view-up ends here, before any work
     source = load_source(args, need_prior=args.prior)
+    settings = view_settings(args, source.up, prior=bool(args.prior), nudge_step=float(args.step))
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise InputError("kpd view needs a display ($DISPLAY is not set); for images without one use kpd render, "
                          "or run it under xvfb-run")

@@ -47,7 +47,7 @@ from __future__ import annotations
 from kpd.io.atomic import Outputs, atomic_files, atomic_output, check_output, remove_stale_temporaries
 from kpd.io.atomic import _check_target, disk_full  # noqa: F401  (kept importable from kpd.io)
 from kpd.io.common import KEYPOINT_FORMATS, MESH_FORMATS, POINT_FORMATS
-from kpd.io.dispatch import mesh_companions, read_mesh, read_points, read_shape, write_mesh, write_points
+from kpd.io.dispatch import file_up, mesh_companions, read_mesh, read_points, read_shape, write_mesh, write_points
 from kpd.io.images import verify_png
 from kpd.io.keypoints import read_keypoints, write_keypoints
 from kpd.mesh import Mesh, PointSet
@@ -60,6 +60,7 @@ __all__ = [
     "PointSet",
     "read_mesh",
     "write_mesh",
+    "file_up",
     "read_points",
     "write_points",
     "read_shape",

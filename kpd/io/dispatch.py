@@ -22,12 +22,19 @@ from kpd.mesh import Mesh, PointSet
 if TYPE_CHECKING:  # pragma: no cover
     import open3d
 
-__all__ = ["read_mesh", "read_points", "read_shape", "write_mesh", "write_points", "mesh_companions"]
+__all__ = ["file_up", "read_mesh", "read_points", "read_shape", "write_mesh", "write_points", "mesh_companions"]
 
 log = logging.getLogger(__name__)
 
 
 # --- reading -------------------------------------------------------------------------------------------------------
+
+
+def file_up(path: str | os.PathLike | None) -> str | None:
+    """The up axis a file's format defines: ``"+y"`` for ``.gltf``/``.glb`` (glTF 2.0 is y up), else None."""
+    if path is None:
+        return None
+    return "+y" if Path(path).suffix.lower() in (".gltf", ".glb") else None
 
 
 def read_mesh(path: str | os.PathLike) -> Mesh:
