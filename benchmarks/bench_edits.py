@@ -51,6 +51,7 @@ from kpd.metrics import (edit_distortion, far_side_leakage, fit_mirror_permutati
 from kpd.prior import KeypointPrior
 from kpd.runtime import Model
 from kpd.benchmark import write_json
+from kpd.triangles import areas as triangle_areas
 
 DATA = Path(os.environ.get("KPD_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 SAMPLE_SCALES = (0.5, 1.0)  # kpd sample's default scale, and one standard deviation
@@ -64,8 +65,7 @@ def weld(mesh: Mesh) -> Mesh:
     diag = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
     sv, _, _, sf = igl.remove_duplicate_vertices(v, f, 1e-7 * diag)
     sf = np.asarray(sf, dtype=np.int64)
-    a, b, c = (sv[sf[:, i]] for i in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    area = triangle_areas(sv, sf)
     sf = sf[(area > 1e-12 * diag**2) & (sf[:, 0] != sf[:, 1]) & (sf[:, 1] != sf[:, 2]) & (sf[:, 0] != sf[:, 2])]
     used = np.unique(sf)
     remap = np.full(len(sv), -1)

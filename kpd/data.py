@@ -40,6 +40,7 @@ from typing import NamedTuple
 import numpy as np
 
 from kpd.errors import DataError, InputError, KpdError
+from kpd.io import MESH_FORMATS
 
 __all__ = [
     "MESH_SUFFIXES",
@@ -62,7 +63,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
+MESH_SUFFIXES = MESH_FORMATS  # the formats kpd.io reads; the old name, kept importable
 CACHE_VERSION = 1
 
 # Common ShapeNetCore category names (taxonomy.json) -> synset id.

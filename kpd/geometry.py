@@ -11,6 +11,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from kpd.errors import InputError, NotFittedError
+from kpd.triangles import cross as triangle_cross
+from kpd.triangles import unit_normals
 
 __all__ = [
     "as_points",
@@ -191,8 +193,7 @@ def sample_surface(
     if n < 1:
         raise InputError(f"the number of samples must be at least 1; got {n}")
     rng = as_rng(seed)
-    a, b, c = (vertices[triangles[:, i]] for i in range(3))  # (T, 3) each
-    cross = np.cross(b - a, c - a)  # (T, 3)
+    cross = triangle_cross(vertices, triangles)  # (T, 3)
     area2 = np.linalg.norm(cross, axis=1)  # (T,)
     if not area2.sum() > 0:
         raise InputError("cannot sample a mesh whose triangles all have zero area")
@@ -349,10 +350,7 @@ def interior_mask(vertices: Any, triangles: Any, points: Any, faces: Any, *, off
     test = _InteriorTest(vertices, triangles, offset)
     if not test.containers:
         return np.zeros(len(points), dtype=bool)
-    a, b, c = (vertices[triangles[faces, i]] for i in range(3))
-    cross = np.cross(b - a, c - a)  # (n, 3)
-    length = np.linalg.norm(cross, axis=1, keepdims=True)
-    return test(points, np.divide(cross, length, out=np.zeros_like(cross), where=length > 0), faces)
+    return test(points, unit_normals(vertices, triangles[faces]), faces)
 
 
 def farthest_point_sampling(

@@ -14,6 +14,8 @@ from scipy.optimize import linear_sum_assignment
 
 from kpd.errors import InputError
 from kpd.geometry import as_points, chamfer
+from kpd.triangles import areas as triangle_areas
+from kpd.triangles import cross as triangle_cross
 
 __all__ = [
     "keypoint_stability",
@@ -565,12 +567,6 @@ def _mesh_pair(rest: Any, deformed: Any, triangles: Any) -> tuple[np.ndarray, np
     return v0, v1, tri
 
 
-def _normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(T, 3) unnormalised triangle normals (twice the area in length)."""
-    a, b, c = (vertices[triangles[:, i]] for i in range(3))
-    return np.cross(b - a, c - a)
-
-
 def vertex_areas(vertices: Any, triangles: Any) -> np.ndarray:
     """(V,) float64: the surface area each vertex stands for (a third of each triangle it is a corner of).
 
@@ -579,7 +575,7 @@ def vertex_areas(vertices: Any, triangles: Any) -> np.ndarray:
     """
     v = as_points(vertices, "vertices")
     tri = np.asarray(triangles, dtype=np.int64)
-    area = 0.5 * np.linalg.norm(_normals(v, tri), axis=1)  # (T,)
+    area = triangle_areas(v, tri)  # (T,)
     out = np.zeros(len(v))
     for i in range(3):
         np.add.at(out, tri[:, i], area / 3.0)
@@ -624,7 +620,7 @@ def far_side_leakage(rest: Any, deformed: Any, keypoint: Any, move: float, weigh
 def folded_share(rest: Any, deformed: Any, triangles: Any) -> float:
     """Share of the (non-degenerate) triangles whose normal turned by more than 90 degrees in an edit (folded)."""
     v0, v1, tri = _mesh_pair(rest, deformed, triangles)
-    return _fold_share(_normals(v0, tri), _normals(v1, tri))
+    return _fold_share(triangle_cross(v0, tri), triangle_cross(v1, tri))
 
 
 def folded_area_share(rest: Any, deformed: Any, triangles: Any) -> float:
@@ -635,7 +631,7 @@ def folded_area_share(rest: Any, deformed: Any, triangles: Any) -> float:
     long flat face bends slightly. This weighs each by its area, so it reads as the share of the visible surface.
     """
     v0, v1, tri = _mesh_pair(rest, deformed, triangles)
-    n0, n1 = _normals(v0, tri), _normals(v1, tri)
+    n0, n1 = triangle_cross(v0, tri), triangle_cross(v1, tri)
     size = np.linalg.norm(n0, axis=1)
     if not size.sum() > 0:
         return 0.0
@@ -678,7 +674,7 @@ def edit_distortion(rest: Any, deformed: Any, triangles: Any) -> EditDistortion:
     triangles : (T, 3) int, the mesh's triangles (degenerate ones and zero-length edges are ignored).
     """
     v0, v1, tri = _mesh_pair(rest, deformed, triangles)
-    n0, n1 = _normals(v0, tri), _normals(v1, tri)
+    n0, n1 = triangle_cross(v0, tri), triangle_cross(v1, tri)
     size0, size1 = np.linalg.norm(n0, axis=1), np.linalg.norm(n1, axis=1)
     valid = size0 > 1e-12 * max(float(size0.max()), 1e-300)
     folded = _fold_share(n0, n1)

@@ -35,6 +35,7 @@ from scipy.spatial.transform import Rotation
 
 from kpd.errors import InputError, NotFittedError
 from kpd.geometry import Normalizer, as_points, as_rng, sample_surface
+from kpd.triangles import areas as triangle_areas
 
 __all__ = [
     "AXES",
@@ -448,8 +449,7 @@ def _small_pieces(
     labels, count = _triangle_pieces(vertices, triangles)
     if count == 0:
         return np.zeros(0, dtype=bool), 0
-    a, b, c = (vertices[triangles[:, i]] for i in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)  # (T,)
+    area = triangle_areas(vertices, triangles)  # (T,)
     piece_area = np.bincount(labels, weights=area, minlength=count)  # (pieces,)
     small = piece_area < min_piece * piece_area.max()
     if small.any() and max_gap > 0:
