@@ -7,6 +7,11 @@ cage offset, so the whole edit is linear:
 
 ``B`` is computed once at bind time, so an edit costs one (V × K) by (K × 3) product. The map is scale-free: ``B``
 applies to offsets in the mesh's own units, so keypoints go in and vertices come out in the user's frame.
+
+A bound rig holds ``B`` and not the (V, C) mean value coordinates: :func:`kpd.mvc_fast.mvc_project` computes
+``MVC · Wᵀ`` block by block, so binding a scan of a million vertices needs memory for ``B`` only (docs/scale.md).
+``B`` is kept in float32 when that moves no vertex by more than 1e-6 of the box diagonal for keypoint moves of up
+to a diagonal, in float64 otherwise.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 
 from kpd.cage import Cage, cage_faces_from_vertices, default_m, fit_cage, influence_mask
@@ -25,16 +31,18 @@ from kpd.geometry import Normalizer, as_points, sample_surface
 from kpd.io import Mesh, atomic_output
 from kpd.io.integrity import HASH_KEY, check_hash, content_hash, load_numpy
 from kpd.mvc import mvc_weights
+from kpd.mvc_fast import mvc_project, mvc_weights_compiled
 
 __all__ = ["Rig", "RIG_FORMAT", "transfer_influence", "TRANSFER_SIGMA", "TRANSFER_RIDGE", "TRANSFER_SUPPORT",
-           "straighten_basis", "STRAIGHTEN_THINNESS", "STRAIGHTEN_REACH", "coincident_mvc_weights", "distinct_points"]
+           "straighten_basis", "STRAIGHTEN_THINNESS", "STRAIGHTEN_REACH", "coincident_mvc_weights", "distinct_points",
+           "coincident_mvc_basis", "bind_memory", "check_bind_memory"]
 
 log = logging.getLogger(__name__)
 
-RIG_FORMAT = "kpd-rig/2"  # /2 adds the optional basis_correction; /1 files (without it) are still read
-_READ_FORMATS = ("kpd-rig/1", RIG_FORMAT)
+RIG_FORMAT = "kpd-rig/3"  # /3 stores the edit basis, not the (V, C) weights; /1 and /2 files are still read
+_READ_FORMATS = ("kpd-rig/1", "kpd-rig/2", RIG_FORMAT)  # /2 added the optional basis_correction to /1
 _CAGE_SAMPLE_POINTS = 2048
-_EDIT_BLOCK = 4096  # mesh vertices per matmul in Rig.deform
+_FLOAT32_ROW_SUM = 16.0  # a basis whose rows' absolute sums stay below this is kept in float32 (see _compact_basis)
 TRANSFER_SIGMA = 0.3  # width of the neighbourhood each keypoint's motion is kept in, [-1, 1] box units
 TRANSFER_RIDGE = 1e-4  # ridge of the transfer's least squares, relative to the neighbourhood's weight
 TRANSFER_SUPPORT = 2  # rig-cage vertices per keypoint in a transfer, in multiples of the model's M
@@ -45,7 +53,7 @@ _STRAIGHTEN_CAP = 1e8  # largest weight of one sliver's straightness (a collinea
 
 
 class Rig:
-    """A mesh with keypoints, a cage, a masked influence matrix and the MVC weights of its vertices.
+    """A mesh with keypoints, a cage, a masked influence matrix and the edit basis of its vertices.
 
     Parameters
     ----------
@@ -54,9 +62,12 @@ class Rig:
     keypoints : (K, 3) float64, rest keypoints in the model frame.
     cage : Cage, vertices (C, 3) in the model frame.
     influence : (K, C) float64, masked influence W (row k: how much each cage vertex follows keypoint k).
-    weights : (V, C) float64, MVC weights of the mesh vertices w.r.t. the cage.
-    correction : (V, K) float64 or None, added to the edit basis ``weights @ influence.T``
-        (:func:`straighten_basis`; :meth:`bind` computes it).
+    weights : (V, C) float64 or None, MVC weights of the mesh vertices w.r.t. the cage; the edit basis is then
+        ``weights @ influence.T`` (+ ``correction``), in float64. ``None`` when ``basis`` is given.
+    correction : (V, K) float64 or None, added to ``weights @ influence.T`` (:func:`straighten_basis`); only with
+        ``weights``.
+    basis : (V, K) float32 or float64, the edit basis itself (what :meth:`bind` computes and :meth:`save` stores),
+        instead of ``weights``.
     """
 
     def __init__(
@@ -66,38 +77,80 @@ class Rig:
         keypoints: Any,
         cage: Cage,
         influence: Any,
-        weights: Any,
+        weights: Any = None,
         correction: Any = None,
+        *,
+        basis: Any = None,
     ) -> None:
         keypoints = as_points(keypoints, "keypoints")
         cage = Cage(as_points(cage.vertices, "cage vertices", min_count=4), np.asarray(cage.faces, dtype=np.int64))
         influence = np.asarray(influence, dtype=np.float64)
-        weights = np.asarray(weights, dtype=np.float64)
         k, c, v = len(keypoints), len(cage.vertices), len(mesh.vertices)
         if influence.shape != (k, c):
             raise InputError(f"influence must have shape (K, C) = ({k}, {c}); got {influence.shape}")
-        if weights.shape != (v, c):
-            raise InputError(f"MVC weights must have shape (V, C) = ({v}, {c}); got {weights.shape}")
         if cage.faces.ndim != 2 or cage.faces.shape[1] != 3 or cage.faces.min() < 0 or cage.faces.max() >= c:
             raise InputError(f"cage faces must be (F, 3) indices into {c} cage vertices")
-        if not (np.isfinite(influence).all() and np.isfinite(weights).all()):
+        if not np.isfinite(influence).all():
             raise InputError("influence and MVC weights must be finite")
-        if correction is not None:
-            correction = np.asarray(correction, dtype=np.float64)
-            if correction.shape != (v, k) or not np.isfinite(correction).all():
-                raise InputError(f"basis correction must be (V, K) = ({v}, {k}) finite numbers; got "
-                                 f"{correction.shape}")
+        if (weights is None) == (basis is None):
+            raise InputError("a rig needs either the MVC weights (V, C) or the edit basis (V, K), not both")
+        if weights is not None:
+            weights = np.asarray(weights, dtype=np.float64)
+            if weights.shape != (v, c):
+                raise InputError(f"MVC weights must have shape (V, C) = ({v}, {c}); got {weights.shape}")
+            if not np.isfinite(weights).all():
+                raise InputError("influence and MVC weights must be finite")
+            if correction is not None:
+                correction = np.asarray(correction, dtype=np.float64)
+                if correction.shape != (v, k) or not np.isfinite(correction).all():
+                    raise InputError(f"basis correction must be (V, K) = ({v}, {k}) finite numbers; got "
+                                     f"{correction.shape}")
+            basis = weights @ influence.T  # (V, K)
+            basis = np.ascontiguousarray(basis if correction is None else basis + correction)
+        else:
+            if correction is not None:
+                raise InputError("a basis correction goes with MVC weights; an edit basis already holds it")
+            basis = np.asarray(basis)
+            if basis.dtype not in (np.float32, np.float64):
+                basis = basis.astype(np.float64)
+            if basis.shape != (v, k) or not np.isfinite(basis).all():
+                raise InputError(f"edit basis must be (V, K) = ({v}, {k}) finite numbers; got {basis.shape}")
+            basis = np.ascontiguousarray(basis)
         self.mesh = mesh
         self.normalizer = normalizer
         self.cage = cage
         self.influence = influence
-        self.weights = weights
+        self._weights = weights
+        self._correction = correction
+        self._straightened = correction is not None
         self._keypoints_model = keypoints
         self._rest_keypoints = normalizer.invert(keypoints)  # (K, 3) user units
         self._rest_vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)  # (V, 3)
-        self.correction = correction
-        basis = weights @ influence.T  # (V, K)
-        self._basis = np.ascontiguousarray(basis if correction is None else basis + correction)
+        self._basis = basis
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(V, C) float64: the MVC weights of the mesh vertices w.r.t. the cage.
+
+        A rig read from weights (the authors' demo files, rig files before kpd-rig/3) holds them; a bound rig does
+        not (its edits need only :attr:`basis`) and computes them here on each call, which takes V × C × 8 bytes.
+        """
+        if self._weights is not None:
+            return self._weights
+        vertices = self.normalizer.apply(self.mesh.vertices)
+        points, inverse = _merge_coincident(vertices)
+        return mvc_weights_compiled(points, self.cage.vertices, self.cage.faces)[inverse]
+
+    @property
+    def correction(self) -> np.ndarray | None:
+        """(V, K) float64 or None: what the straightening of slivers (:func:`straighten_basis`) added to the edit
+        basis ``weights @ influence.T``; ``None`` when nothing was. A bound rig computes it on each call."""
+        if not self._straightened:
+            return None
+        if self._correction is not None:
+            return self._correction
+        vertices = self.normalizer.apply(self.mesh.vertices)
+        return self._basis - coincident_mvc_basis(vertices, self.cage, self.influence.T)
 
     # --- construction -----------------------------------------------------------------------------------------
 
@@ -151,12 +204,15 @@ class Rig:
             raise InputError(f"influence must have shape (K, C) = ({k}, {c}); got {influence.shape}")
         m = default_m(c, k) if m is None else int(m)
         masked = influence * influence_mask(keypoints, cage.vertices, m)
-        rig = cls(mesh, normalizer, keypoints, cage, masked, coincident_mvc_weights(vertices, cage))
+        check_bind_memory(len(vertices), len(mesh.triangles), k)
+        basis = coincident_mvc_basis(vertices, cage, masked.T)  # (V, K) float64
+        straightened = False
         if straighten:
-            straightened = straighten_basis(rig._basis, vertices, mesh.triangles)
-            if straightened is not rig._basis:  # no sliver: nothing to store
-                rig.correction = straightened - rig._basis
-                rig._basis = np.ascontiguousarray(straightened)
+            corrected = straighten_basis(basis, vertices, mesh.triangles)
+            straightened = corrected is not basis  # no sliver: nothing changed
+            basis = corrected
+        rig = cls(mesh, normalizer, keypoints, cage, masked, basis=_compact_basis(basis))
+        rig._straightened = straightened
         return rig
 
     # --- editing ----------------------------------------------------------------------------------------------
@@ -172,7 +228,8 @@ class Rig:
 
     @property
     def basis(self) -> np.ndarray:
-        """(V, K) float64: vertex offset per unit keypoint offset (read-only view)."""
+        """(V, K) float32 or float64: vertex offset per unit keypoint offset (read-only view; float32 when that keeps
+        edits within 1e-6 of the box diagonal, see :func:`_compact_basis`)."""
         view = self._basis.view()
         view.flags.writeable = False
         return view
@@ -198,13 +255,14 @@ class Rig:
         vertices : (V, 3) float64, in the user's units; the rest vertices exactly when no keypoint moved.
         """
         offsets = self._offsets(keypoints)
-        out = np.empty_like(self._rest_vertices) if out is None else out
-        # Row blocks small enough that BLAS runs each on the calling thread: the product is memory-bound, and a
+        if out is None:
+            out = np.empty_like(self._rest_vertices)
+        elif out.shape != self._rest_vertices.shape or out.dtype != np.float64 or not out.flags.c_contiguous:
+            raise InputError(f"out must be a C-contiguous ({len(self._rest_vertices)}, 3) float64 array; got "
+                             f"{out.shape} {out.dtype}")
+        # One pass over the basis on the calling thread, in float64: the product is memory-bound, and a
         # multi-threaded BLAS call stalls for tens of milliseconds when another process holds the other cores.
-        for start in range(0, len(out), _EDIT_BLOCK):
-            block = slice(start, start + _EDIT_BLOCK)
-            np.matmul(self._basis[block], offsets, out=out[block])
-        np.add(out, self._rest_vertices, out=out)
+        _edit(self._basis, offsets, self._rest_vertices, out)
         return out
 
     def deform_cage(self, keypoints: Any) -> np.ndarray:
@@ -231,15 +289,16 @@ class Rig:
     # --- files ------------------------------------------------------------------------------------------------
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write the rig to a ``.npz`` file (no pickle), atomically."""
+        """Write the rig to a ``.npz`` file (no pickle), atomically: the mesh, keypoints, cage, influence and the
+        (V, K) edit basis (format kpd-rig/3; the (V, C) weights are not stored)."""
         arrays = {
             "format": np.array(RIG_FORMAT),
             "keypoints": self._keypoints_model,
             "cage_vertices": self.cage.vertices,
             "cage_faces": self.cage.faces,
             "influence": self.influence,
-            "weights": self.weights,
-            **({} if self.correction is None else {"basis_correction": self.correction}),
+            "basis": self._basis,
+            "straightened": np.array(self._straightened),
             "normalizer_center": self.normalizer.center_,
             "normalizer_scale": np.array(self.normalizer.scale_),
         }
@@ -252,8 +311,9 @@ class Rig:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Rig":
-        """Read a rig written by :meth:`save`; a damaged file (bad zip, bad CRC, content not matching the stored
-        sha256) raises :class:`~kpd.errors.InputError`."""
+        """Read a rig written by :meth:`save` (kpd-rig/3, or the older kpd-rig/1 and /2 that stored the (V, C)
+        weights); a damaged file (bad zip, bad CRC, content not matching the stored sha256) raises
+        :class:`~kpd.errors.InputError`."""
         path = Path(path)
         if path.is_dir():
             raise InputError(f"{path}: is a folder; a rig is a .npz file (a folder of the authors' demo files is "
@@ -273,8 +333,12 @@ class Rig:
                 {"center": arrays["normalizer_center"].tolist(), "scale": float(arrays["normalizer_scale"])}
             )
             cage = Cage(arrays["cage_vertices"], arrays["cage_faces"])
-            rig = cls(mesh, normalizer, arrays["keypoints"], cage, arrays["influence"], arrays["weights"],
-                      arrays.get("basis_correction"))
+            if "weights" in arrays:  # kpd-rig/1 and /2: the (V, C) weights, and in /2 the straightening's correction
+                rig = cls(mesh, normalizer, arrays["keypoints"], cage, arrays["influence"], arrays["weights"],
+                          arrays.get("basis_correction"))
+            else:
+                rig = cls(mesh, normalizer, arrays["keypoints"], cage, arrays["influence"], basis=arrays["basis"])
+                rig._straightened = bool(arrays.get("straightened", False))
         except KeyError as exc:
             raise InputError(f"{path}: rig file lacks {exc.args[0]!r}") from exc
         return rig
@@ -377,8 +441,8 @@ def transfer_influence(
     if not (np.isfinite(sigma) and sigma > 0 and np.isfinite(ridge) and ridge >= 0):
         raise InputError(f"transfer needs sigma > 0 and ridge >= 0; got {sigma!r}, {ridge!r}")
     source_rows = influence * influence_mask(keypoints, source.vertices, m)  # (K, C)
-    moved = mvc_weights(points, source.vertices, source.faces) @ source_rows.T  # (N, K) motion per keypoint
-    coords = mvc_weights(points, target.vertices, target.faces)  # (N, C)
+    moved = mvc_project(points, source.vertices, source.faces, source_rows.T)  # (N, K) motion per keypoint
+    coords = mvc_weights_compiled(points, target.vertices, target.faces)  # (N, C)
     mask = influence_mask(keypoints, target.vertices, m if support is None else min(int(support), c))  # (K, C)
     result = np.zeros((k, c))
     for i in range(k):
@@ -515,6 +579,108 @@ def coincident_mvc_weights(vertices: Any, cage: Cage) -> np.ndarray:
     if len(points) == len(vertices):
         return mvc_weights(vertices, cage.vertices, cage.faces)
     return mvc_weights(points, cage.vertices, cage.faces)[inverse]
+
+
+def coincident_mvc_basis(vertices: Any, cage: Cage, rows: Any) -> np.ndarray:
+    """(V, R) float64: ``coincident_mvc_weights(vertices, cage) @ rows`` without the (V, C) weights.
+
+    Computed once per distinct position by the compiled kernel (:func:`kpd.mvc_fast.mvc_project`); with
+    ``rows = influence.T`` (C, K) this is a rig's edit basis before straightening.
+    """
+    vertices = as_points(vertices, "vertices")
+    points, inverse = _merge_coincident(vertices)
+    if len(points) == len(vertices):
+        return mvc_project(vertices, cage.vertices, cage.faces, rows)
+    return mvc_project(points, cage.vertices, cage.faces, rows)[inverse]
+
+
+def _compact_basis(basis: np.ndarray) -> np.ndarray:
+    """``basis`` (V, K) in float32 when that moves no vertex by more than 1e-6 of the box diagonal for keypoint
+    moves of up to a box diagonal each, else as it is.
+
+    Rounding to float32 changes each entry by at most 2^-24 of it, so a vertex moves by at most
+    ``2^-24 · Σ_k |B_vk| · max_k |Δp_k|``: within 1e-6 of a diagonal ``max_k |Δp_k|`` when every row's absolute
+    sum is below 16 (a mesh inside its cage has rows that sum to about 1 per keypoint that moves it).
+    """
+    if basis.dtype == np.float32 or not len(basis):
+        return basis
+    if np.abs(basis).sum(axis=1).max() > _FLOAT32_ROW_SUM:
+        return basis
+    return basis.astype(np.float32)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _edit(basis, offsets, rest, out):  # pragma: no cover - compiled
+    """``out = rest + basis @ offsets`` with float64 sums: (V, K) basis of float32 or float64, (K, 3) offsets."""
+    k = offsets.shape[0]
+    for v in range(rest.shape[0]):
+        x = rest[v, 0]
+        y = rest[v, 1]
+        z = rest[v, 2]
+        for j in range(k):
+            b = np.float64(basis[v, j])
+            x += b * offsets[j, 0]
+            y += b * offsets[j, 1]
+            z += b * offsets[j, 2]
+        out[v, 0] = x
+        out[v, 1] = y
+        out[v, 2] = z
+
+
+# Bytes per mesh vertex and per triangle that binding holds at its peak (measured at 1.37M vertices, docs/scale.md):
+# the mesh, its model-frame copy, the distinct positions and their order, the basis and its straightening.
+_BIND_BYTES_PER_VERTEX = 400
+_BIND_BYTES_PER_TRIANGLE = 120
+_BIND_BYTES_PER_KEYPOINT_VERTEX = 24  # the (V, K) basis in float64 and its corrected copy
+
+
+def bind_memory(vertices: int, triangles: int, keypoints: int) -> int:
+    """Bytes that binding a mesh of ``vertices`` and ``triangles`` to ``keypoints`` holds at its peak (an estimate
+    from measurements, docs/scale.md)."""
+    return int(vertices * (_BIND_BYTES_PER_VERTEX + keypoints * _BIND_BYTES_PER_KEYPOINT_VERTEX)
+               + triangles * _BIND_BYTES_PER_TRIANGLE)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory this process can still use (Linux: MemAvailable, capped by a cgroup limit), or None when
+    the system does not say."""
+    available = None
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    available = int(line.split()[1]) * 1024
+                    break
+    except OSError:
+        pass
+    if available is None:
+        try:
+            available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):
+            return None
+    for limit_file, usage_file in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                                   ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+                                    "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            limit = Path(limit_file).read_text().strip()
+            usage = int(Path(usage_file).read_text().strip())
+        except (OSError, ValueError):
+            continue
+        if limit.isdigit() and int(limit) < 1 << 60:
+            available = min(available, int(limit) - usage)
+        break
+    return available
+
+
+def check_bind_memory(vertices: int, triangles: int, keypoints: int) -> None:
+    """Raise :class:`~kpd.errors.InputError` naming the mesh's size and the memory it needs when binding it would
+    not fit in the memory that is available (rather than being killed by the system midway)."""
+    need = bind_memory(vertices, triangles, keypoints)
+    have = available_memory()
+    if have is not None and need > have:
+        raise InputError(f"a mesh of {vertices:,} vertices and {triangles:,} triangles needs about "
+                         f"{need / 2**30:.1f} GiB to bind; {max(have, 0) / 2**30:.1f} GiB of memory is available "
+                         f"(simplify the mesh, or free memory)")
 
 
 def _thin_triangles(points: np.ndarray, tri: np.ndarray, thinness: float) -> tuple[np.ndarray, ...]:
