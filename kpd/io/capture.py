@@ -21,7 +21,7 @@ from typing import Callable, Iterator
 from kpd.errors import WriteError
 from kpd.io.atomic import disk_full
 
-__all__ = ["open3d_module", "open3d_log", "failures", "c_stderr", "open3d_write", "FAILURE"]
+__all__ = ["open3d_module", "open3d_log", "failures", "c_stderr", "native_output", "Captured", "open3d_write", "FAILURE"]
 
 log = logging.getLogger("kpd.io")
 
@@ -86,30 +86,59 @@ def open3d_write(write: Callable[[], bool], p: Path, tmp: Path | None = None) ->
         raise WriteError(f"cannot write {p}: Open3D failed ({'; '.join(dict.fromkeys(failed)) or 'no reason given'})")
 
 
+class Captured:
+    """What native code wrote inside :func:`native_output` (``text`` is filled in when the block ends)."""
+
+    text = ""
+
+    @property
+    def lines(self) -> list[str]:
+        """The non-empty lines of ``text``, stripped, without terminal colour codes."""
+        return [s.strip() for s in _ANSI.sub("", self.text).splitlines() if s.strip()]
+
+
+@contextlib.contextmanager
+def native_output(fds: tuple[int, ...] = (1, 2)) -> Iterator[Captured]:
+    """Capture what native code (Open3D's C++, RPly, Mesa, GLFW) writes to the file descriptors ``fds`` while the
+    block runs; the yielded :class:`Captured` holds it afterwards. Where no descriptor or no room for the capture is
+    left, the block runs uncaptured."""
+    captured = Captured()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved: list[int] = []
+    try:
+        sink = tempfile.TemporaryFile()
+        saved = [os.dup(fd) for fd in fds]
+    except OSError:
+        for fd in saved:
+            os.close(fd)
+        yield captured
+        return
+    try:
+        for fd in fds:
+            os.dup2(sink.fileno(), fd)
+        try:
+            yield captured
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            for fd, copy in zip(fds, saved):
+                os.dup2(copy, fd)
+                os.close(copy)
+            sink.seek(0)
+            captured.text = sink.read().decode("utf-8", errors="replace")
+    finally:
+        sink.close()
+
+
 @contextlib.contextmanager
 def c_stderr() -> Iterator[list[str]]:
     """Capture what C code writes to file descriptor 2 (RPly's messages) while the block runs; yields the lines.
     Lines that are not about a failure are passed on to stderr."""
     lines: list[str] = []
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-        sink = tempfile.TemporaryFile()
-    except OSError:  # no descriptor or no room for the capture: run uncaptured
+    with native_output((2,)) as captured:
         yield lines
-        return
-    try:
-        os.dup2(sink.fileno(), 2)
-        try:
-            yield lines
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            sink.seek(0)
-            text = sink.read().decode("utf-8", errors="replace")
-            lines.extend(s.strip() for s in _ANSI.sub("", text).splitlines() if s.strip())
-            rest = [s for s in lines if not FAILURE.search(s)]
-            if rest:
-                sys.stderr.write("\n".join(rest) + "\n")
-    finally:
-        sink.close()
+    lines.extend(captured.lines)
+    rest = [s for s in lines if not FAILURE.search(s)]
+    if rest:
+        sys.stderr.write("\n".join(rest) + "\n")
