@@ -311,8 +311,10 @@ def _png(texture: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None) -> tuple[dict, _Builder]:
+def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
+              targets: Sequence[str] | None = None) -> tuple[dict, _Builder]:
     mesh = morph.mesh
+    chosen = list(range(len(morph.names))) if targets is None else [morph.names.index(t) for t in targets]
     rotation = up_rotation(up)
     vertices = mesh.vertices
     used = np.unique(mesh.triangles) if len(mesh.triangles) else np.arange(len(vertices))
@@ -320,7 +322,7 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None) -> tu
         raise InputError("a glTF rig needs a mesh with vertices")
     center = (vertices[used].min(axis=0) + vertices[used].max(axis=0)) / 2.0  # (3,)
     builder = _Builder()
-    displacements = [morph.basis @ morph.offsets[t] for t in range(len(morph.names))]  # T x (V, 3)
+    displacements = [morph.basis @ morph.offsets[t] for t in chosen]  # T x (V, 3)
     primitives = []
     for material, source, triangles, uv in _primitive_groups(mesh):
         attributes = {"POSITION": builder.accessor((vertices[source] - center).astype(np.float32), "VEC3", _FLOAT,
@@ -356,8 +358,8 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None) -> tu
         node["translation"] = center.tolist()
     doc["nodes"] = [root, node] + [{"name": f"keypoint_{i}", "translation": (p - center).tolist()}
                                    for i, p in enumerate(morph.keypoints)]
-    doc["meshes"] = [{"name": name, "primitives": primitives, "weights": [0.0] * len(morph.names),
-                      "extras": {"targetNames": list(morph.names)}}]
+    doc["meshes"] = [{"name": name, "primitives": primitives, "weights": [0.0] * len(chosen),
+                      "extras": {"targetNames": [morph.names[t] for t in chosen]}}]
     if bool(mesh.textures) and mesh.triangle_uvs is not None:
         doc["images"] = [{"bufferView": builder.view(_png(t)), "mimeType": "image/png"} for t in mesh.textures]
         doc["samplers"] = [{"magFilter": 9729, "minFilter": 9987, "wrapS": 10497, "wrapT": 10497}]
@@ -389,9 +391,13 @@ def _write_glb(fh, doc: dict, builder: _Builder) -> None:
     builder.write(fh)
 
 
-def gltf_bytes(morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z") -> bytes:
-    """The GLB file of a rig (what :func:`write_gltf` writes to a ``.glb``), in memory."""
-    doc, builder = _document(morph, name=name, up=up, bin_uri=None)
+def gltf_bytes(morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z", targets: Sequence[str] | None = None) -> bytes:
+    """The GLB file of a rig (what :func:`write_gltf` writes to a ``.glb``), in memory.
+
+    ``targets`` keeps only the named morph targets in the mesh (``asset.extras.kpd`` still lists every target's
+    keypoint offsets): the browser editor sends the keypoint targets alone, whose sums make every other edit.
+    """
+    doc, builder = _document(morph, name=name, up=up, bin_uri=None, targets=targets)
     out = io.BytesIO()
     _write_glb(out, doc, builder)
     return out.getvalue()

@@ -80,3 +80,38 @@ def run(args: argparse.Namespace) -> int:
     prior_note = "" if ext == ".npz" or model.prior is not None else " (the bundle has no prior: keypoint targets only)"
     print(f"wrote {out}{companion} ({len(mesh.vertices)} vertices, {what}{prior_note})")
     return 0
+
+
+def browse(args: argparse.Namespace) -> int:
+    """``kpd view ... --browser``: the editor as a page served from this machine (:mod:`kpd.viewer.browser`)."""
+    from kpd.commands import check_output
+    from kpd.commands.view import load_source
+    from kpd.io import MESH_FORMATS
+    from kpd.morph import up_rotation
+    from kpd.viewer.browser import BrowserEditor
+
+    window_only = [option for option, value in (("--session", args.session), ("--load-session", args.load_session),
+                                                ("--events", args.events)) if value is not None]
+    if window_only:
+        raise InputError(f"{window_only[0]} belongs to the window editor; the browser page has none (drop it or "
+                         "--browser)")
+    inputs = (args.rig, args.shape)
+    if args.out is not None:
+        check_output(args.out, force=args.force, inputs=inputs, formats=MESH_FORMATS, what="mesh")
+    if args.view_up is not None:
+        up_rotation(args.view_up)
+    editor = BrowserEditor(out=args.out, force=args.force, inputs=inputs, host=args.host, port=args.port)
+    try:
+        source = load_source(args, need_prior=args.prior)
+        meta = {"model": str(args.model or args.prior_model), "shape": source.name, "scan": bool(args.scan)}
+        up = args.view_up or getattr(source, "up", None) or "+z"
+        editor.show(morph_rig(source.rig, source.prior, meta), name=Path(source.name).stem, up=up, prior=args.prior)
+        port = editor.server.server_address[1]
+        print(f"kpd view: the editor is at {editor.url} (from another machine: ssh -L {port}:localhost:{port} "
+              f"THIS_HOST, then open http://localhost:{port}/); Ctrl+C stops it", flush=True)
+        editor.serve_forever()
+    except KeyboardInterrupt:
+        print("kpd view: stopped", flush=True)
+    finally:
+        editor.server.server_close()
+    return 0

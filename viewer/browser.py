@@ -1,0 +1,184 @@
+"""The keypoint editor as a local web page (``kpd view --browser``): a standard-library HTTP server and a three.js page.
+
+The server sends the page (``viewer/web``), three.js (copied into ``viewer/web/vendor`` by ``make web`` from the npm
+package pinned in ``package-lock.json``) and the shape's rig as a GLB with morph targets (:mod:`kpd.morph`). The page
+draws on the viewer's own GPU: a keypoint dragged with the mouse sets the ``keypoint_<i>_<axis>`` morph influences to
+the keypoints' offsets, so the mesh follows every frame without a round trip to the server. Every edit the page
+offers (a keypoint's move, the same move through the category prior, the principal components' sliders) is a sum of
+targets whose keypoint offsets the GLB carries in ``asset.extras.kpd``; the page keeps the weights of those targets,
+and "save" sends them back, where :meth:`kpd.morph.MorphRig.vertices_at` makes the mesh (in float64, the rig's own
+edit) and :func:`kpd.io.write_mesh` writes it through kpd's one atomic writer.
+
+Nothing leaves the machine: the server binds to localhost unless told otherwise, the page loads nothing from the
+network, and an SSH port forward (``ssh -L 8765:localhost:8765 server``) brings it to a remote user's browser.
+"""
+
+from __future__ import annotations
+
+import errno
+import http.server
+import json
+import logging
+import mimetypes
+import threading
+from pathlib import Path
+from typing import Any
+
+from kpd.errors import InputError, KpdError
+
+__all__ = ["BrowserEditor", "WEB_ROOT", "page_files_missing"]
+
+log = logging.getLogger(__name__)
+
+WEB_ROOT = Path(__file__).resolve().parent / "web"
+_VENDOR = WEB_ROOT / "vendor" / "three"
+_PAGE_FILES = ("index.html", "app.js", "style.css")
+_VENDOR_FILES = ("build/three.module.js", "build/three.core.js", "examples/jsm/loaders/GLTFLoader.js",
+                 "examples/jsm/controls/OrbitControls.js")
+_MAX_BODY = 1 << 20  # a save request is a few kilobytes of weights
+
+
+def page_files_missing() -> list[str]:
+    """The files the page needs that are not installed (three.js comes from ``make web``)."""
+    return [str(WEB_ROOT / f) for f in _PAGE_FILES if not (WEB_ROOT / f).is_file()] + \
+        [str(_VENDOR / f) for f in _VENDOR_FILES if not (_VENDOR / f).is_file()]
+
+
+class BrowserEditor:
+    """A local web server for one rig: the page, three.js, the rig's GLB, and "save mesh".
+
+    It listens as soon as it is made (a port in use is refused before any work); :meth:`show` gives it the rig.
+
+    Parameters
+    ----------
+    out : where "save mesh" writes (a mesh format of :func:`kpd.io.write_mesh`), or None (the page's save is off).
+    force : let the first save replace an existing ``out`` (later saves replace what this editor wrote).
+    inputs : the command's input files, never replaced.
+    host, port : where to listen (port 0: a free port).
+    """
+
+    def __init__(self, *, out: str | Path | None = None, force: bool = False, inputs: tuple = (),
+                 host: str = "127.0.0.1", port: int = 8765) -> None:
+        missing = page_files_missing()
+        if missing:
+            raise InputError(f"the browser page's files are not installed ({missing[0]} is missing); run make web "
+                             "(npm ci copies three.js into the package)")
+        self.out = None if out is None else Path(out)
+        self.force = force
+        self.inputs = inputs
+        self.morph = None
+        self.name = "shape"
+        self.prior_on = False
+        self.glb = b""
+        self._saved = False
+        self._lock = threading.Lock()
+        try:
+            self.server = http.server.ThreadingHTTPServer((host, port), _handler(self))
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise InputError(f"--port {port}: the port is in use on {host}; choose another --port (0 picks a "
+                                 "free one)") from None
+            raise InputError(f"--host {host} --port {port}: cannot listen there ({exc.strerror or exc})") from None
+        self.server.daemon_threads = True
+
+    def show(self, morph: Any, *, name: str = "shape", up: str = "+z", prior: bool = False) -> None:
+        """Serve ``morph`` (a :class:`kpd.morph.MorphRig`) under ``name``, its ``up`` axis turned to the page's up;
+        ``prior``: start with the prior switch on."""
+        from kpd.morph import gltf_bytes
+
+        keypoint_targets = [n for n in morph.names if n.startswith("keypoint_")]
+        # every edit is a sum of keypoint offsets, so the page's mesh needs only the keypoint targets; the others'
+        # offsets travel in asset.extras.kpd
+        self.glb = gltf_bytes(morph, name=name, up=up, targets=keypoint_targets)
+        self.morph, self.name, self.prior_on = morph, name, bool(prior)
+
+    @property
+    def url(self) -> str:
+        host, port = self.server.server_address[:2]
+        shown = f"[{host}]" if ":" in str(host) else host
+        return f"http://{shown}:{port}/"
+
+    def serve_forever(self) -> None:
+        """Serve until :meth:`shutdown` (another thread) or Ctrl+C."""
+        try:
+            self.server.serve_forever(poll_interval=0.2)
+        finally:
+            self.server.server_close()
+
+    def shutdown(self) -> None:
+        self.server.shutdown()
+
+    # --- what the page asks for ---------------------------------------------------------------------------------
+
+    def info(self) -> dict:
+        return {"name": self.name, "out": None if self.out is None else str(self.out), "prior": self.prior_on}
+
+    def save(self, weights: dict) -> str:
+        """Write the mesh of ``{target: weight}`` to ``out``; returns the message the page shows."""
+        from kpd.io import Outputs, mesh_companions, write_mesh
+
+        if self.out is None:
+            raise InputError("no output file: start kpd view with --out FILE to save the edited mesh")
+        if self.morph is None:
+            raise InputError("no rig is shown yet")
+        mesh = self.morph.mesh.with_vertices(self.morph.vertices_at(weights))
+        with self._lock:
+            # the first save may not replace a file without --force; later ones replace what this editor wrote
+            with Outputs(force=self.force or self._saved, inputs=self.inputs) as outputs:
+                out = outputs.file(self.out, "--out", what="mesh")
+                outputs.companions(out, mesh_companions(out, mesh))
+                write_mesh(outputs.stage(out), mesh)
+            self._saved = True
+        log.info("saved %s", self.out)
+        return f"saved {self.out} ({len(mesh.vertices)} vertices)"
+
+
+def _handler(editor: BrowserEditor):
+    class Handler(http.server.BaseHTTPRequestHandler):
+        server_version = "kpd"
+
+        def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 (the base class's name)
+            log.debug("%s " + format, self.address_string(), *args)
+
+        def _send(self, status: int, body: bytes, kind: str) -> None:
+            self.send_response(status)
+            self.send_header("Content-Type", kind)
+            self.send_header("Content-Length", str(len(body)))
+            self.send_header("Cache-Control", "no-store")
+            self.end_headers()
+            self.wfile.write(body)
+
+        def _json(self, status: int, value: dict) -> None:
+            self._send(status, json.dumps(value).encode("utf-8"), "application/json")
+
+        def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+            path = self.path.split("?", 1)[0]
+            if path == "/rig.glb":
+                if editor.morph is None:
+                    return self._send(503, b"the rig is not ready", "text/plain")
+                return self._send(200, editor.glb, "model/gltf-binary")
+            if path == "/info.json":
+                return self._json(200, editor.info())
+            name = "index.html" if path == "/" else path.lstrip("/")
+            file = (WEB_ROOT / name).resolve()
+            if WEB_ROOT not in file.parents or not file.is_file():  # nothing outside the page's folder
+                return self._send(404, b"not found", "text/plain")
+            kind = "text/javascript" if file.suffix == ".js" else mimetypes.guess_type(file.name)[0] or "text/plain"
+            self._send(200, file.read_bytes(), kind)
+
+        def do_POST(self) -> None:  # noqa: N802
+            if self.path != "/save":
+                return self._send(404, b"not found", "text/plain")
+            try:
+                length = int(self.headers.get("Content-Length", "0"))
+                if not 0 < length <= _MAX_BODY:
+                    raise InputError(f"a save request must carry 1 byte to 1 MiB of JSON; got {length} bytes")
+                body = json.loads(self.rfile.read(length))
+                if not isinstance(body, dict) or not isinstance(body.get("weights"), dict):
+                    raise InputError("a save request is {\"weights\": {target: weight}}")
+                message = editor.save(body["weights"])
+            except (KpdError, ValueError) as exc:
+                return self._json(400, {"ok": False, "message": " ".join(str(exc).split())})
+            self._json(200, {"ok": True, "message": message})
+
+    return Handler

@@ -1,0 +1,382 @@
+// kpd view --browser: the shape's rig (a GLB with morph targets, see kpd/morph.py) drawn with three.js.
+//
+// State is one vector of target weights `w` over every target kpd offers (keypoint_<i>_<axis>, prior_<i>_<axis>,
+// pca_<c>). Each target t moves the keypoints by known offsets D_t (K x 3, asset.extras.kpd.keypointOffsets), and the
+// mesh by B D_t, so every edit is a sum of keypoint offsets: the page sets the morph influences of the
+// keypoint_<i>_<axis> targets to the keypoints' total offsets sum_t w_t D_t and the GPU moves the mesh.
+import * as THREE from 'three';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+
+const params = new URLSearchParams(location.search);
+const timing = params.has('timing'); // finish each frame on the GPU and record its time (benchmarks, tests)
+const PICK_PIXELS = 14; // a press this close to a keypoint's marker grabs it
+
+const kpd = { ready: false, error: null, stats: { firstPicture: null, frames: [], loaded: null } };
+window.kpd = kpd;
+
+const view = document.getElementById('view');
+const labels = document.getElementById('labels');
+const statusLine = document.getElementById('status');
+const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+renderer.setPixelRatio(window.devicePixelRatio);
+view.prepend(renderer.domElement);
+const scene = new THREE.Scene();
+scene.background = new THREE.Color(0xf4f4f2);
+const camera = new THREE.PerspectiveCamera(35, 1, 0.01, 1000);
+scene.add(new THREE.HemisphereLight(0xffffff, 0x8c8c8c, 1.6));
+const light = new THREE.DirectionalLight(0xffffff, 1.8);
+light.position.set(0.4, 0.6, 1.0);
+camera.add(light);
+scene.add(camera);
+const controls = new OrbitControls(camera, renderer.domElement);
+
+let names = [];          // every target, in kpd's order
+let offsets = [];        // per target, K x 3 keypoint offsets of one unit of its weight
+let rest = [];           // K x 3 rest keypoints, the user's frame
+let w = null;            // Float64Array of the target weights
+let root = null;         // the glTF root node: its local frame is the user's frame
+let meshes = [];         // the mesh's primitives (three.js Meshes with morph targets)
+let markers = [];        // one sphere per keypoint, children of `root`
+let labelSpans = [];
+let history = [];
+let historyIndex = 0;
+let frameRequested = false;
+let pendingEvent = null; // the timestamp of the input that the next frame shows (timing)
+const index = new Map();
+
+function status(text, error = false) {
+  statusLine.textContent = text;
+  statusLine.className = error ? 'error' : '';
+}
+
+function totalOffsets() {
+  const k = rest.length;
+  const total = Array.from({ length: k }, () => [0, 0, 0]);
+  for (let t = 0; t < names.length; t++) {
+    const weight = w[t];
+    if (weight === 0) continue;
+    const d = offsets[t];
+    for (let i = 0; i < k; i++) {
+      total[i][0] += weight * d[i][0];
+      total[i][1] += weight * d[i][1];
+      total[i][2] += weight * d[i][2];
+    }
+  }
+  return total;
+}
+
+function keypointsUser() {
+  const total = totalOffsets();
+  return rest.map((p, i) => [p[0] + total[i][0], p[1] + total[i][1], p[2] + total[i][2]]);
+}
+
+function apply() {
+  const total = totalOffsets();
+  for (const mesh of meshes) {
+    const dictionary = mesh.morphTargetDictionary;
+    const influences = mesh.morphTargetInfluences;
+    for (let i = 0; i < rest.length; i++) {
+      for (let a = 0; a < 3; a++) {
+        const slot = dictionary[`keypoint_${i}_${'xyz'[a]}`];
+        if (slot !== undefined) influences[slot] = total[i][a];
+      }
+    }
+  }
+  for (let i = 0; i < rest.length; i++) {
+    markers[i].position.set(rest[i][0] + total[i][0], rest[i][1] + total[i][1], rest[i][2] + total[i][2]);
+  }
+  requestFrame();
+}
+
+function requestFrame() {
+  if (frameRequested) return;
+  frameRequested = true;
+  requestAnimationFrame(draw);
+}
+
+function draw() {
+  frameRequested = false;
+  renderer.render(scene, camera);
+  if (timing || kpd.stats.firstPicture === null) {
+    renderer.getContext().finish();
+    const now = performance.now();
+    if (kpd.stats.firstPicture === null) kpd.stats.firstPicture = now;
+    if (pendingEvent !== null) kpd.stats.frames.push(now - pendingEvent);
+  }
+  pendingEvent = null;
+  placeLabels();
+}
+
+function screenOf(position) {
+  const p = position.clone().project(camera);
+  const rect = renderer.domElement.getBoundingClientRect();
+  return [(p.x + 1) / 2 * rect.width, (1 - p.y) / 2 * rect.height];
+}
+
+function placeLabels() {
+  markers.forEach((marker, i) => {
+    const [x, y] = screenOf(marker.getWorldPosition(new THREE.Vector3()));
+    labelSpans[i].style.left = `${x}px`;
+    labelSpans[i].style.top = `${y}px`;
+  });
+}
+
+function resize() {
+  const width = view.clientWidth, height = view.clientHeight;
+  renderer.setSize(width, height, false);
+  camera.aspect = width / height;
+  camera.updateProjectionMatrix();
+  requestFrame();
+}
+
+// --- history ----------------------------------------------------------------------------------------------------
+
+function remember() {
+  history = history.slice(0, historyIndex + 1);
+  history.push(Float64Array.from(w));
+  historyIndex = history.length - 1;
+  syncControls();
+}
+
+function restore(step) {
+  const target = historyIndex + step;
+  if (target < 0 || target >= history.length) return;
+  historyIndex = target;
+  w = Float64Array.from(history[historyIndex]);
+  syncControls();
+  apply();
+}
+
+function reset() {
+  w = new Float64Array(names.length);
+  remember();
+  apply();
+}
+
+function syncControls() {
+  document.getElementById('undo').disabled = historyIndex <= 0;
+  document.getElementById('redo').disabled = historyIndex >= history.length - 1;
+  for (const slider of document.querySelectorAll('#sliders input')) {
+    slider.value = w[index.get(slider.dataset.target)];
+  }
+}
+
+// --- dragging ---------------------------------------------------------------------------------------------------
+
+let drag = null; // {keypoint, plane, moved}
+const raycaster = new THREE.Raycaster();
+
+function pointerRay(event) {
+  const rect = renderer.domElement.getBoundingClientRect();
+  const ndc = new THREE.Vector2(((event.clientX - rect.left) / rect.width) * 2 - 1,
+    -((event.clientY - rect.top) / rect.height) * 2 + 1);
+  raycaster.setFromCamera(ndc, camera);
+  return raycaster.ray;
+}
+
+function pick(event) {
+  const rect = renderer.domElement.getBoundingClientRect();
+  let best = -1, bestDistance = PICK_PIXELS;
+  markers.forEach((marker, i) => {
+    const [x, y] = screenOf(marker.getWorldPosition(new THREE.Vector3()));
+    const distance = Math.hypot(x - (event.clientX - rect.left), y - (event.clientY - rect.top));
+    if (distance < bestDistance) { best = i; bestDistance = distance; }
+  });
+  return best;
+}
+
+function onPointerDown(event) {
+  if (!kpd.ready || event.button !== 0) return;
+  const keypoint = pick(event);
+  if (keypoint < 0) return;
+  controls.enabled = false;
+  const normal = camera.getWorldDirection(new THREE.Vector3());
+  const plane = new THREE.Plane().setFromNormalAndCoplanarPoint(normal,
+    markers[keypoint].getWorldPosition(new THREE.Vector3()));
+  drag = { keypoint, plane, moved: false };
+  renderer.domElement.setPointerCapture(event.pointerId);
+  event.preventDefault();
+  event.stopImmediatePropagation();
+}
+
+function onPointerMove(event) {
+  if (drag === null) return;
+  const hit = pointerRay(event).intersectPlane(drag.plane, new THREE.Vector3());
+  if (hit === null) return;
+  const target = root.worldToLocal(hit); // the user's frame
+  const current = keypointsUser()[drag.keypoint];
+  const prefix = document.getElementById('prior').checked ? 'prior' : 'keypoint';
+  for (let a = 0; a < 3; a++) {
+    w[index.get(`${prefix}_${drag.keypoint}_${'xyz'[a]}`)] += target.getComponent(a) - current[a];
+  }
+  drag.moved = true;
+  pendingEvent = performance.now();
+  apply();
+}
+
+function onPointerUp(event) {
+  if (drag === null) return;
+  if (drag.moved) remember();
+  drag = null;
+  controls.enabled = true;
+  renderer.domElement.releasePointerCapture(event.pointerId);
+}
+
+// --- saving -----------------------------------------------------------------------------------------------------
+
+async function save() {
+  const weights = {};
+  names.forEach((name, t) => { if (w[t] !== 0) weights[name] = w[t]; });
+  status('saving...');
+  try {
+    const response = await fetch('/save', { method: 'POST', headers: { 'Content-Type': 'application/json' },
+      body: JSON.stringify({ weights }) });
+    const answer = await response.json();
+    status(answer.message, !answer.ok);
+    kpd.lastSave = answer;
+  } catch (error) {
+    status(`save failed: ${error}`, true);
+    kpd.lastSave = { ok: false, message: String(error) };
+  }
+}
+
+// --- start ------------------------------------------------------------------------------------------------------
+
+function buildPanel(info) {
+  document.getElementById('title').textContent = info.name;
+  document.title = `kpd view - ${info.name}`;
+  const prior = document.getElementById('prior');
+  prior.disabled = !names.some((n) => n.startsWith('prior_'));
+  prior.checked = info.prior && !prior.disabled;
+  const sliders = document.getElementById('sliders');
+  for (const name of names.filter((n) => n.startsWith('pca_'))) {
+    const label = document.createElement('label');
+    label.textContent = `component ${name.slice(4)} (standard deviations)`;
+    const slider = document.createElement('input');
+    Object.assign(slider, { type: 'range', min: -3, max: 3, step: 0.01, value: 0 });
+    slider.dataset.target = name;
+    slider.addEventListener('input', () => { w[index.get(name)] = Number(slider.value); pendingEvent = performance.now(); apply(); });
+    slider.addEventListener('change', remember);
+    label.append(slider);
+    sliders.append(label);
+  }
+  const save_ = document.getElementById('save');
+  if (info.out === null) {
+    save_.disabled = true;
+    save_.title = 'start kpd view with --out FILE to save';
+  } else {
+    save_.textContent = `save mesh to ${info.out.split('/').pop()}`;
+  }
+  save_.addEventListener('click', save);
+  document.getElementById('undo').addEventListener('click', () => restore(-1));
+  document.getElementById('redo').addEventListener('click', () => restore(1));
+  document.getElementById('reset').addEventListener('click', reset);
+  window.addEventListener('keydown', (event) => {
+    if (!(event.ctrlKey || event.metaKey)) return;
+    const key = event.key.toLowerCase();
+    if (key === 'z' && !event.shiftKey) { restore(-1); event.preventDefault(); }
+    if (key === 'y' || (key === 'z' && event.shiftKey)) { restore(1); event.preventDefault(); }
+  });
+}
+
+function frameCamera(object) {
+  const sphere = new THREE.Box3().setFromObject(object).getBoundingSphere(new THREE.Sphere());
+  const distance = sphere.radius / Math.sin(THREE.MathUtils.degToRad(camera.fov / 2)) * 1.05;
+  const azimuth = THREE.MathUtils.degToRad(Number(params.get('azimuth') ?? 30));
+  const elevation = THREE.MathUtils.degToRad(Number(params.get('elevation') ?? 20));
+  camera.position.copy(sphere.center).add(new THREE.Vector3(Math.sin(azimuth) * Math.cos(elevation),
+    Math.sin(elevation), Math.cos(azimuth) * Math.cos(elevation)).multiplyScalar(distance));
+  camera.near = distance / 100;
+  camera.far = distance * 10;
+  camera.updateProjectionMatrix();
+  controls.target.copy(sphere.center);
+  controls.update();
+  return sphere.radius;
+}
+
+async function start() {
+  const info = await (await fetch('/info.json')).json();
+  const gltf = await new GLTFLoader().loadAsync('/rig.glb');
+  kpd.stats.loaded = performance.now();
+  const extras = gltf.parser.json.asset.extras.kpd;
+  names = extras.targets;
+  offsets = extras.keypointOffsets;
+  rest = extras.keypoints;
+  names.forEach((name, t) => index.set(name, t));
+  w = new Float64Array(names.length);
+  root = gltf.scene.children[0];
+  gltf.scene.traverse((object) => {
+    if (object.isMesh && object.morphTargetInfluences) {
+      meshes.push(object);
+      object.frustumCulled = false; // the bounding sphere is the rest shape's
+    }
+  });
+  scene.add(gltf.scene);
+  gltf.scene.updateMatrixWorld(true);
+  const radius = frameCamera(gltf.scene);
+  const sphere = new THREE.SphereGeometry(radius * 0.025, 16, 12);
+  const material = new THREE.MeshBasicMaterial({ color: 0xff7a00, depthTest: false });
+  rest.forEach((p, i) => {
+    const marker = new THREE.Mesh(sphere, material);
+    marker.renderOrder = 1; // drawn over the mesh, so a keypoint behind it can still be grabbed
+    marker.position.set(p[0], p[1], p[2]);
+    root.add(marker);
+    markers.push(marker);
+    const span = document.createElement('span');
+    span.textContent = String(i);
+    labels.append(span);
+    labelSpans.push(span);
+  });
+  buildPanel(info);
+  history = [Float64Array.from(w)];
+  historyIndex = 0;
+  syncControls();
+  renderer.domElement.addEventListener('pointerdown', onPointerDown, { capture: true });
+  renderer.domElement.addEventListener('pointermove', onPointerMove);
+  renderer.domElement.addEventListener('pointerup', onPointerUp);
+  controls.addEventListener('change', requestFrame);
+  window.addEventListener('resize', resize);
+  resize();
+  apply();
+  kpd.ready = true;
+  status(`${names.length} edits of ${rest.length} keypoints; the mesh follows on your GPU`);
+}
+
+// --- what tests and benchmarks read -----------------------------------------------------------------------------
+
+Object.assign(kpd, {
+  names: () => names,
+  weights: () => Object.fromEntries(names.map((n, t) => [n, w[t]])),
+  setWeights: (values) => { w = new Float64Array(names.length); for (const [n, v] of Object.entries(values)) w[index.get(n)] = v; remember(); apply(); },
+  keypoints: () => keypointsUser(),
+  keypointScreen: (i) => { root.updateMatrixWorld(true); return screenOf(markers[i].getWorldPosition(new THREE.Vector3())); },
+  // vertex positions as three.js morphs them (Mesh.getVertexPosition), in the user's frame, per primitive
+  positions: () => meshes.map((mesh) => {
+    const count = mesh.geometry.attributes.position.count;
+    const out = new Array(count * 3);
+    const p = new THREE.Vector3();
+    for (let v = 0; v < count; v++) {
+      mesh.getVertexPosition(v, p);
+      root.worldToLocal(mesh.localToWorld(p));
+      out[3 * v] = p.x; out[3 * v + 1] = p.y; out[3 * v + 2] = p.z;
+    }
+    return out;
+  }),
+  restPositions: () => meshes.map((mesh) => {
+    const attribute = mesh.geometry.attributes.position;
+    const out = new Array(attribute.count * 3);
+    const p = new THREE.Vector3();
+    for (let v = 0; v < attribute.count; v++) {
+      p.fromBufferAttribute(attribute, v);
+      root.worldToLocal(mesh.localToWorld(p));
+      out[3 * v] = p.x; out[3 * v + 1] = p.y; out[3 * v + 2] = p.z;
+    }
+    return out;
+  }),
+});
+
+start().catch((error) => {
+  kpd.error = String(error && error.stack || error);
+  status(`cannot show the rig: ${error}`, true);
+});
