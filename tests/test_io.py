@@ -575,7 +575,7 @@ def test_garbage_files(tmp_path):
     with pytest.raises(InputError, match=r"chair\.obj: not a text OBJ file"):
         read_mesh(path)
     path = write_text(tmp_path / "chair.glb", "not a glb")
-    with pytest.raises(InputError, match=r"chair\.glb: could not be read as a mesh"):
+    with pytest.raises(InputError, match=r"chair\.glb: could not be read as glTF"):
         read_mesh(path)
 
 

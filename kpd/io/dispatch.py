@@ -59,6 +59,8 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     p, ext = input_path(path, MESH_FORMATS, "mesh")
     if ext == ".obj":
         return obj.read(p, os.fspath(path))
+    if ext in (".gltf", ".glb"):
+        return gltf.read(p, os.fspath(path))
     m = _read_open3d_mesh(p, ext)
     if len(m.triangles) == 0:
         raise InputError(
@@ -117,6 +119,8 @@ def read_shape(path: str | os.PathLike) -> Mesh | PointSet:
         return read_points(path)
     if ext == ".obj":
         return obj.read(p, os.fspath(path), points=True)
+    if ext in (".gltf", ".glb"):
+        return gltf.read(p, os.fspath(path), points=True)
     m = _read_open3d_mesh(p, ext)
     if len(m.triangles) == 0:
         return PointSet(
@@ -166,8 +170,8 @@ def _read_point_arrays(p: Path, ext: str) -> tuple[np.ndarray, np.ndarray | None
             np.array(pc.normals, dtype=np.float64) if pc.has_normals() else None,
             np.array(pc.colors, dtype=np.float64) if pc.has_colors() else None,
         )
-    if ext == ".obj":
-        shape = obj.read(p, os.fspath(p), points=True)
+    if ext in (".obj", ".gltf", ".glb"):
+        shape = (obj if ext == ".obj" else gltf).read(p, os.fspath(p), points=True)
         if isinstance(shape, PointSet):
             return shape.points, shape.normals, shape.colors
         return shape.vertices, shape.vertex_normals, shape.vertex_colors

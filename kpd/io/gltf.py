@@ -24,7 +24,8 @@ from kpd.io.atomic import atomic_files, atomic_output
 from kpd.io.capture import open3d_log, open3d_module
 from kpd.io.common import verify_companion
 from kpd.io.images import encode_png
-from kpd.mesh import Mesh
+from kpd.errors import InputError
+from kpd.mesh import Mesh, PointSet
 
 if TYPE_CHECKING:  # pragma: no cover
     import open3d
@@ -42,8 +43,20 @@ GLB_MAGIC = _GLB_MAGIC
 
 
 def write(p: Path, mesh: Mesh) -> None:
-    """Write ``mesh`` to ``p`` (``.gltf`` or ``.glb``) atomically, with a ``.gltf``'s PNGs beside it."""
+    """Write ``mesh`` to ``p`` (``.gltf`` or ``.glb``) atomically, with a ``.gltf``'s images beside it.
+
+    A mesh read from a glTF file of the same kind is written in that file's own structure with new positions
+    (:func:`write_from_source`); any other mesh from its arrays (one primitive per material and per presence of
+    UVs, a 1x1 texture as a plain base colour, images as their original files where kpd read them, else PNG)."""
     binary = p.suffix.lower() == ".glb"
+    source = own_source(mesh, p)
+    if source is not None:
+        with atomic_files(p) as target:
+            write_from_source(target, mesh, source)
+            for companion in target.parent.iterdir():
+                if companion != target:
+                    verify_companion(p.parent / companion.name, companion)
+        return
     if not binary and mesh.textures:
         with atomic_files(p) as target:
             _write_gltf(target, mesh, binary=False)
@@ -57,9 +70,26 @@ def write(p: Path, mesh: Mesh) -> None:
 
 def companions(p: Path, mesh: Mesh) -> list[str]:
     """The files :func:`write` adds beside ``p``."""
+    source = own_source(mesh, p)
+    if source is not None:
+        return [name for _, name in source_companions(p, source).values()]
     if p.suffix.lower() == ".gltf" and mesh.textures and mesh.triangle_uvs is not None:
-        return [f"{p.stem}_{i}.png" for i in range(len(mesh.textures))]
+        return [f"{p.stem}_{i}{_image_suffix(mesh, i)}" for i, t in enumerate(mesh.textures)
+                if t.shape[0] * t.shape[1] > 1]
     return []
+
+
+def _image_suffix(mesh: Mesh, i: int) -> str:
+    """'.jpg' when texture ``i`` was read from a JPEG file (copied as it is), else '.png'."""
+    return ".jpg" if _original_jpeg(mesh, i) is not None else ".png"
+
+
+def _original_jpeg(mesh: Mesh, i: int) -> bytes | None:
+    files = getattr(mesh, "_texture_files", None) or []
+    f = files[i] if i < len(files) else None
+    if f is None or Path(f).suffix.lower() not in (".jpg", ".jpeg") or not Path(f).is_file():
+        return None
+    return Path(f).read_bytes()
 
 
 def _write_gltf(target: Path, mesh: Mesh, *, binary: bool) -> None:
@@ -91,11 +121,19 @@ def _write_gltf(target: Path, mesh: Mesh, *, binary: bool) -> None:
     if textured and ids is None:
         ids = np.zeros(len(mesh.triangles), dtype=np.int64)
     groups = [(int(u), np.flatnonzero(ids == u)) for u in np.unique(ids)] if textured else [(None, None)]
+    mask = mesh.triangle_uv_mask
+    if mask is not None:  # faces without UVs get primitives without TEXCOORD_0
+        if groups == [(None, None)]:
+            groups = [(None, np.arange(len(mesh.triangles)))]
+        groups = [(m, r[sel], flag) for m, r in groups for flag, sel in ((True, mask[r]), (False, ~mask[r]))
+                  if sel.any()]
+    else:
+        groups = [(m, r, True) for m, r in groups]
     primitives = []
-    for material, rows in groups:
+    for material, rows, has_uv in groups:
         tri = mesh.triangles if rows is None else mesh.triangles[rows]  # (t, 3)
         corner_vertex = tri.reshape(-1)  # (3t,)
-        if mesh.triangle_uvs is not None:
+        if mesh.triangle_uvs is not None and has_uv:
             uv = mesh.triangle_uvs.reshape(-1, 3, 2)
             corner_uv = (uv if rows is None else uv[rows]).reshape(-1, 2)  # (3t, 2)
             first, index = first_occurrence_groups(np.hstack([corner_vertex[:, None], corner_uv]))
@@ -127,26 +165,29 @@ def _write_gltf(target: Path, mesh: Mesh, *, binary: bool) -> None:
         "meshes": [{"primitives": primitives}],
     }
     if textured:
-        images = []
+        images, materials = [], []
         for i, texture in enumerate(mesh.textures):
-            png = encode_png(texture)
+            material: dict[str, Any] = {"name": f"{target.stem}_{i}",
+                                        "pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 1.0}}
+            materials.append(material)
+            if texture.shape[0] * texture.shape[1] == 1:  # a plain colour (sRGB in the image, linear in glTF)
+                rgb = texture.reshape(-1)[:3] if texture.shape[2] >= 3 else np.repeat(texture.reshape(-1)[:1], 3)
+                factor = _srgb_to_linear(rgb / 255.0).tolist()
+                material["pbrMetallicRoughness"]["baseColorFactor"] = [*factor, 1.0]
+                continue
+            jpeg = _original_jpeg(mesh, i)
+            data, mime = (jpeg, "image/jpeg") if jpeg is not None else (encode_png(texture), "image/png")
             if binary:
-                images.append({"bufferView": add_view(png), "mimeType": "image/png"})
+                images.append({"bufferView": add_view(data), "mimeType": mime})
             else:
-                name = f"{target.stem}_{i}.png"
-                (target.parent / name).write_bytes(png)
+                name = f"{target.stem}_{i}{'.jpg' if jpeg is not None else '.png'}"
+                (target.parent / name).write_bytes(data)
                 images.append({"uri": urllib.parse.quote(name)})
-        doc["images"] = images
-        doc["textures"] = [{"source": i} for i in range(len(images))]
-        doc["materials"] = [
-            {
-                "name": f"{target.stem}_{i}",
-                "pbrMetallicRoughness": {
-                    "baseColorTexture": {"index": i}, "metallicFactor": 0.0, "roughnessFactor": 1.0
-                },
-            }
-            for i in range(len(images))
-        ]
+            material["pbrMetallicRoughness"]["baseColorTexture"] = {"index": len(images) - 1}
+        if images:
+            doc["images"] = images
+            doc["textures"] = [{"source": i} for i in range(len(images))]
+        doc["materials"] = materials
     blob.extend(b"\0" * (-len(blob) % 4))
     doc["bufferViews"] = views
     doc["accessors"] = accessors
@@ -253,3 +294,422 @@ def _gltf_uri_bytes(p: Path, uri: str) -> bytes | None:
         log.warning("%s: texture file %r is missing; read without it", p, uri)
         return None
     return f.read_bytes()
+
+
+# --- kpd's own reader and the writer that keeps the file ------------------------------------------------------------
+
+_COMPONENTS = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
+_WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+
+
+class GltfSource:
+    """A glTF file as read: its JSON, its buffers, and where each of the mesh's vertices came from.
+
+    ``blocks`` lists, per (node, POSITION accessor) pair, the node's world matrix (4, 4), the accessor, the NORMAL
+    accessor (or None) and the first row of the block in the mesh's vertices; the mesh's vertex rows are the
+    blocks' accessor rows, in order.
+    """
+
+    def __init__(self, path: Path, doc: dict, buffers: list, blocks: list, vertices: np.ndarray,
+                 triangles: np.ndarray) -> None:
+        self.path, self.doc, self.buffers, self.blocks = path, doc, buffers, blocks
+        self.vertices, self.triangles = vertices, triangles
+
+
+def _buffers(p: Path, doc: dict, chunk: bytes | None) -> list:
+    out = []
+    for i, buffer in enumerate(doc.get("buffers", [])):
+        if "uri" in buffer:
+            data = _gltf_uri_bytes(p, buffer["uri"])
+            if data is None:
+                raise InputError(f"{p}: its buffer {buffer['uri']!r} is missing")
+        elif i == 0 and chunk is not None:
+            data = chunk
+        else:
+            raise InputError(f"{p}: buffer {i} has no data (a .glb without its binary chunk?)")
+        if len(data) < buffer.get("byteLength", 0):
+            raise InputError(f"{p}: buffer {i} holds {len(data)} of its {buffer['byteLength']} bytes (truncated)")
+        out.append(data)
+    return out
+
+
+def _accessor(p: Path, doc: dict, buffers: list, index: int) -> np.ndarray:
+    """(count, width) array of an accessor (float64 for floats and normalized integers)."""
+    acc = doc["accessors"][index]
+    dtype = np.dtype(_COMPONENTS[acc["componentType"]]).newbyteorder("<")
+    width = _WIDTH[acc["type"]]
+    count = acc["count"]
+    if "bufferView" in acc:
+        view = doc["bufferViews"][acc["bufferView"]]
+        data = buffers[view["buffer"]]
+        start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+        stride = view.get("byteStride") or dtype.itemsize * width
+        if count and start + stride * (count - 1) + dtype.itemsize * width > len(data):
+            raise InputError(f"{p}: accessor {index} reaches past the end of its buffer (truncated file?)")
+        raw = np.ndarray((count, width), dtype=dtype, buffer=data, offset=start, strides=(stride, dtype.itemsize))
+        out = np.array(raw)
+    else:
+        out = np.zeros((count, width), dtype=dtype)
+    sparse = acc.get("sparse")
+    if sparse:
+        idx_view = doc["bufferViews"][sparse["indices"]["bufferView"]]
+        idx_type = np.dtype(_COMPONENTS[sparse["indices"]["componentType"]]).newbyteorder("<")
+        n = sparse["count"]
+        idx = np.frombuffer(buffers[idx_view["buffer"]], dtype=idx_type, count=n,
+                            offset=idx_view.get("byteOffset", 0) + sparse["indices"].get("byteOffset", 0))
+        val_view = doc["bufferViews"][sparse["values"]["bufferView"]]
+        values = np.frombuffer(buffers[val_view["buffer"]], dtype=dtype, count=n * width,
+                               offset=val_view.get("byteOffset", 0) + sparse["values"].get("byteOffset", 0))
+        out[idx.astype(np.int64)] = values.reshape(n, width)
+    if out.dtype.kind == "f":
+        return out.astype(np.float64)
+    if acc.get("normalized"):
+        info = np.iinfo(out.dtype)
+        return np.maximum(out.astype(np.float64) / info.max, -1.0)
+    return out.astype(np.int64)
+
+
+def _node_matrix(node: dict) -> np.ndarray:
+    if "matrix" in node:
+        return np.array(node["matrix"], dtype=np.float64).reshape(4, 4).T  # column-major in the file
+    m = np.eye(4)
+    x, y, z, w = node.get("rotation", [0.0, 0.0, 0.0, 1.0])
+    rotation = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    m[:3, :3] = rotation * np.asarray(node.get("scale", [1.0, 1.0, 1.0]), dtype=np.float64)
+    m[:3, 3] = node.get("translation", [0.0, 0.0, 0.0])
+    return m
+
+
+def _mesh_nodes(doc: dict) -> list[tuple[int, np.ndarray]]:
+    """(node index, world matrix) of every node with a mesh in the default scene (all root nodes without one)."""
+    nodes = doc.get("nodes", [])
+    scenes = doc.get("scenes", [])
+    if scenes:
+        roots = scenes[doc.get("scene", 0)].get("nodes", [])
+    else:
+        children = {c for n in nodes for c in n.get("children", [])}
+        roots = [i for i in range(len(nodes)) if i not in children]
+    out = []
+    stack = [(r, np.eye(4)) for r in reversed(roots)]
+    seen = set()
+    while stack:
+        i, parent = stack.pop()
+        if i in seen:
+            continue
+        seen.add(i)
+        world = parent @ _node_matrix(nodes[i])
+        if "mesh" in nodes[i]:
+            out.append((i, world))
+        stack.extend((c, world) for c in reversed(nodes[i].get("children", [])))
+    if not out and not nodes and doc.get("meshes"):
+        out = [(None, np.eye(4))]
+    return out
+
+
+def _primitive_triangles(p: Path, doc: dict, buffers: list, prim: dict, n: int) -> np.ndarray | None:
+    mode = prim.get("mode", 4)
+    index = (_accessor(p, doc, buffers, prim["indices"]).reshape(-1) if "indices" in prim
+             else np.arange(n, dtype=np.int64))
+    if mode == 4:
+        tri = index[: len(index) // 3 * 3].reshape(-1, 3)
+    elif mode == 5:  # strip: every other triangle turned to keep the winding
+        tri = np.stack([index[:-2], index[1:-1], index[2:]], axis=1)
+        tri[1::2] = tri[1::2][:, [1, 0, 2]]
+    elif mode == 6:  # fan
+        tri = np.stack([np.full(len(index) - 2, index[0]), index[1:-1], index[2:]], axis=1)
+    else:
+        return None
+    if len(tri) and (tri.min() < 0 or tri.max() >= n):
+        raise InputError(f"{p}: a primitive's indices reach vertex {int(tri.max())} of {n}")
+    return tri
+
+
+def _linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
+
+
+def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, np.power((c + 0.055) / 1.055, 2.4))
+
+
+def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | PointSet":
+    """Read a ``.gltf``/``.glb`` (every triangle primitive of every mesh node of the default scene, in world
+    coordinates, each primitive's vertices in the file's order), with its materials' base colours and images."""
+    from kpd.io.images import read_image_bytes
+    from kpd.mesh import PointSet
+
+    try:
+        doc, chunk = read_gltf_json(p)
+    except (ValueError, KeyError, struct.error, UnicodeDecodeError) as exc:
+        raise InputError(f"{p}: could not be read as glTF ({exc})") from None
+    if not isinstance(doc, dict) or str(doc.get("asset", {}).get("version", "2.0")).split(".")[0] != "2":
+        raise InputError(f"{p}: not a glTF 2.0 file")
+    try:
+        return _read(p, doc, chunk, name if name is not None else str(p), points, read_image_bytes, PointSet)
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        raise InputError(f"{p}: a malformed glTF file ({type(exc).__name__}: {exc})") from None
+
+
+def _read(p, doc, chunk, name, points, read_image_bytes, PointSet):
+    buffers = _buffers(p, doc, chunk)
+    blocks, vertices, normals, colors, tris, corner_uvs, has_uv, materials = [], [], [], [], [], [], [], []
+    offset = 0
+    skipped = 0
+    meshes = doc.get("meshes", [])
+    for node, world in _mesh_nodes(doc):
+        mesh_index = doc["nodes"][node]["mesh"] if node is not None else 0
+        placed: dict[int, int] = {}
+        normal_matrix = np.linalg.inv(world[:3, :3]).T
+        for prim in meshes[mesh_index]["primitives"]:
+            attributes = prim["attributes"]
+            position = attributes["POSITION"]
+            if position not in placed:
+                local = _accessor(p, doc, buffers, position)[:, :3]
+                placed[position] = offset
+                vertices.append(local @ world[:3, :3].T + world[:3, 3])
+                normal = attributes.get("NORMAL")
+                if normal is not None:
+                    n = _accessor(p, doc, buffers, normal)[:, :3] @ normal_matrix.T
+                    length = np.linalg.norm(n, axis=1, keepdims=True)
+                    normals.append(np.divide(n, length, out=np.zeros_like(n), where=length > 0))
+                else:
+                    normals.append(None)
+                color = attributes.get("COLOR_0")
+                colors.append(None if color is None else np.clip(_accessor(p, doc, buffers, color)[:, :3], 0, 1))
+                blocks.append({"node": node, "world": world, "position": position, "normal": normal,
+                               "start": offset, "count": len(local)})
+                offset += len(local)
+            start = placed[position]
+            count = doc["accessors"][position]["count"]
+            tri = _primitive_triangles(p, doc, buffers, prim, count)
+            if tri is None:
+                skipped += 1
+                continue
+            if np.linalg.det(world[:3, :3]) < 0:
+                tri = tri[:, [0, 2, 1]]  # a mirroring node turns the winding
+            tris.append(tri + start)
+            uv = attributes.get("TEXCOORD_0")
+            if uv is not None:
+                st = _accessor(p, doc, buffers, uv)[:, :2]
+                corner_uvs.append((st * [1.0, -1.0] + [0.0, 1.0])[tri].reshape(-1, 2))
+                has_uv.append(np.ones(len(tri), dtype=bool))
+            else:
+                corner_uvs.append(np.zeros((3 * len(tri), 2)))
+                has_uv.append(np.zeros(len(tri), dtype=bool))
+            materials.append(np.full(len(tri), prim.get("material", -1), dtype=np.int64))
+    if skipped:
+        log.warning("%s: %d primitive(s) of points or lines read without them (kpd reads triangles)", p, skipped)
+    if not vertices:
+        raise InputError(f"{p}: no vertices (empty geometry)")
+    V = np.vstack(vertices)
+    if not tris or not sum(len(t) for t in tris):
+        if points:
+            return PointSet(V, path=name)
+        raise InputError(f"{p}: has {len(V)} vertices but no triangles (a point cloud? use read_points or "
+                         "read_shape)")
+    T = np.vstack(tris)
+    N = None
+    if any(n is not None for n in normals):
+        from kpd.triangles import vertex_normals
+
+        computed = vertex_normals(V, T)
+        N = np.vstack([n if n is not None else computed[b["start"]:b["start"] + b["count"]]
+                       for n, b in zip(normals, blocks)])
+    C = None
+    if any(c is not None for c in colors):
+        C = np.vstack([c if c is not None else np.ones((b["count"], 3)) for c, b in zip(colors, blocks)])
+    mask = np.concatenate(has_uv)
+    uvs = np.vstack(corner_uvs) if mask.any() else None
+    ids = np.concatenate(materials)
+    textures, texture_ids = _materials(p, doc, buffers, ids, read_image_bytes)
+    if textures and uvs is None:
+        uvs = np.zeros((3 * len(T), 2))
+    mesh = Mesh(vertices=V, triangles=T, vertex_normals=N, vertex_colors=C, triangle_uvs=uvs, textures=textures,
+                triangle_material_ids=texture_ids, triangle_uv_mask=mask if uvs is not None else None, path=name)
+    mesh_uses = [n.get("mesh") for n in doc.get("nodes", []) if "mesh" in n]
+    if len(mesh_uses) == len(set(mesh_uses)):  # an instanced mesh cannot take two deformations: written anew
+        mesh._source = GltfSource(p, doc, buffers, blocks, V, T)
+    return mesh
+
+
+def _materials(p: Path, doc: dict, buffers: list, ids: np.ndarray, read_image_bytes) -> tuple[list, np.ndarray | None]:
+    """One texture per used material: its base-colour image, or a 1x1 image of its base colour (sRGB)."""
+    used, compact = np.unique(ids, return_inverse=True)
+    images, colors = [], []
+    cache: dict[int, np.ndarray | None] = {}
+    for m in used:
+        material = doc["materials"][m] if 0 <= m < len(doc.get("materials", [])) else {}
+        pbr = material.get("pbrMetallicRoughness", {})
+        factor = pbr.get("baseColorFactor", [1.0, 1.0, 1.0, 1.0])
+        image = None
+        ref = pbr.get("baseColorTexture")
+        if ref is not None:
+            try:
+                source = doc["textures"][ref["index"]]["source"]
+                if source not in cache:
+                    raw = _image_bytes(p, doc, buffers, doc["images"][source])
+                    cache[source] = None if raw is None else read_image_bytes(raw, f"{p} image {source}")
+                image = cache[source]
+            except (KeyError, IndexError, TypeError) as exc:
+                log.warning("%s: the texture of material %d cannot be read (%s); read without it", p, m, exc)
+        color = _linear_to_srgb(factor[:3]) if m >= 0 else np.array([0.8, 0.8, 0.8])
+        images.append(image)
+        colors.append(tuple(np.round(color * 255).astype(int)))
+    if not any(i is not None for i in images) and len(set(colors)) <= 1:
+        return [], None
+    textures = [i if i is not None else np.array(c, dtype=np.uint8).reshape(1, 1, 3) for i, c in zip(images, colors)]
+    return textures, compact.reshape(-1).astype(np.int64)
+
+
+def _image_bytes(p: Path, doc: dict, buffers: list, image: dict) -> bytes | None:
+    if "bufferView" in image:
+        view = doc["bufferViews"][image["bufferView"]]
+        start = view.get("byteOffset", 0)
+        return bytes(buffers[view["buffer"]][start : start + view["byteLength"]])
+    return _gltf_uri_bytes(p, image["uri"])
+
+
+def own_source(mesh: Mesh, p: Path) -> GltfSource | None:
+    """The glTF the mesh was read from, when it can be written again in its own structure to ``p``."""
+    source = getattr(mesh, "_source", None)
+    if not isinstance(source, GltfSource) or len(source.vertices) != len(mesh.vertices):
+        return None
+    if source.path.suffix.lower() != p.suffix.lower() or len(source.triangles) != len(mesh.triangles):
+        return None
+    return source
+
+
+def source_companions(p: Path, source: GltfSource) -> dict:
+    """{index of an external buffer or image: (its uri, the output's name for it)} of a ``.gltf``'s files."""
+    out = {}
+    taken = {p.name.lower()}
+    for kind in ("buffers", "images"):
+        for i, item in enumerate(source.doc.get(kind, [])):
+            uri = item.get("uri")
+            if uri is None or uri.startswith("data:"):
+                continue
+            name = f"{p.stem}_{Path(urllib.parse.unquote(uri)).name}"
+            base, suffix = name.rsplit(".", 1) if "." in name else (name, "")
+            k = 2
+            while name.lower() in taken:
+                name = f"{base}_{k}.{suffix}" if suffix else f"{base}_{k}"
+                k += 1
+            taken.add(name.lower())
+            out[(kind, i)] = (uri, name)
+    return out
+
+
+def write_from_source(target: Path, mesh: Mesh, source: GltfSource) -> None:
+    """Write the source's glTF again with the mesh's positions (and normals turned with them): every node,
+    primitive, material, image and extension as it was."""
+    import copy
+
+    from kpd.io.obj import turned_normals
+
+    doc = copy.deepcopy(source.doc)
+    buffers = [bytearray(b) for b in source.buffers]
+    changed = not np.array_equal(mesh.vertices, source.vertices)
+    written: dict[int, np.ndarray] = {}  # accessor -> local rows already written (an accessor shared by nodes)
+    normals_new = None
+    if changed and any(b["normal"] is not None for b in source.blocks):
+        normals_new = turned_normals(source.vertices, mesh.vertices, source.triangles, source.triangles,
+                                     _world_normals(source))
+    for block in source.blocks:
+        if not changed:
+            break
+        rows = slice(block["start"], block["start"] + block["count"])
+        world = block["world"]
+        local = (mesh.vertices[rows] - world[:3, 3]) @ np.linalg.inv(world[:3, :3]).T
+        _put(doc, buffers, block, "POSITION", block["position"], local, written, bounds=True)
+        if block["normal"] is not None and normals_new is not None:
+            n = normals_new[rows] @ world[:3, :3]  # back through the inverse-transpose
+            length = np.linalg.norm(n, axis=1, keepdims=True)
+            n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+            _put(doc, buffers, block, "NORMAL", block["normal"], n, written, bounds=False)
+    binary = target.suffix.lower() == ".glb"
+    for i, buffer in enumerate(doc.get("buffers", [])):
+        buffer["byteLength"] = len(buffers[i])
+        uri = buffer.get("uri")
+        if uri is not None and uri.startswith("data:"):
+            buffer["uri"] = "data:application/octet-stream;base64," + base64.b64encode(bytes(buffers[i])).decode()
+    for (kind, i), (uri, name) in source_companions(target, source).items():
+        doc[kind][i]["uri"] = urllib.parse.quote(name)
+        data = bytes(buffers[i]) if kind == "buffers" else _gltf_uri_bytes(source.path, uri)
+        if data is not None:
+            (target.parent / name).write_bytes(data)
+    if binary:
+        blob = bytes(buffers[0]) if buffers and "uri" not in doc["buffers"][0] else b""
+        blob += b"\0" * (-len(blob) % 4)
+        if blob:
+            doc["buffers"][0]["byteLength"] = len(blob)
+        text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
+        text += b" " * (-len(text) % 4)
+        out = struct.pack("<III", _GLB_MAGIC, 2, 12 + 8 + len(text) + (8 + len(blob) if blob else 0))
+        out += struct.pack("<II", len(text), _GLB_JSON) + text
+        if blob:
+            out += struct.pack("<II", len(blob), _GLB_BIN) + blob
+        target.write_bytes(out)
+    else:
+        target.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+
+
+def _world_normals(source: GltfSource) -> np.ndarray:
+    from kpd.triangles import vertex_normals
+
+    return vertex_normals(source.vertices, source.triangles)
+
+
+def _put(doc: dict, buffers: list, block: dict, attribute: str, accessor: int, rows: np.ndarray, written: dict,
+         *, bounds: bool) -> None:
+    """Store ``rows`` (n, 3) as the accessor's data: in place when it is plain float32 data of its own, else as a
+    new accessor that this node's primitives use."""
+    acc = doc["accessors"][accessor]
+    values = rows.astype(np.float32)
+    if accessor in written and not np.array_equal(written[accessor], values):
+        new = _new_accessor(doc, buffers, values, bounds)  # one accessor in two meshes placed apart: split
+        for prim in _block_primitives(doc, block):
+            if prim["attributes"].get(attribute) == accessor:
+                prim["attributes"][attribute] = new
+        return
+    written[accessor] = values
+    plain = (acc["componentType"] == _FLOAT and "sparse" not in acc and "bufferView" in acc)
+    if plain:
+        view = doc["bufferViews"][acc["bufferView"]]
+        stride = view.get("byteStride") or 12
+        start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+        target = np.ndarray((len(values), 3), dtype="<f4", buffer=buffers[view["buffer"]], offset=start,
+                            strides=(stride, 4))
+        target[...] = values
+    else:
+        new = _new_accessor(doc, buffers, values, bounds)
+        for prim in _block_primitives(doc, block):
+            if prim["attributes"].get(attribute) == accessor:
+                prim["attributes"][attribute] = new
+        acc = doc["accessors"][new]
+    if bounds:
+        acc["min"], acc["max"] = values.min(axis=0).tolist(), values.max(axis=0).tolist()
+
+
+def _block_primitives(doc: dict, block: dict) -> list:
+    mesh = doc["nodes"][block["node"]]["mesh"] if block["node"] is not None else 0
+    return doc["meshes"][mesh]["primitives"]
+
+
+def _new_accessor(doc: dict, buffers: list, values: np.ndarray, bounds: bool) -> int:
+    if not buffers:
+        buffers.append(bytearray())
+        doc.setdefault("buffers", []).append({"byteLength": 0})
+    blob = buffers[0]
+    blob.extend(b"\0" * (-len(blob) % 4))
+    doc.setdefault("bufferViews", []).append({"buffer": 0, "byteOffset": len(blob), "byteLength": values.nbytes,
+                                              "target": 34962})
+    blob.extend(values.astype("<f4").tobytes())
+    acc = {"bufferView": len(doc["bufferViews"]) - 1, "componentType": _FLOAT, "count": len(values), "type": "VEC3"}
+    if bounds:
+        acc["min"], acc["max"] = values.min(axis=0).tolist(), values.max(axis=0).tolist()
+    doc.setdefault("accessors", []).append(acc)
+    return len(doc["accessors"]) - 1

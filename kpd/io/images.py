@@ -6,6 +6,8 @@ without a temporary file; :func:`write_png` writes one atomically; :func:`read_p
 
 from __future__ import annotations
 
+import io
+import logging
 import os
 import struct
 import zlib
@@ -18,7 +20,9 @@ from kpd.errors import InputError
 from kpd.io.atomic import atomic_output
 from kpd.io.common import incomplete
 
-__all__ = ["encode_png", "write_png", "read_png", "verify_png", "check_png"]
+__all__ = ["encode_png", "write_png", "read_png", "verify_png", "check_png", "read_image", "read_image_bytes"]
+
+log = logging.getLogger("kpd.io")
 
 _COLOR_TYPES = {1: 0, 2: 4, 3: 2, 4: 6}  # channels -> PNG colour type (grey, grey + alpha, RGB, RGBA)
 
@@ -82,3 +86,23 @@ def verify_png(path: str | os.PathLike) -> None:
     """Raise :class:`~kpd.errors.WriteError` unless ``path`` is a complete PNG (use as
     ``atomic_output(..., verify=verify_png)``)."""
     check_png(Path(path), Path(path))
+
+
+def read_image_bytes(data: bytes, name: str) -> np.ndarray | None:
+    """(H, W, C) uint8 (C in 1, 3, 4) of an image file's bytes (JPEG, PNG, ... through Pillow), as stored (top row
+    first); None with a logged warning naming ``name`` when it cannot be decoded."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(data)) as image:
+            if image.mode not in ("L", "RGB", "RGBA"):
+                image = image.convert("RGBA" if "A" in image.mode or "transparency" in image.info else "RGB")
+            return np.array(image, dtype=np.uint8)
+    except (OSError, UnidentifiedImageError, ValueError, Image.DecompressionBombError) as exc:
+        log.warning("%s: the image cannot be read (%s); read without it", name, exc)
+        return None
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray | None:
+    """:func:`read_image_bytes` of a file."""
+    return read_image_bytes(Path(path).read_bytes(), str(path))

@@ -31,6 +31,7 @@ import numpy as np
 from kpd.errors import InputError, WriteError
 from kpd.io.atomic import atomic_files
 from kpd.io.common import incomplete, verify_companion
+from kpd.io.images import read_image
 from kpd.mesh import Mesh, PointSet, count_phrase
 
 __all__ = ["read", "write", "companions", "check_faces", "ObjSource"]
@@ -336,21 +337,6 @@ def _library_files(p: Path, names: str) -> list[tuple[str, Path | None]]:
         f = p.parent / name
         out.append((name, f if f.is_file() else None))
     return out
-
-
-def read_image(path: Path) -> np.ndarray | None:
-    """(H, W, C) uint8 of an image file as stored (top row first), or None with a warning when it cannot be read."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as image:
-            mode = image.mode
-            if mode not in ("L", "RGB", "RGBA"):
-                image = image.convert("RGBA" if "A" in mode or "transparency" in image.info else "RGB")
-            return np.array(image, dtype=np.uint8)
-    except (OSError, UnidentifiedImageError, ValueError) as exc:
-        log.warning("%s: the image cannot be read (%s); drawn without it", path, exc)
-        return None
 
 
 def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | PointSet":
