@@ -253,7 +253,7 @@ class GLView:
                  top: int = 40, background: Sequence[float] = (1.0, 1.0, 1.0), on_display: bool | None = None) -> None:
         import open3d as o3d
 
-        from kpd.viewer.render import _quiet_native_output
+        from kpd.io.capture import native_output as _quiet_native_output
 
         display = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
         if visible and not display:
@@ -271,7 +271,7 @@ class GLView:
             where = f"display {display!r}" if display else "EGL (no display)"
             raise NoWindowError(f"could not open an OpenGL {'window' if on_display else 'context'} on {where}: "
                                 "install Mesa's OpenGL (apt-get install libgl1-mesa-dri libegl-mesa0)"
-                                + (", check $DISPLAY" if on_display else ", or use --backend xvfb or offscreen"))
+                                + (", check $DISPLAY" if on_display else ", or use --backend xvfb"))
         options = self.vis.get_render_option()
         options.mesh_show_back_face = True  # flipped triangles of CAD meshes stay visible
         options.background_color = np.asarray(background, dtype=np.float64)
@@ -444,7 +444,7 @@ class Digits:
     def __init__(self, colors: np.ndarray, height: float) -> None:
         import open3d as o3d
 
-        from kpd.viewer.render import _GLYPHS
+        from kpd.viewer.labels import _GLYPHS
 
         self.colors = np.asarray(colors, dtype=np.float64)
         self.height = float(height)  # world height of a digit

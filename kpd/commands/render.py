@@ -20,10 +20,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="move keypoint I by (DX, DY, DZ) in the shape's own units; repeat for several")
     parser.add_argument("--prior", action="store_true", help="the other keypoints follow the category prior")
     parser.add_argument("--select", default=None, metavar="I,J", help="keypoints drawn as selected")
-    parser.add_argument("--backend", default="auto", choices=("auto", "egl", "xvfb", "window", "offscreen"),
+    parser.add_argument("--backend", default="auto", choices=("auto", "egl", "xvfb", "window"),
                         help="auto (default) = egl: OpenGL without any display (headless EGL, fast in software); "
-                             "xvfb: OpenGL on a private Xvfb server; window: on the current $DISPLAY; offscreen: "
-                             "Open3D's Filament renderer (slow without a GPU)")
+                             "xvfb: OpenGL on a private Xvfb server; window: on the current $DISPLAY")
     parser.add_argument("--out", required=True, help="PNG file to write")
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
 
