@@ -1,0 +1,240 @@
+"""kpd view --browser: the page in real headless Chromium (SwiftShader WebGL), driven by real mouse events."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kpd.io import read_mesh
+from kpd.morph import MorphRig
+from kpd.runtime import Model
+
+from test_morph import REPO, TOLERANCE, corresponding, needs
+
+CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
+# what works here as root without a display; SwiftShader is Chromium's software WebGL
+CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                  "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--window-size=1200,800"]
+
+
+def start_chromium(user_data_dir: str):
+    """A selenium session in Debian's headless Chromium (installed by make system)."""
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    needs(CHROMIUM, "Debian's chromium")
+    needs(CHROMEDRIVER, "Debian's chromium-driver")
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for flag in [*CHROMIUM_FLAGS, f"--user-data-dir={user_data_dir}"]:
+        options.add_argument(flag)
+    return webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
+
+
+def start_editor(*argv: str) -> tuple[subprocess.Popen, str]:
+    """``kpd view ... --browser`` in a process of its own; returns it and the URL it printed."""
+    process = subprocess.Popen([sys.executable, "-m", "kpd.cli", "view", *argv, "--browser"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, cwd=REPO)
+    line = process.stdout.readline()
+    match = re.search(r"(http://\S+/)", line)
+    if match is None:
+        process.kill()
+        raise AssertionError(f"no URL printed: {line!r} {process.stderr.read()}")
+    return process, match.group(1)
+
+
+def wait(driver, script: str, timeout: float = 60.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = driver.execute_script(script)
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {script}")
+
+
+@pytest.fixture(scope="module")
+def chair_file(data_dir) -> Path:
+    return data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply"
+
+
+@pytest.fixture(scope="module")
+def page(chair_file, tmp_path_factory):
+    """The editor serving the real chair with the shipped model, a browser on its page, and the output path."""
+    needs(REPO / "viewer" / "web" / "vendor" / "three" / "build" / "three.module.js", "three.js (make web)")
+    out = tmp_path_factory.mktemp("browser") / "edited.obj"
+    process, url = start_editor("chair", str(chair_file), "--port", "0", "--out", str(out))
+    profile = tempfile.mkdtemp(prefix="kpd-chromium-")
+    driver = None
+    try:
+        driver = start_chromium(profile)
+        driver.get(url)
+        wait(driver, "return window.kpd && (window.kpd.ready || window.kpd.error)")
+        assert driver.execute_script("return window.kpd.error") is None
+        wait(driver, "return window.kpd.stats.firstPicture !== null")
+        yield driver, out, url
+    finally:
+        if driver is not None:
+            driver.quit()
+        process.terminate()
+        process.wait(timeout=10)
+        shutil.rmtree(profile, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def reference(chair_file):
+    model = Model.load("chair")
+    mesh = read_mesh(chair_file)
+    rig = model.rig(mesh)
+    return rig, MorphRig.from_rig(rig, model.prior), mesh
+
+
+def drag(driver, keypoint: int, dx: int, dy: int, steps: int = 8) -> tuple[float, float]:
+    """Press on a keypoint's marker, move the mouse by (dx, dy) pixels in steps, release; returns the end point."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+
+    canvas = driver.find_element(By.TAG_NAME, "canvas")
+    x, y = driver.execute_script(f"return window.kpd.keypointScreen({keypoint})")
+    width, height = driver.execute_script("const r = arguments[0].getBoundingClientRect(); return [r.width, r.height]",
+                                          canvas)
+    actions = ActionChains(driver, duration=10)
+    actions.move_to_element_with_offset(canvas, round(x - width / 2), round(y - height / 2)).click_and_hold()
+    for _ in range(steps):
+        actions.move_by_offset(dx // steps, dy // steps)
+    actions.release().perform()
+    return round(x) + (dx // steps) * steps, round(y) + (dy // steps) * steps
+
+
+def page_state(driver):
+    weights = driver.execute_script("return window.kpd.weights()")
+    keypoints = np.array(driver.execute_script("return window.kpd.keypoints()"))
+    positions = np.array(driver.execute_script("return window.kpd.positions()")[0]).reshape(-1, 3)
+    rest = np.array(driver.execute_script("return window.kpd.restPositions()")[0]).reshape(-1, 3)
+    return weights, keypoints, positions, rest
+
+
+def test_drag_moves_the_keypoint_and_the_mesh_as_the_rig_does(page, reference):
+    driver, _, _ = page
+    rig, morph, mesh = reference
+    diagonal = np.linalg.norm(np.ptp(mesh.vertices, axis=0))
+    end = drag(driver, 8, 0, -64)  # the backrest's top corner, up on the screen
+    weights, keypoints, positions, rest = page_state(driver)
+    moved = {name for name, value in weights.items() if value}
+    assert moved and moved <= {"keypoint_8_x", "keypoint_8_y", "keypoint_8_z"}
+    # the keypoint is under the mouse where it was released
+    assert np.hypot(*(np.array(driver.execute_script("return window.kpd.keypointScreen(8)")) - end)) < 2.0
+    np.testing.assert_allclose(keypoints, morph.keypoints_at(weights), atol=1e-9 * diagonal)
+    assert np.linalg.norm(keypoints[8] - rig.keypoints[8]) > 0.05 * diagonal
+    assert np.abs(np.delete(keypoints - rig.keypoints, 8, axis=0)).max() == 0.0
+    index = corresponding(rest, mesh)
+    expected = rig.deform(keypoints)[index]
+    assert np.abs(positions - expected).max() < TOLERANCE * diagonal
+    assert np.abs(positions - rest).max() > 0.05 * diagonal
+
+
+def test_prior_switch_sliders_undo_redo_reset_and_save(page, reference):
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+
+    driver, out, _ = page
+    rig, morph, mesh = reference
+    diagonal = np.linalg.norm(np.ptp(mesh.vertices, axis=0))
+    index = corresponding(page_state(driver)[3], mesh)
+    driver.find_element(By.ID, "reset").click()
+    assert not any(page_state(driver)[0].values())
+    driver.find_element(By.ID, "prior").click()  # the prior switch on: the partner leg follows
+    drag(driver, 1, -48, 0)
+    weights, keypoints, positions, _ = page_state(driver)
+    assert {n for n, v in weights.items() if v} <= {"prior_1_x", "prior_1_y", "prior_1_z"}
+    follows = np.linalg.norm(morph.offsets[morph.names.index("prior_1_x")], axis=1)  # (K,)
+    follows[1] = 0.0
+    partner = int(follows.argmax())  # the keypoint that follows keypoint 1 most (its mirror partner)
+    assert np.linalg.norm(keypoints[partner] - rig.keypoints[partner]) > 0.2 * np.linalg.norm(
+        keypoints[1] - rig.keypoints[1])
+    np.testing.assert_allclose(keypoints, morph.keypoints_at(weights), atol=1e-9 * diagonal)
+    assert np.abs(positions - rig.deform(keypoints)[index]).max() < TOLERANCE * diagonal
+    after_prior = weights
+    slider = driver.find_element(By.CSS_SELECTOR, "#sliders input[data-target='pca_0']")
+    slider.send_keys(Keys.ARROW_RIGHT * 30)  # 30 steps of 0.01 standard deviations
+    weights = page_state(driver)[0]
+    assert weights["pca_0"] == pytest.approx(0.3)
+    driver.find_element(By.ID, "undo").click()  # each slider step is one edit
+    assert page_state(driver)[0]["pca_0"] == pytest.approx(0.29)
+    driver.find_element(By.TAG_NAME, "body").send_keys(Keys.CONTROL + "z" * 29)  # Ctrl+Z, 29 times
+    assert page_state(driver)[0] == after_prior
+    while driver.find_element(By.ID, "redo").is_enabled():
+        driver.find_element(By.ID, "redo").click()
+    weights, keypoints, positions, _ = page_state(driver)
+    assert weights["pca_0"] == pytest.approx(0.3)
+    driver.find_element(By.ID, "save").click()
+    message = wait(driver, "return window.kpd.lastSave && window.kpd.lastSave.message")
+    assert message.startswith("saved"), message
+    saved = read_mesh(out)
+    np.testing.assert_array_equal(saved.triangles, mesh.triangles)
+    np.testing.assert_allclose(saved.vertices, rig.deform(morph.keypoints_at(weights)), atol=1e-6 * diagonal)
+    assert np.abs(saved.vertices[index] - positions).max() < TOLERANCE * diagonal  # the mesh the page showed
+    driver.find_element(By.ID, "reset").click()
+    weights, keypoints, positions, rest = page_state(driver)
+    assert not any(weights.values()) and np.abs(positions - rest).max() == 0.0
+    driver.find_element(By.ID, "save").click()  # a second save replaces what this editor wrote
+    wait(driver, "return window.kpd.lastSave && window.kpd.lastSave.message.includes('saved') && "
+                 "document.getElementById('status').textContent.startsWith('saved')")
+    np.testing.assert_allclose(read_mesh(out).vertices, mesh.vertices, atol=1e-6 * diagonal)
+
+
+def test_refusals_in_one_line(chair_file, tmp_path):
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen(1)
+    try:
+        port = busy.getsockname()[1]
+        result = subprocess.run([sys.executable, "-m", "kpd.cli", "view", "chair", str(chair_file), "--browser",
+                                 "--port", str(port)], capture_output=True, text=True, cwd=REPO, timeout=120)
+    finally:
+        busy.close()
+    assert result.returncode == 2 and "in use" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    existing = tmp_path / "edited.obj"
+    existing.write_text("mine")
+    result = subprocess.run([sys.executable, "-m", "kpd.cli", "view", "chair", str(chair_file), "--browser",
+                             "--port", "0", "--out", str(existing)], capture_output=True, text=True, cwd=REPO,
+                            timeout=120)
+    assert result.returncode == 2 and "exists; pass --force" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and existing.read_text() == "mine"
+
+
+def test_a_file_that_appears_before_the_first_save_is_kept(chair_file, tmp_path):
+    """The page's save refuses (in its status line) to replace a file it did not write, without --force."""
+    import json
+    import urllib.error
+    import urllib.request
+
+    out = tmp_path / "later.ply"
+    process, url = start_editor("chair", str(chair_file), "--port", "0", "--out", str(out))
+    try:
+        out.write_text("someone else's")
+        request = urllib.request.Request(url + "save", data=json.dumps({"weights": {"keypoint_0_z": 1.0}}).encode(),
+                                         headers={"Content-Type": "application/json"})
+        with pytest.raises(urllib.error.HTTPError) as failure:
+            urllib.request.urlopen(request, timeout=30)
+        answer = json.loads(failure.value.read())
+        assert not answer["ok"] and "exists; pass --force" in answer["message"]
+        assert out.read_text() == "someone else's"
+        bad = urllib.request.Request(url + "save", data=json.dumps({"weights": {"nose_x": 1.0}}).encode())
+        with pytest.raises(urllib.error.HTTPError) as failure:
+            urllib.request.urlopen(bad, timeout=30)
+        assert "unknown morph target 'nose_x'" in json.loads(failure.value.read())["message"]
+    finally:
+        process.terminate()
+        process.wait(timeout=10)
