@@ -21,7 +21,7 @@ import numpy as np
 
 from kpd.errors import InputError
 
-__all__ = ["HASH_KEY", "content_hash", "json_hash", "check_hash", "load_numpy"]
+__all__ = ["HASH_KEY", "content_hash", "json_hash", "check_hash", "load_numpy", "checkpoint_failure"]
 
 HASH_KEY = "sha256"
 
@@ -153,3 +153,40 @@ def json_hash(data: Mapping) -> str:
     """:func:`content_hash` of JSON data as read back (floats and ints as JSON gives them)."""
     return content_hash(json.loads(json.dumps(data)))
 
+
+
+def checkpoint_failure(path: str | os.PathLike, exc: BaseException) -> str:
+    """Why ``torch.load(path, weights_only=True)`` failed, in one short clause, from the file itself and the
+    exception (torch says ``101`` for a text file, nothing for an empty one, a paragraph for pickled objects).
+
+    Parameters
+    ----------
+    path : the checkpoint file.
+    exc : what ``torch.load`` raised.
+    """
+    p = Path(path)
+    try:
+        size = p.stat().st_size
+        with open(p, "rb") as fh:
+            head = fh.read(64)
+    except OSError as error:
+        return error.strerror or str(error)
+    if size == 0:
+        return "the file is empty (0 bytes)"
+    text = str(exc)
+    if "Weights only load failed" in text:
+        return ("it holds pickled Python objects, which kpd never loads (they can run code); only tensors and "
+                "plain data are read: save the state dicts alone with torch.save")
+    if head.startswith(b"PK\x03\x04"):
+        try:
+            with zipfile.ZipFile(p) as archive:
+                archive.namelist()
+        except (zipfile.BadZipFile, OSError, ValueError):
+            return f"the file is truncated or damaged ({size} bytes; its zip directory cannot be read)"
+        return f"a damaged PyTorch archive ({type(exc).__name__})"
+    if head[:1] == b"\x80":
+        return f"the file is truncated or damaged ({size} bytes of an old-style PyTorch pickle)"
+    if _is_text(p):
+        first = head.split(b"\n", 1)[0].decode("utf-8", "replace").strip()
+        return f"a text file, not a PyTorch checkpoint (it starts with {first[:40]!r})"
+    return "not a PyTorch checkpoint (neither a zip archive nor a pickle)"

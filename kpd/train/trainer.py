@@ -168,7 +168,9 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several kinds for damaged or foreign files
-        raise InputError(f"cannot load checkpoint {path}: {exc}") from exc
+        from kpd.io.integrity import checkpoint_failure
+
+        raise InputError(f"cannot load checkpoint {path}: {checkpoint_failure(path, exc)}") from exc
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise InputError(f"{path} is not a kpd checkpoint (format {CHECKPOINT_FORMAT!r} missing)")
     if ckpt.get("version") != CHECKPOINT_VERSION:
