@@ -1,0 +1,38 @@
+"""kpd.viewer.display: the backends refuse in one clear error where they cannot run; a private Xvfb server starts,
+shows what is drawn on it and stops."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from kpd.errors import KpdError
+from kpd.viewer.display import BACKENDS, grab_screen, private_display, resolve_backend
+
+
+def test_backends_and_refusals(monkeypatch):
+    assert BACKENDS == ("auto", "egl", "xvfb", "window") and resolve_backend("auto") == "egl"
+    monkeypatch.delenv("DISPLAY", raising=False)
+    with pytest.raises(KpdError, match=r"\$DISPLAY is not set"):
+        resolve_backend("window")
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    with pytest.raises(KpdError, match="needs the Xvfb program"):
+        resolve_backend("xvfb")
+
+
+@pytest.mark.skipif(not (shutil.which("Xvfb") and shutil.which("xdotool")), reason="Xvfb or xdotool not installed (make system)")
+def test_private_display_runs_and_its_screen_can_be_grabbed(tmp_path):
+    with private_display(320, 200, fbdir=tmp_path) as display:
+        assert display.startswith(":")
+        screen = grab_screen(tmp_path)
+        assert screen.shape == (200, 320, 3) and screen.dtype == np.uint8
+        geometry = subprocess.run(["xdotool", "getdisplaygeometry"], env=dict(os.environ, DISPLAY=display),
+                                  capture_output=True, text=True, timeout=20)
+        assert geometry.stdout.split() == ["320", "200"]
+    after = subprocess.run(["xdotool", "getdisplaygeometry"], env=dict(os.environ, DISPLAY=display),
+                           capture_output=True, text=True, timeout=20)
+    assert after.returncode != 0  # the server stopped with the block
