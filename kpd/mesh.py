@@ -31,7 +31,11 @@ from kpd.triangles import vertex_normals
 if TYPE_CHECKING:  # pragma: no cover
     import open3d
 
-__all__ = ["Mesh", "PointSet", "count_phrase"]
+__all__ = ["Mesh", "PointSet", "count_phrase", "MAX_COORDINATE"]
+
+# Coordinates beyond this size are refused: kpd squares distances and areas (and draws in float32, whose range
+# ends at 3.4e38), which overflow past it. Real shapes are many orders of magnitude smaller.
+MAX_COORDINATE = 1e18
 
 # Colours may stray this far outside [0, 1] through float rounding before they count as malformed.
 _COLOR_SLACK = 1e-6
@@ -229,6 +233,12 @@ def _vertex_array(x: Any, where: str, name: str, noun: str) -> np.ndarray:
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
         raise InputError(f"{where}{count_phrase(int(bad.sum()), noun)} NaN or inf coordinates (first: index {first})")
+    size = np.abs(a).max(axis=1)  # (N,)
+    if size.max() > MAX_COORDINATE:
+        big = size > MAX_COORDINATE
+        raise InputError(f"{where}{count_phrase(int(big.sum()), noun)} coordinates beyond {MAX_COORDINATE:.0e} "
+                         f"(up to {size.max():.3g} at index {int(np.argmax(size))}); kpd squares distances, which "
+                         "overflow there: rescale the shape")
     return a
 
 
