@@ -47,7 +47,9 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or a bad option (2, one line already printed)
         return int(exc.code or 0)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    handler = logging.StreamHandler()
+    handler.setFormatter(_Formatter())
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, handlers=[handler])
     if args.command is None:
         parser.print_help()
         return 2
@@ -55,15 +57,38 @@ def main(argv: list[str] | None = None) -> int:
         run_checks(args)
         return int(args._run(args) or 0)
     except KpdError as exc:
+        _close_progress_bars()
         print(f"kpd {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except OSError as exc:  # the environment failed (a disk, a folder's permissions) where kpd did not expect it
+        _close_progress_bars()
         print(f"kpd {args.command}: error: {_one_line(describe_os_error(exc, exc.filename or 'a file'))}",
               file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        _close_progress_bars()
         print(f"kpd {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+class _Formatter(logging.Formatter):
+    """Warnings and errors as the commands print theirs (``warning: ...``); details (``-v``) with their logger."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        if record.levelno >= logging.WARNING:
+            return f"{record.levelname.lower()}: {record.getMessage()}"
+        return f"{record.levelname} {record.name}: {record.getMessage()}"
+
+
+def _close_progress_bars() -> None:
+    """Erase the progress bars still on the screen, so that an error starts on a line of its own."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ()) or ()):
+        try:
+            bar.leave = False
+            bar.close()
+        except Exception:  # noqa: BLE001 (a bar that cannot close must not hide the error)
+            pass
 
 
 def _one_line(message) -> str:
