@@ -509,9 +509,17 @@ def straighten_basis(
     -------
     (V, K) float64, the corrected basis (``basis`` itself, not a copy, when the mesh has no sliver).
     """
-    import scipy.sparse as sparse
-    from scipy.sparse.linalg import splu
+    basis, vertices, triangles = _check_straighten(basis, vertices, triangles, thinness, reach)
+    if not len(triangles) or not _thin_triangles(vertices, triangles, thinness)[0].any():
+        return basis  # no sliver (the cheap test first: merging below does not make new ones)
+    system = _StraightenSystem(vertices, triangles, thinness, reach)
+    if system.slivers == 0:
+        return basis
+    correction = system.solve(basis)  # (n, K) on the merged points, None where nothing moves
+    return basis + correction[system.inverse]
 
+
+def _check_straighten(basis: Any, vertices: Any, triangles: Any, thinness: float, reach: float) -> tuple:
     basis = np.asarray(basis, dtype=np.float64)
     vertices = as_points(vertices, "vertices")
     triangles = np.asarray(triangles, dtype=np.int64)
@@ -522,6 +530,138 @@ def straighten_basis(
         raise InputError(f"triangles must be (T, 3) indices into {len(vertices)} vertices")
     if not (np.isfinite(thinness) and 0 < thinness <= 1 and np.isfinite(reach) and reach > 0):
         raise InputError(f"straightening needs 0 < thinness <= 1 and reach > 0; got {thinness!r}, {reach!r}")
+    return basis, vertices, triangles
+
+
+_SOLVE_BATCH = 1 << 17  # merged points per sparse factorisation: small connected pieces are solved together
+
+
+class _StraightenSystem:
+    """The straightening's sparse system (:func:`straighten_basis`) on the merged points, split by connected piece.
+
+    The system couples points only through the mesh's edges and slivers, so it is block diagonal over the mesh's
+    connected pieces (a chair's legs, seat and back are often separate pieces), and a piece without a sliver gets
+    no correction at all. Each piece that has one is factorised on its own (small pieces a few at a time), in
+    symmetric mode with a minimum-degree ordering of AᵀA + A: the memory of the factor is that of the largest
+    piece, not of the mesh.
+    """
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, thinness: float, reach: float) -> None:
+        from scipy.sparse.csgraph import connected_components
+
+        points, inverse = _merge_coincident(vertices)
+        tri = inverse[triangles]
+        tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 2] != tri[:, 0])]
+        self.inverse = inverse
+        n = self.n = len(points)
+        self.slivers = 0
+        if not len(tri):
+            return
+        thin, apex, longest, height, twice_area = _thin_triangles(points, tri, thinness)
+        sliver = np.flatnonzero(thin)
+        self.slivers = len(sliver)
+        if not len(sliver):
+            return
+        corner = tri[sliver, apex[sliver]]
+        start, end = tri[sliver, (apex[sliver] + 1) % 3], tri[sliver, (apex[sliver] + 2) % 3]
+        edge = points[end] - points[start]
+        s = np.clip(np.einsum("ij,ij->i", points[corner] - points[start], edge) / np.einsum("ij,ij->i", edge, edge),
+                    0, 1)
+        self.weight = (longest[sliver] / np.maximum(height[sliver], longest[sliver] / np.sqrt(_STRAIGHTEN_CAP))) ** 2
+        self.ends3 = np.stack([corner, start, end], axis=1)  # (S, 3)
+        self.coef3 = np.stack([np.ones(len(s)), s - 1.0, -s], axis=1)  # (S, 3): straightness = coef3 . rows
+        first = np.zeros(n, dtype=np.int64)
+        first[inverse[::-1]] = np.arange(len(vertices))[::-1]
+        self.first = first  # one original vertex per merged point
+        graph = _edge_graph(tri, n)  # upper triangle, each edge once
+        row = np.repeat(np.arange(n), np.diff(graph.indptr))
+        col = graph.indices
+        length = np.linalg.norm(points[row] - points[col], axis=1)
+        length = np.maximum(length, 1e-6 * max(float(length.max()), 1e-300))
+        self.edges = np.stack([row, col], axis=1)  # (E, 2)
+        self.stiffness = 1.0 / length**2
+        area = np.bincount(tri.ravel(), weights=np.repeat(twice_area / 6.0, 3), minlength=n)
+        ends = np.ones(n, dtype=bool)
+        ends[corner] = False  # never a sliver's third corner: a leg's foot, a panel's corner, a run's end
+        self.anchor = (area / max(float(area.mean()), 1e-300) + 1e-6) * np.where(ends, _STRAIGHTEN_ENDS, 1.0) / reach**2
+        pieces, label = connected_components(graph, directed=False)
+        active = np.zeros(pieces, dtype=bool)
+        active[label[corner]] = True
+        # pieces with slivers, packed into batches of up to _SOLVE_BATCH points (a larger piece is a batch alone)
+        sizes = np.bincount(label, minlength=pieces)
+        batch_of_piece = np.full(pieces, -1)
+        count, filled = 0, 0
+        for piece in np.flatnonzero(active):
+            if filled and filled + sizes[piece] > _SOLVE_BATCH:
+                count, filled = count + 1, 0
+            batch_of_piece[piece] = count
+            filled += sizes[piece]
+        self.batches = count + 1
+        self.point_batch = batch_of_piece[label]  # (n,) -1 where nothing moves
+        self.edge_batch = self.point_batch[row]
+        self.sliver_batch = self.point_batch[corner]
+
+    def solve(self, basis: np.ndarray) -> np.ndarray:
+        """(n, K) float64: the correction of each merged point, 0 in pieces without slivers."""
+        import scipy.sparse as sparse
+        from scipy.sparse.linalg import splu
+
+        merged = basis[self.first]  # (n, K): coincident vertices have the same basis rows
+        correction = np.zeros_like(merged)
+        count = len(self.ends3)
+        straight = sparse.csr_matrix((self.coef3.ravel(), (np.repeat(np.arange(count), 3), self.ends3.ravel())),
+                                     shape=(count, self.n))
+        weighted = self.weight[:, None] * (straight @ merged)  # (S, K) straightness of each sliver, weighted
+        rhs_all = -(straight.T @ weighted)  # (n, K)
+        del weighted, straight
+        order_points = np.argsort(self.point_batch, kind="stable")
+        order_edges = np.argsort(self.edge_batch, kind="stable")
+        order_slivers = np.argsort(self.sliver_batch, kind="stable")
+        local = np.full(self.n, -1)
+        for b in range(self.batches):
+            members = order_points[np.searchsorted(self.point_batch[order_points], b):
+                                   np.searchsorted(self.point_batch[order_points], b, side="right")]
+            edges = order_edges[np.searchsorted(self.edge_batch[order_edges], b):
+                                np.searchsorted(self.edge_batch[order_edges], b, side="right")]
+            slivers = order_slivers[np.searchsorted(self.sliver_batch[order_slivers], b):
+                                    np.searchsorted(self.sliver_batch[order_slivers], b, side="right")]
+            m = len(members)
+            local[members] = np.arange(m)
+            i, j = local[self.edges[edges, 0]], local[self.edges[edges, 1]]
+            c = self.stiffness[edges]
+            q = local[self.ends3[slivers]]  # (S', 3)
+            coef, w = self.coef3[slivers], self.weight[slivers]
+            block = w[:, None, None] * coef[:, :, None] * coef[:, None, :]  # (S', 3, 3)
+            rows = np.concatenate([np.arange(m), i, j, i, j, np.repeat(q, 3, axis=1).ravel()])
+            cols = np.concatenate([np.arange(m), i, j, j, i, np.tile(q, (1, 3)).ravel()])
+            vals = np.concatenate([self.anchor[members], c, c, -c, -c, block.ravel()])
+            system = sparse.csc_matrix((vals, (rows, cols)), shape=(m, m))
+            factor = splu(system, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                          options={"SymmetricMode": True})
+            correction[members] = factor.solve(rhs_all[members])
+            local[members] = -1
+        return correction
+
+
+def _edge_graph(tri: np.ndarray, n: int):
+    """(n, n) CSR upper-triangular adjacency of the triangles' edges (each undirected edge once)."""
+    import scipy.sparse as sparse
+
+    pairs = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])  # (3T, 2)
+    lo, hi = pairs.min(axis=1), pairs.max(axis=1)
+    graph = sparse.csr_matrix((np.ones(len(lo), dtype=np.int8), (lo, hi)), shape=(n, n))
+    graph.sum_duplicates()
+    graph.data[:] = 1
+    return graph
+
+
+def _straighten_basis_reference(basis: Any, vertices: Any, triangles: Any, *, thinness: float = STRAIGHTEN_THINNESS,
+                                reach: float = STRAIGHTEN_REACH) -> np.ndarray:
+    """:func:`straighten_basis` as one sparse LU over every merged point (the slow twin tests compare with)."""
+    import scipy.sparse as sparse
+    from scipy.sparse.linalg import splu
+
+    basis, vertices, triangles = _check_straighten(basis, vertices, triangles, thinness, reach)
     if not len(triangles) or not _thin_triangles(vertices, triangles, thinness)[0].any():
         return basis  # no sliver (the cheap test first: merging below does not make new ones)
     points, inverse = _merge_coincident(vertices)
@@ -686,14 +826,40 @@ def check_bind_memory(vertices: int, triangles: int, keypoints: int) -> None:
 def _thin_triangles(points: np.ndarray, tri: np.ndarray, thinness: float) -> tuple[np.ndarray, ...]:
     """Per triangle: sliver or not, the corner opposite the longest edge, that edge's length, the height over it
     and twice the area, all (T,)."""
-    a, b, c = (points[tri[:, i]] for i in range(3))
-    opposite = np.stack([np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1),
-                         np.linalg.norm(b - a, axis=1)], axis=1)  # (T, 3) edge opposite each corner
-    twice_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)  # (T,)
-    apex = np.argmax(opposite, axis=1)
-    longest = opposite[np.arange(len(tri)), apex]
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    tri = np.ascontiguousarray(tri, dtype=np.int64)
+    apex = np.empty(len(tri), dtype=np.int64)
+    longest, twice_area = np.empty(len(tri)), np.empty(len(tri))
+    _triangle_shapes(points, tri, apex, longest, twice_area)
     height = twice_area / np.maximum(longest, 1e-300)
     return height < thinness * longest, apex, longest, height, twice_area
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _triangle_shapes(points, tri, apex, longest, twice_area):  # pragma: no cover - compiled
+    """Per triangle: the corner opposite the longest edge (the first on ties), that edge's length and twice the
+    area (|(b - a) x (c - a)|)."""
+    for t in range(tri.shape[0]):
+        a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+        ax, ay, az = points[a, 0], points[a, 1], points[a, 2]
+        bx, by, bz = points[b, 0], points[b, 1], points[b, 2]
+        cx, cy, cz = points[c, 0], points[c, 1], points[c, 2]
+        l0 = np.sqrt((cx - bx) ** 2 + (cy - by) ** 2 + (cz - bz) ** 2)
+        l1 = np.sqrt((ax - cx) ** 2 + (ay - cy) ** 2 + (az - cz) ** 2)
+        l2 = np.sqrt((bx - ax) ** 2 + (by - ay) ** 2 + (bz - az) ** 2)
+        k, best = 0, l0
+        if l1 > best:
+            k, best = 1, l1
+        if l2 > best:
+            k, best = 2, l2
+        apex[t] = k
+        longest[t] = best
+        ux, uy, uz = bx - ax, by - ay, bz - az
+        vx, vy, vz = cx - ax, cy - ay, cz - az
+        nx = uy * vz - uz * vy
+        ny = uz * vx - ux * vz
+        nz = ux * vy - uy * vx
+        twice_area[t] = np.sqrt(nx * nx + ny * ny + nz * nz)
 
 
 def distinct_points(vertices: Any) -> np.ndarray:
