@@ -20,7 +20,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a = sub.add_parser("alignment", help="deform test sources onto test targets; chamfer x1e3 vs baselines",
                        description="The paper's Fig. 7 protocol: seeded pairs of distinct test shapes; chamfer "
                                    "(REFERENCE §6, [-1, 1] frame, x1e3) of the deformed source to the target, next "
-                                   "to no deformation and an optional baseline run.")
+                                   "to no deformation and an optional baseline run.",
+                       epilog="example:\n  kpd eval alignment runs/chair --baseline runs/chair-fps --pairs 200 "
+                              "--out chair_alignment.json --gallery chair_alignment.png",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     a.add_argument("run", type=existing, help="run folder (or checkpoint) from kpd train")
     a.add_argument("--baseline", type=existing, help="a second run to compare, e.g. trained with --keypoint-source fps")
     a.add_argument("--pairs", type=integer(1), default=200, help="number of pairs (default 200)")
@@ -29,7 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _common(a)
 
     k = sub.add_parser("keypoints", help="stability, distance to the surface and mirror consistency of keypoints",
-                       description="Label-free keypoint quality on the test split; distances in the [-1, 1] frame.")
+                       description="Label-free keypoint quality on the test split; distances in the [-1, 1] frame.",
+                       epilog="example:\n  kpd eval keypoints runs/chair --samples 5 --mirror-axis x "
+                              "--out chair_keypoints.json",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     k.add_argument("run", type=existing, help="run folder (or checkpoint) from kpd train")
     k.add_argument("--samples", type=integer(1), default=5, help="independent point samples per shape (default 5)")
     k.add_argument("--mirror-axis", choices=("x", "y", "z", "none"), default="x",
