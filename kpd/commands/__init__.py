@@ -113,3 +113,10 @@ def add_check(parser: argparse.ArgumentParser, check) -> None:
 def run_checks(args: argparse.Namespace) -> None:
     for check in getattr(args, "_checks", None) or []:
         check(args)
+
+
+def shipped_names() -> str:
+    """The shipped models' names for ``--help`` texts: ``chair, shoe, table``."""
+    from kpd.bundle import shipped_bundles
+
+    return ", ".join(shipped_bundles()) or "none"

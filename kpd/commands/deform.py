@@ -7,7 +7,7 @@ import re
 
 import numpy as np
 
-from kpd.commands import integer
+from kpd.commands import integer, shipped_names
 from kpd.errors import InputError
 
 HELP = "move keypoints of a shape and write the deformed mesh (same topology, UVs and colours)"
@@ -44,7 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from kpd.commands.keypoints import add_scan_arguments
 
     parser.add_argument("model", metavar="MODEL", nargs="?", default=None,
-                        help="a bundle (.kpd folder or .zip) or a shipped name (chair, table); not with --rig")
+                        help=f"a bundle (.kpd folder or .zip) or a shipped name ({shipped_names()}); not with --rig")
     parser.add_argument("shape", metavar="SHAPE", nargs="?", default=None, help="the mesh to deform (with MODEL)")
     parser.add_argument("--rig", default=None, help="instead of MODEL SHAPE: a rig (.npz from kpd) or a folder in the "
                                                     "authors' demo format")

@@ -94,8 +94,11 @@ def check_output(args: argparse.Namespace, out: Path) -> None:
         raise InputError(f"--resume: no checkpoint in {out}")
     if not args.resume and out.is_dir() and any(out.iterdir()) and not args.force:
         raise InputError(f"output {out} exists and is not empty; pass --resume to continue or --force to start over")
-    if not out.parent.exists():
-        raise InputError(f"output folder {out.parent} does not exist")
+    parent = out.parent
+    while not parent.exists():  # a run folder's missing parents are made, as training tools do
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"--out {out}: {parent} is a file, not a folder")
 
 
 # A validation split smaller than this gives no validation score (pairs of one shape score 0); fewer than
@@ -137,6 +140,25 @@ def check_run_folder(args: argparse.Namespace, out: Path) -> None:
     from kpd.io import check_output as check_folder
 
     check_output(args, out)
+    made = []
+    parent = out.parent
+    while not parent.exists():
+        made.append(parent)
+        parent = parent.parent
+    for folder in reversed(made):
+        folder.mkdir()
+    try:
+        _check_run_folder(args, out, check_folder)
+    except BaseException:
+        for folder in made:  # nothing left behind by a refused run
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+        raise
+
+
+def _check_run_folder(args: argparse.Namespace, out: Path, check_folder) -> None:
     # the run folder is not replaced as a whole (checkpoints go into it as training runs), but it is checked like
     # every output: writable, and neither the data, the split file nor the cache nor a folder holding them
     check_folder(out, option="--out", force=True, kind="folder", inputs=(args.data, args.split_file, args.cache))

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from kpd.commands import integer
+from kpd.commands import integer, shipped_names
 from kpd.errors import InputError
 
 HELP = "edit a shape in a window: pick keypoints, drag them, watch the mesh deform; save the mesh and the session"
@@ -21,7 +21,7 @@ def add_source_arguments(parser: argparse.ArgumentParser) -> None:
     from kpd.commands.keypoints import add_scan_arguments
 
     parser.add_argument("model", metavar="MODEL", nargs="?", default=None,
-                        help="a bundle (.kpd folder or .zip) or a shipped name (chair, table)")
+                        help=f"a bundle (.kpd folder or .zip) or a shipped name ({shipped_names()})")
     parser.add_argument("shape", metavar="SHAPE", nargs="?", default=None, help="the mesh to edit (with MODEL)")
     parser.add_argument("--rig", default=None, help="instead of MODEL SHAPE: a rig (.npz from kpd) or a folder in "
                                                     "the authors' demo format")
