@@ -24,3 +24,20 @@ def data_dir() -> Path:
             pytest.fail(message)
         pytest.skip(message)
     return root
+
+
+@pytest.fixture(scope="session")
+def sneaker(data_dir):
+    """The real sneaker scan (a mesh)."""
+    from kpd.io import read_mesh
+
+    mesh = read_mesh(data_dir / "scans" / "sneaker.ply")
+    return mesh
+
+
+@pytest.fixture(scope="session")
+def chair(data_dir):
+    """ModelNet10 chair_0890 (test split)."""
+    from kpd.io import read_mesh
+
+    return read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply")
