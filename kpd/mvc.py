@@ -2,10 +2,10 @@
 
 Ju, Schaefer & Warren (2005), "Mean value coordinates for closed triangular meshes". For a point x and a face with
 corners p_0, p_1, p_2, write G_k = (p_{k+1} - x) × (p_{k+2} - x) (the normal of the plane through x and the edge
-opposite corner k, pointing into the face's cone when x sees the face from inside), θ_k = atan2(|G_k|, (p_{k+1} - x)
-· (p_{k+2} - x)) the angle that edge subtends at x, and D = det[p_0 - x, p_1 - x, p_2 - x] = 2·area·(signed distance
-of x to the face's plane). The mean vector of the face's spherical triangle is m = ½ Σ_k θ_k G_k / |G_k| and the face
-adds
+opposite corner k, pointing into the face's cone when x sees the face from inside),
+θ_k = atan2(``|G_k|``, (p_{k+1} - x) · (p_{k+2} - x)) the angle that edge subtends at x, and
+D = det[p_0 - x, p_1 - x, p_2 - x] = 2·area·(signed distance of x to the face's plane). The mean vector of the face's
+spherical triangle is m = ½ Σ_k θ_k G_k / ``|G_k|`` and the face adds
 
     w_k = G_k · m / D
 
