@@ -70,7 +70,7 @@ class MorphRig:
     offsets : (T, K, 3) float64, keypoint offsets per unit weight of each target, user units.
     meta : JSON-safe dict written to ``asset.extras.kpd`` (model, category, version...).
 
-    :meth:`from_rig` builds one from a :class:`kpd.rig.Rig` and a prior.
+    Built from a :class:`kpd.rig.Rig` and a prior by :meth:`from_rig`.
     """
 
     def __init__(self, mesh: Mesh, keypoints: Any, basis: Any, names: Sequence[str], offsets: Any,
@@ -450,13 +450,13 @@ def _uri(name: str) -> str:
 class GltfRig(NamedTuple):
     """A glTF rig file as its consumers see it (:func:`read_gltf`).
 
-    document : dict, the glTF JSON.
-    names : (T,) target names from ``meshes[0].extras.targetNames``.
-    positions : per primitive, (n, 3) float64 positions in the mesh node's frame (the user's coordinates: the mesh
-        node's translation added).
-    targets : per primitive, (T, n, 3) float64 displacements.
-    indices : per primitive, (t, 3) int64 triangles.
-    keypoints : (K, 3) float64, the ``keypoint_<i>`` nodes' positions in the mesh node's frame (user coordinates).
+    - document : dict, the glTF JSON.
+    - names : (T,) target names from ``meshes[0].extras.targetNames``.
+    - positions : per primitive, (n, 3) float64 positions in the mesh node's frame (the user's coordinates: the mesh
+      node's translation added).
+    - targets : per primitive, (T, n, 3) float64 displacements.
+    - indices : per primitive, (t, 3) int64 triangles.
+    - keypoints : (K, 3) float64, the ``keypoint_<i>`` nodes' positions in the mesh node's frame (user coordinates).
     """
 
     document: dict
