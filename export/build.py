@@ -91,7 +91,7 @@ def export_model(
     up : the training frame's up axis, if known ("+z" for ModelNet).
     training : the training record (data, command, seed, iterations, metrics).
     force : replace an existing ``out``.
-    tolerance : largest accepted |onnxruntime - torch| over keypoints and influence.
+    tolerance : largest accepted ``|onnxruntime - torch|`` over keypoints and influence.
     rig_cage_distance : the stop distance of the cage fitted for each rig at run time, if not the training one
         (a tighter cage keeps edits more local; measured in benchmarks/bench_edits.py).
     """

@@ -66,13 +66,13 @@ STATE_VERSION = 1
 class CollectionShape(NamedTuple):
     """One shape's result in :class:`CollectionAlignment`.
 
-    name : the shape's name ; rotation : (3, 3) float64, turns the shape into the shared frame (``x @ rotation.T``)
-    score : trimmed RMS distance to the template after refinement (template's [-1, 1] units)
-    runner_up_score / runner_up_angle : the best rotation more than ``distinct_angle`` degrees away, and its angle
-    margin : ``runner_up_score / score - 1`` ; ambiguous : margin under the threshold (not decided)
-    template : True for the shape that served as the final template (its rotation is the reference's)
-    decided_by : ``"template"`` (its fit to the template), ``"neighbours"`` (flagged there, settled by its decided
-        look-alikes) or ``"undecided"``
+    - name : the shape's name ; rotation : (3, 3) float64, turns the shape into the shared frame (``x @ rotation.T``)
+    - score : trimmed RMS distance to the template after refinement (template's [-1, 1] units)
+    - runner_up_score / runner_up_angle : the best rotation more than ``distinct_angle`` degrees away, and its angle
+    - margin : ``runner_up_score / score - 1`` ; ambiguous : margin under the threshold (not decided)
+    - template : True for the shape that served as the final template (its rotation is the reference's)
+    - decided_by : ``"template"`` (its fit to the template), ``"neighbours"`` (flagged there, settled by its decided
+      look-alikes) or ``"undecided"``
     """
 
     name: str
@@ -113,16 +113,16 @@ class CollectionShape(NamedTuple):
 class CollectionAlignment(NamedTuple):
     """Result of :func:`align_collection`.
 
-    shapes : one :class:`CollectionShape` per input, in input order (the last round's results)
-    rotations : (S, 3, 3) float64, the same rotations stacked
-    templates : the template's name in each round (the first is the descriptor medoid)
-    changed : per round after the first, how many shapes turned by more than 10 degrees against the round before
-    converged : the re-estimated template was the one just used, or no shape turned by more than 10 degrees in the
-        last round (another round would change nothing that matters)
-    seconds : (S,) float64, each shape's orientation time summed over the rounds (as measured when it was done,
-        also in an earlier, resumed run)
-    floor : what :func:`floor_up` found (the up axis in the shared frame, the flat-contact share of every candidate
-        direction, how many shapes were stood and by how much), or None when the up axis was given or standing off
+    - shapes : one :class:`CollectionShape` per input, in input order (the last round's results)
+    - rotations : (S, 3, 3) float64, the same rotations stacked
+    - templates : the template's name in each round (the first is the descriptor medoid)
+    - changed : per round after the first, how many shapes turned by more than 10 degrees against the round before
+    - converged : the re-estimated template was the one just used, or no shape turned by more than 10 degrees in the
+      last round (another round would change nothing that matters)
+    - seconds : (S,) float64, each shape's orientation time summed over the rounds (as measured when it was done,
+      also in an earlier, resumed run)
+    - floor : what :func:`floor_up` found (the up axis in the shared frame, the flat-contact share of every candidate
+      direction, how many shapes were stood and by how much), or None when the up axis was given or standing off
     """
 
     shapes: list

@@ -280,13 +280,13 @@ def discover(root: str | os.PathLike, category: str | None = None, *, split_file
 class SampleSettings:
     """What a cached sample depends on, besides the mesh file.
 
-    points : N, surface points per sample.
-    samples : independent samples per mesh.
-    cage_level / cage_radius : the icosphere template (level 1 = 42 vertices).
-    cage_distance / cage_iterations / cage_step / enclose : :func:`kpd.cage.fit_cage` settings (REFERENCE §4).
-    weights : also store the MVC weights of the sample points (else training computes them once with torch).
-    outer : sample the outer surface only (:func:`kpd.geometry.sample_surface` with ``outer=True``): drop points on
-        faces inside the shape, where overlapping or touching pieces meet (convex decompositions, CAD parts).
+    - points : N, surface points per sample.
+    - samples : independent samples per mesh.
+    - cage_level / cage_radius : the icosphere template (level 1 = 42 vertices).
+    - cage_distance / cage_iterations / cage_step / enclose : :func:`kpd.cage.fit_cage` settings (REFERENCE §4).
+    - weights : also store the MVC weights of the sample points (else training computes them once with torch).
+    - outer : sample the outer surface only (:func:`kpd.geometry.sample_surface` with ``outer=True``): drop points on
+      faces inside the shape, where overlapping or touching pieces meet (convex decompositions, CAD parts).
     """
 
     points: int = 1024

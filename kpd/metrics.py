@@ -350,13 +350,13 @@ def part_association(keypoints: Any, points: Any, labels: Any, parts: Any, radiu
 class PartCorrespondence(NamedTuple):
     """Result of :func:`part_correspondence`.
 
-    score : float, the paper's metric: mean over keypoints of the frequency with the keypoint's best part.
-    part_score : float, the reverse (part-wise) reduction: mean over parts of the frequency with the part's best
-        keypoint.
-    frequency : (K, P) float64, fraction of shapes in which keypoint k is associated with part p.
-    parts : (P,) int64, the part labels of the columns.
-    best_part : (K,) int64, each keypoint's most frequent part label.
-    associated : (K,) float64, fraction of shapes in which keypoint k is associated with any part.
+    - score : float, the paper's metric: mean over keypoints of the frequency with the keypoint's best part.
+    - part_score : float, the reverse (part-wise) reduction: mean over parts of the frequency with the part's best
+      keypoint.
+    - frequency : (K, P) float64, fraction of shapes in which keypoint k is associated with part p.
+    - parts : (P,) int64, the part labels of the columns.
+    - best_part : (K,) int64, each keypoint's most frequent part label.
+    - associated : (K,) float64, fraction of shapes in which keypoint k is associated with any part.
     """
 
     score: float
@@ -500,7 +500,7 @@ def keypoint_coverage(keypoints: Any, points: Any) -> float:
     """Coverage of SC3K (Zohaib and Del Bue, ICCV 2023; ``coverage`` in github.com/IIT-PAVIS/SC3K ``metrics.py``).
 
     With ``d(X)`` the length of the diagonal of the axis-aligned bounding box of X,
-    coverage = max(0, 1 - |d(points) - d(keypoints)| / d(points)): 1 when the keypoints span the shape's bounding
+    coverage = ``max(0, 1 - |d(points) - d(keypoints)| / d(points))``: 1 when the keypoints span the shape's bounding
     box diagonal. SC3K averages it over test shapes and prints x100. Invariant to translation and scale of both.
 
     Parameters
@@ -656,7 +656,7 @@ class EditDistortion(NamedTuple):
     """Detail preservation of an edit (:func:`edit_distortion`).
 
     folded : share of triangles whose normal turned by more than 90 degrees.
-    edge : mean relative change of the edge lengths, mean |l' / l - 1| over the mesh's edges.
+    edge : mean relative change of the edge lengths, mean ``|l' / l - 1|`` over the mesh's edges.
     dihedral : mean change of the dihedral angles, in degrees, over the edges shared by exactly two triangles.
     """
 
@@ -775,9 +775,9 @@ def semantic_edits(roles: dict, category: str, step: float, *, up: int = 2, side
 class PriorResponse(NamedTuple):
     """How a synchronised edit of one keypoint moved the others (:func:`prior_response`).
 
-    partner : the mirror partner's displacement along the mirrored move, relative to the move (1 = mirrored exactly).
-    others : mean displacement length of the other keypoints (neither the moved one nor its partner), relative to the
-        move (0 = they stay).
+    - partner : the mirror partner's displacement along the mirrored move, relative to the move (1 = mirrored exactly).
+    - others : mean displacement length of the other keypoints (neither the moved one nor its partner), relative to the
+      move (0 = they stay).
     """
 
     partner: float

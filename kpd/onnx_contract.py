@@ -5,14 +5,14 @@ imports torch or onnxruntime.
 
 A bundle (directory ``name.kpd/`` or a zip of the same files) holds:
 
-=================  ==========================================================================================
+================== ==========================================================================================
 ``manifest.json``  format name and version, shapes (K, C, F, M), category, point count, normalisation, cage
                    template, W_C, the PCA prior (or null), the template point cloud's description, training
                    record, sha256 of every other file, and a checksum of the manifest itself
 ``keypoints.onnx`` ``points`` (B, N, 3) float32 -> ``keypoints`` (B, K, 3) float32, clamped to [-1, 1]
 ``influence.onnx`` ``points`` (B, N, 3) float32 -> ``influence`` (B, K, C) float32, the instance offset W_I
 ``template.npy``   (optional) (P, 3) float32 surface points of a representative training shape, model frame
-=================  ==========================================================================================
+================== ==========================================================================================
 
 Points are in the model's [-1, 1] frame (``kpd.geometry.Normalizer``, REFERENCE §7). ``B`` and ``N`` are dynamic
 axes named :data:`BATCH_AXIS` and :data:`POINTS_AXIS`.

@@ -67,23 +67,23 @@ LOG_EVERY = 10  # iterations between bringing the loss terms to the host
 class TrainConfig:
     """The training recipe. Defaults are the authors' code (REFERENCE §11 lists the paper's values).
 
-    keypoints : K.
-    iterations : optimisation steps.
-    batch : source/target pairs per step.
-    seed : everything random (initial weights, pairs, samples, FPS starts) derives from it.
-    lr : Adam learning rate of Φ and of Γ.
-    wc_lr : learning rate of W_C (code 1e-2; paper: same as Γ, 1e-3).
-    alpha_kpt : weight of the FPS keypoint regulariser (code 2.0; paper 1.0).
-    alpha_inf, inf_reg : influence regulariser, ``code`` = alpha_inf * mean(W_I²) with 1e6, ``paper`` =
-        alpha_inf * ‖W_I‖_F with 1e-6.
-    fps_factor : J = fps_factor * K farthest points for the regulariser.
-    warmup : keypoint-only iterations at the start (code 200; paper 0).
-    clamp : clamp keypoints to [-1, 1] (code; the paper has no clamp).
-    paper_m : M = ⌊C/K⌋ (paper) instead of max(5, ⌊C/K⌋) (code); ``m`` overrides both.
-    keypoint_source : ``learned`` (Φ) or ``fps`` (farthest-point keypoints of each shape; only the deformer trains,
-        from the first iteration: ``warmup`` and the keypoint regulariser do not apply).
-    save_every : checkpoint (and validation) interval in iterations.
-    val_pairs : fixed validation pairs scored at every checkpoint.
+    - keypoints : K.
+    - iterations : optimisation steps.
+    - batch : source/target pairs per step.
+    - seed : everything random (initial weights, pairs, samples, FPS starts) derives from it.
+    - lr : Adam learning rate of Φ and of Γ.
+    - wc_lr : learning rate of W_C (code 1e-2; paper: same as Γ, 1e-3).
+    - alpha_kpt : weight of the FPS keypoint regulariser (code 2.0; paper 1.0).
+    - alpha_inf, inf_reg : influence regulariser, ``code`` = alpha_inf * mean(W_I²) with 1e6, ``paper`` =
+      alpha_inf * ‖W_I‖_F with 1e-6.
+    - fps_factor : J = fps_factor * K farthest points for the regulariser.
+    - warmup : keypoint-only iterations at the start (code 200; paper 0).
+    - clamp : clamp keypoints to [-1, 1] (code; the paper has no clamp).
+    - paper_m : M = ⌊C/K⌋ (paper) instead of max(5, ⌊C/K⌋) (code); ``m`` overrides both.
+    - keypoint_source : ``learned`` (Φ) or ``fps`` (farthest-point keypoints of each shape; only the deformer trains,
+      from the first iteration: ``warmup`` and the keypoint regulariser do not apply).
+    - save_every : checkpoint (and validation) interval in iterations.
+    - val_pairs : fixed validation pairs scored at every checkpoint.
     """
 
     keypoints: int = 12
