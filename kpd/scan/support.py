@@ -31,10 +31,10 @@ def _dense_subset(points: np.ndarray, *, k: int = 8, factor: float = 2.5) -> np.
 class Support(NamedTuple):
     """The plane an object would rest on when turned so that ``up`` points up (see :func:`support_plane`).
 
-    normal : (3,) float64, unit up-facing normal of the plane under the lowest points
-    stability : signed distance from the centroid's projection to the edge of the contact polygon, in units of the
-        points' RMS radius (> 0: the centroid lies over the contact polygon and the pose is statically stable)
-    count : number of contact points
+    - normal : (3,) float64, unit up-facing normal of the plane under the lowest points
+    - stability : signed distance from the centroid's projection to the edge of the contact polygon, in units of the
+      points' RMS radius (> 0: the centroid lies over the contact polygon and the pose is statically stable)
+    - count : number of contact points
     """
 
     normal: np.ndarray
