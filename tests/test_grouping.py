@@ -38,3 +38,22 @@ def test_groupers_agree_and_reproduce_the_rows(rows):
     # the same partition: two rows share a group in one exactly when they do in the other
     assert np.array_equal(index[:, None] == index[None, :], inverse[:, None] == inverse[None, :])
     assert (np.diff(np.lexsort(points.T[::-1])) > 0).all()  # distinct positions in lexicographic order
+
+
+def test_every_grouper_in_kpd_agrees_on_signed_zeros():
+    """The rig's distinct positions, the viewer's welding for shading normals and the mesh's UV-seam groups are one
+    partition of the same vertices."""
+    from kpd.mesh import Mesh
+    from kpd.rig import distinct_points
+    from kpd.viewer.gl import _Welding
+
+    vertices = np.array([[0.0, 0, 0], [-0.0, 0, 0], [1, 0, -0.0], [1, 0, 0.0], [0, 1, 0], [0, -0.0, 1]])
+    triangles = np.array([[0, 2, 4], [1, 5, 3]])
+    first, index = first_occurrence_groups(vertices)
+    assert len(first) == 4
+    assert len(distinct_points(vertices)) == 4
+    welding = _Welding(vertices, triangles)
+    assert np.array_equal(welding.inverse[:, None] == welding.inverse[None, :], index[:, None] == index[None, :])
+    mesh = Mesh(vertices=vertices, triangles=triangles, vertex_normals=np.tile([0.0, 0, 1], (6, 1)))
+    moved = mesh.with_vertices(vertices * 2)
+    np.testing.assert_array_equal(moved.vertex_normals[0], moved.vertex_normals[1])  # one position, one normal

@@ -51,10 +51,9 @@ class _Welding:
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
         import scipy.sparse as sp
 
-        rows = np.ascontiguousarray(vertices, dtype=np.float64)
-        rows = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).ravel()  # (V,) one key per row
-        _, inverse = np.unique(rows, return_inverse=True)
-        self.inverse = inverse.reshape(-1)  # (V,) group of each vertex
+        from kpd.grouping import first_occurrence_groups
+
+        self.inverse = first_occurrence_groups(np.asarray(vertices, dtype=np.float64)).index  # (V,) group of each vertex
         groups = int(self.inverse.max()) + 1 if len(vertices) else 0
         t = len(triangles)
         rows = self.inverse[triangles].reshape(-1)  # (3T,)
