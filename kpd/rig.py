@@ -819,8 +819,12 @@ def check_bind_memory(vertices: int, triangles: int, keypoints: int) -> None:
     have = available_memory()
     if have is not None and need > have:
         raise InputError(f"a mesh of {vertices:,} vertices and {triangles:,} triangles needs about "
-                         f"{need / 2**30:.1f} GiB to bind; {max(have, 0) / 2**30:.1f} GiB of memory is available "
+                         f"{_size(need)} to bind; {_size(max(have, 0))} of memory is available "
                          f"(simplify the mesh, or free memory)")
+
+
+def _size(count: int) -> str:
+    return f"{count / 2**30:.1f} GiB" if count >= 2**30 else f"{count / 2**20:.0f} MiB"
 
 
 def _thin_triangles(points: np.ndarray, tri: np.ndarray, thinness: float) -> tuple[np.ndarray, ...]:

@@ -28,7 +28,8 @@ from kpd.errors import BundleError, InputError
 from kpd.geometry import Normalizer, as_points, as_rng, sample_surface
 from kpd.io import Mesh, PointSet
 from kpd.prior import KeypointPrior
-from kpd.rig import TRANSFER_RIDGE, TRANSFER_SIGMA, TRANSFER_SUPPORT, Rig, distinct_points, transfer_influence
+from kpd.rig import (TRANSFER_RIDGE, TRANSFER_SIGMA, TRANSFER_SUPPORT, Rig, check_bind_memory, distinct_points,
+                     transfer_influence)
 
 __all__ = ["Model", "Prediction", "Shape"]
 
@@ -301,6 +302,7 @@ class Model:
         mesh = _as_shape(mesh)
         if not isinstance(mesh, Mesh) or not len(mesh.triangles):
             raise InputError(f"a rig needs a triangle mesh; got {_describe(mesh)}")
+        check_bind_memory(len(mesh.vertices), len(mesh.triangles), self.num_keypoints)  # before any work
         prediction = prediction if prediction is not None else self.predict(mesh, seed=seed)
         # the authors' rule on the sampled points, as in training; then, beyond it, push faces out until every mesh
         # vertex is inside (only the vertices are deformed through MVC)

@@ -1,0 +1,203 @@
+"""The rig at scan sizes: the compiled, streamed binding gives today's rig; small rig files; old files; memory."""
+
+import numpy as np
+import pytest
+
+from kpd.cage import Cage
+from kpd.errors import InputError
+from kpd.geometry import Normalizer, farthest_point_sampling, sample_surface
+from kpd.io import Mesh, read_mesh, write_mesh
+from kpd.io.integrity import HASH_KEY, content_hash
+from kpd.rig import (Rig, _compact_basis, _mesh_arrays, _straighten_basis_reference, bind_memory,
+                     coincident_mvc_basis, coincident_mvc_weights, straighten_basis)
+
+
+def box_mesh():
+    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
+    t = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    return Mesh(vertices=v * (2.0, 1.0, 0.5) + (10.0, -3.0, 5.0), triangles=t)
+
+
+def fps_rig(mesh, k=12, straighten=True):
+    norm = Normalizer().fit(mesh.vertices)
+    points = sample_surface(norm.apply(mesh.vertices), mesh.triangles, 2048, seed=0).points
+    keypoints = points[farthest_point_sampling(points, k, seed=0)]
+    influence = np.random.default_rng(0).uniform(0.5, 1.5, (k, 42))
+    return Rig.bind(mesh, keypoints, influence, normalizer=norm, straighten=straighten)
+
+
+def todays_rig(rig, straighten=True):
+    """The rig as kpd bound it before the compiled kernel: the (V, C) weights from the numpy kernel, their product
+    with the influence, and the straightening as one sparse LU over every vertex."""
+    vertices = rig.normalizer.apply(rig.mesh.vertices)
+    weights = coincident_mvc_weights(vertices, rig.cage)
+    basis = weights @ rig.influence.T
+    correction = None
+    if straighten:
+        corrected = _straighten_basis_reference(basis, vertices, rig.mesh.triangles)
+        correction = None if corrected is basis else corrected - basis
+    return Rig(rig.mesh, rig.normalizer, rig.normalizer.apply(rig.keypoints), rig.cage, rig.influence, weights,
+               correction)
+
+
+def edits(rig, count=6, seed=0):
+    """Keypoint sets with every keypoint moved by up to half the box diagonal."""
+    diagonal = float(np.linalg.norm(np.ptp(rig.mesh.vertices, axis=0)))
+    rng = np.random.default_rng(seed)
+    return [rig.keypoints + rng.uniform(-0.3, 0.3, (rig.num_keypoints, 3)) * diagonal for _ in range(count)], diagonal
+
+
+def assert_same_edits(new, old):
+    sets, diagonal = edits(new)
+    for keypoints in sets:
+        assert np.abs(new.deform(keypoints) - old.deform(keypoints)).max() <= 1e-6 * diagonal
+
+
+@pytest.mark.parametrize("path, straighten", [
+    ("modelnet10/chair/test/chair_0890.ply", True),
+    ("modelnet10/table/test/table_0411.ply", True),
+    ("scans/sneaker.ply", False),
+])
+def test_bound_rigs_deform_as_todays_within_1e6_of_the_diagonal(data_dir, path, straighten):
+    rig = fps_rig(read_mesh(data_dir / path), straighten=straighten)
+    assert rig._weights is None  # the bound rig holds the basis only
+    assert_same_edits(rig, todays_rig(rig, straighten))
+
+
+def test_the_shipped_models_rig_deforms_as_todays(data_dir):
+    from kpd.runtime import Model
+
+    model = Model.load("table", threads=1)
+    rig = model.rig(read_mesh(data_dir / "modelnet10" / "table" / "test" / "table_0411.ply"))
+    assert rig.basis.dtype == np.float32
+    old = todays_rig(rig)
+    assert_same_edits(rig, old)
+    assert np.abs(rig.correction - old.correction).max() <= 1e-4
+
+
+@pytest.mark.parametrize("name", ["chair_0890", "chair_0956"])
+def test_straightening_by_pieces_equals_the_whole_mesh_solve(data_dir, name):
+    mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / f"{name}.ply")
+    rig = fps_rig(mesh, straighten=False)
+    vertices = rig.normalizer.apply(mesh.vertices)
+    basis = np.asarray(rig.basis, dtype=np.float64)
+    fast = straighten_basis(basis, vertices, mesh.triangles)
+    slow = _straighten_basis_reference(basis, vertices, mesh.triangles)
+    assert np.abs(slow - basis).max() > 1e-3  # the meshes have slivers to straighten
+    assert np.abs(fast - slow).max() <= 1e-4
+    np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-9)  # in fact the same system, solved exactly
+
+
+def test_coincident_mvc_basis_is_the_weights_times_the_rows(data_dir):
+    mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0956.ply")  # ~4 vertices per position
+    rig = fps_rig(mesh, straighten=False)
+    vertices = rig.normalizer.apply(mesh.vertices)
+    expected = coincident_mvc_weights(vertices, rig.cage) @ rig.influence.T
+    np.testing.assert_allclose(coincident_mvc_basis(vertices, rig.cage, rig.influence.T), expected, rtol=0,
+                               atol=1e-11)
+    np.testing.assert_allclose(rig.weights, coincident_mvc_weights(vertices, rig.cage), rtol=0, atol=1e-11)
+
+
+def test_float32_basis_only_where_edits_stay_within_1e6_of_the_diagonal(data_dir):
+    mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply")
+    rig = fps_rig(mesh)
+    assert rig.basis.dtype == np.float32
+    vertices = rig.normalizer.apply(mesh.vertices)
+    exact = straighten_basis(coincident_mvc_basis(vertices, rig.cage, rig.influence.T), vertices, mesh.triangles)
+    full = Rig(mesh, rig.normalizer, rig.normalizer.apply(rig.keypoints), rig.cage, rig.influence, basis=exact)
+    assert full.basis.dtype == np.float64
+    diagonal = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    rng = np.random.default_rng(1)
+    for _ in range(4):  # every keypoint moved by a whole diagonal
+        direction = rng.normal(size=(rig.num_keypoints, 3))
+        keypoints = rig.keypoints + diagonal * direction / np.linalg.norm(direction, axis=1, keepdims=True)
+        assert np.abs(rig.deform(keypoints) - full.deform(keypoints)).max() <= 1e-6 * diagonal
+    wide = np.full((4, 3), 6.0)  # rows summing to 18: float32 could move a vertex by more than 1e-6
+    assert _compact_basis(wide).dtype == np.float64
+    assert _compact_basis(wide / 6.0).dtype == np.float32
+
+
+def test_saved_rigs_hold_the_basis_not_the_weights(data_dir, tmp_path):
+    mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply")
+    rig = fps_rig(mesh)
+    rig.save(tmp_path / "rig.npz")
+    with np.load(tmp_path / "rig.npz") as stored:
+        assert str(stored["format"]) == "kpd-rig/3"
+        assert "weights" not in stored.files and "basis_correction" not in stored.files
+        assert stored["basis"].shape == (len(mesh.vertices), 12)
+    back = Rig.load(tmp_path / "rig.npz")
+    assert back.correction is not None  # it was straightened, and says so
+    for keypoints in edits(rig)[0]:
+        np.testing.assert_array_equal(back.deform(keypoints), rig.deform(keypoints))
+
+
+def write_old_rig(rig, path, fmt):
+    """A rig file as kpd wrote it before kpd-rig/3 (the save of kpd 0a2239f): the (V, C) weights, and in
+    kpd-rig/2 the straightening's correction when there is one."""
+    arrays = {
+        "format": np.array(fmt),
+        "keypoints": rig.normalizer.apply(rig.keypoints),
+        "cage_vertices": rig.cage.vertices,
+        "cage_faces": rig.cage.faces,
+        "influence": rig.influence,
+        "weights": rig.weights,
+        **({} if rig.correction is None or fmt == "kpd-rig/1" else {"basis_correction": rig.correction}),
+        "normalizer_center": rig.normalizer.center_,
+        "normalizer_scale": np.array(rig.normalizer.scale_),
+    }
+    for name, value in _mesh_arrays(rig.mesh).items():
+        arrays["mesh_" + name] = value
+    arrays[HASH_KEY] = np.array(content_hash(arrays))
+    with open(path, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+
+
+@pytest.mark.parametrize("fmt", ["kpd-rig/1", "kpd-rig/2"])
+def test_old_rig_files_load_and_deform_as_before(data_dir, tmp_path, fmt):
+    mesh = read_mesh(data_dir / "modelnet10" / "table" / "test" / "table_0411.ply")
+    old = todays_rig(fps_rig(mesh), straighten=fmt == "kpd-rig/2")
+    write_old_rig(old, tmp_path / "old.npz", fmt)
+    back = Rig.load(tmp_path / "old.npz")
+    assert back.basis.dtype == np.float64
+    np.testing.assert_array_equal(back.weights, old.weights)
+    assert (back.correction is None) == (fmt == "kpd-rig/1")
+    for keypoints in edits(old)[0]:
+        offsets = keypoints - old.keypoints
+        expected = mesh.vertices + (old.weights @ old.influence.T
+                                    + (0 if back.correction is None else old.correction)) @ offsets
+        np.testing.assert_allclose(back.deform(keypoints), expected, rtol=0, atol=1e-12 * old.normalizer.scale_)
+
+
+def test_a_rig_with_both_or_neither_of_weights_and_basis_is_refused():
+    rig = fps_rig(box_mesh(), k=8, straighten=False)
+    args = (rig.mesh, rig.normalizer, rig.normalizer.apply(rig.keypoints), rig.cage, rig.influence)
+    with pytest.raises(InputError, match="either the MVC weights"):
+        Rig(*args)
+    with pytest.raises(InputError, match="either the MVC weights"):
+        Rig(*args, rig.weights, basis=rig.basis)
+    with pytest.raises(InputError, match=r"edit basis must be \(V, K\) = \(8, 8\)"):
+        Rig(*args, basis=np.zeros((8, 3)))
+
+
+def test_a_mesh_larger_than_memory_allows_ends_in_one_line(tmp_path, monkeypatch, capsys):
+    import kpd.rig
+    from kpd.cli import main
+
+    mesh = box_mesh()
+    need = bind_memory(8, 12, 8)
+    monkeypatch.setattr(kpd.rig, "available_memory", lambda: need - 1)
+    with pytest.raises(InputError, match=r"a mesh of 8 vertices and 12 triangles needs about .* to bind; "
+                                         r".* of memory is available"):
+        fps_rig(mesh, k=8)
+    write_mesh(tmp_path / "box.ply", mesh)
+    code = main(["deform", "chair", str(tmp_path / "box.ply"), "--move", "0:0,0,0.1", "--out",
+                 str(tmp_path / "out.ply")])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    errors = [line for line in lines if "error" in line]  # (a warning on the box's frame may come first)
+    assert errors == lines[-1:] and "Traceback" not in "".join(lines)
+    assert errors[0].startswith("kpd deform: error: a mesh of 8 vertices and 12 triangles needs about")
+    assert not (tmp_path / "out.ply").exists()
+    monkeypatch.setattr(kpd.rig, "available_memory", lambda: need)
+    assert isinstance(fps_rig(mesh, k=8).cage, Cage)
