@@ -61,6 +61,8 @@ _BLOCK = 65536  # mesh vertices per product in MorphRig.vertices
 class MorphRig:
     """A rig's edits as morph targets: per target, the keypoint offsets of one unit of its weight.
 
+    Built from a :class:`kpd.rig.Rig` and a prior by :meth:`from_rig`.
+
     Parameters
     ----------
     mesh : Mesh, the rest shape in the user's frame and units.
@@ -69,8 +71,6 @@ class MorphRig:
     names : (T,) target names.
     offsets : (T, K, 3) float64, keypoint offsets per unit weight of each target, user units.
     meta : JSON-safe dict written to ``asset.extras.kpd`` (model, category, version...).
-
-    Built from a :class:`kpd.rig.Rig` and a prior by :meth:`from_rig`.
     """
 
     def __init__(self, mesh: Mesh, keypoints: Any, basis: Any, names: Sequence[str], offsets: Any,
