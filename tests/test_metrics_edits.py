@@ -1,4 +1,4 @@
-"""Edit-quality measures of kpd.metrics: locality, folds, distortion, roles and semantic edits, prior response,
+"""kpd.metrics.edits: edit-quality measures: locality, folds, distortion, roles and semantic edits, prior response,
 self-intersections, distance to the training keypoints."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""Protocol metrics of kpd.metrics (PCK by regression, part correspondence, DAS, SC3K coverage / inclusivity) and the
-``kpd eval pck|parts|das|coverage|chamfer`` commands."""
+"""kpd.metrics.annotated: protocol metrics (PCK by regression, part correspondence, DAS, SC3K coverage and
+inclusivity) and the ``kpd eval pck|parts|das|coverage|chamfer`` commands."""
 
 from __future__ import annotations
 
