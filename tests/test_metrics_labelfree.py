@@ -1,4 +1,4 @@
-"""kpd.metrics: label-free keypoint metrics and the alignment chamfer."""
+"""kpd.metrics.labelfree: label-free keypoint metrics and the alignment chamfer."""
 
 from __future__ import annotations
 
