@@ -16,7 +16,7 @@ WEB_STAMP := viewer/web/vendor/.kpd-installed
 THREE_FILES := LICENSE build/three.module.js build/three.core.js examples/jsm/loaders/GLTFLoader.js \
 	examples/jsm/utils/BufferGeometryUtils.js examples/jsm/utils/SkeletonUtils.js examples/jsm/controls/OrbitControls.js
 
-.PHONY: demo test bench system venv web blender clean
+.PHONY: demo test docs bench system venv web blender clean
 
 # System packages: installed when missing and we are root (open3d needs libusb; rendering needs vulkan/mesa, and
 # EGL + Mesa GL for the OpenGL pictures; the editor's panel needs Tk;
@@ -64,9 +64,15 @@ test: venv web blender
 	$(PY) -m pytest -n 2 -q
 	$(VENV)/bin/lint-imports
 
+# The documentation: docs/*.md and the API reference from the docstrings, into docs/_build/html; any Sphinx warning
+# fails the build. The per-module pages are generated afresh (docs/api/_generated), so a moved module leaves none.
+docs: venv
+	rm -rf docs/api/_generated
+	$(VENV)/bin/sphinx-build -W --keep-going -q -b html docs docs/_build/html
+
 bench: venv web blender
 	@mkdir -p benchmarks/results; for b in benchmarks/bench_*.py; do n=$$(basename $$b .py); n=$${n#bench_}; \
 	  echo "== $$b -> benchmarks/results/$$n.json"; $(PY) $$b > benchmarks/results/$$n.json.tmp && mv benchmarks/results/$$n.json.tmp benchmarks/results/$$n.json; done
 
 clean:
-	rm -rf $(VENV) $(BLENDER_VENV) node_modules viewer/web/vendor demo-output .pytest_cache .hypothesis build *.egg-info
+	rm -rf $(VENV) $(BLENDER_VENV) node_modules viewer/web/vendor demo-output docs/_build docs/api/_generated .pytest_cache .hypothesis build *.egg-info
