@@ -322,7 +322,7 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
         raise InputError("a glTF rig needs a mesh with vertices")
     center = (vertices[used].min(axis=0) + vertices[used].max(axis=0)) / 2.0  # (3,)
     builder = _Builder()
-    displacements = [morph.basis @ morph.offsets[t] for t in chosen]  # T x (V, 3)
+    stacked = np.ascontiguousarray(morph.offsets[chosen].transpose(1, 0, 2).reshape(len(morph.keypoints), -1))
     primitives = []
     for material, source, triangles, uv in _primitive_groups(mesh):
         attributes = {"POSITION": builder.accessor((vertices[source] - center).astype(np.float32), "VEC3", _FLOAT,
@@ -334,13 +334,12 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
             st = uv * [1.0, -1.0] + [0.0, 1.0]  # glTF puts the UV origin at the top left
             attributes["TEXCOORD_0"] = builder.accessor(st.astype(np.float32), "VEC2", _FLOAT, _ARRAY_BUFFER)
         indices = builder.accessor(triangles.reshape(-1).astype(np.uint32), "SCALAR", _UINT, _ELEMENT_ARRAY_BUFFER)
-        targets = [{"POSITION": builder.accessor(d[source].astype(np.float32), "VEC3", _FLOAT, _ARRAY_BUFFER,
-                                                 bounds=True)} for d in displacements]
+        moved = _displacements(morph.basis, source, stacked)  # (T, n, 3) float32
+        targets = [{"POSITION": builder.accessor(d, "VEC3", _FLOAT, _ARRAY_BUFFER, bounds=True)} for d in moved]
         primitive = {"attributes": attributes, "indices": indices, "mode": 4, "targets": targets}
         if material is not None:
             primitive["material"] = material
         primitives.append(primitive)
-    del displacements
     doc: dict[str, Any] = {
         "asset": {"version": "2.0", "generator": f"kpd {_version()}",
                   "extras": {"kpd": {**morph.meta, "version": _version(), "frame": "input",
@@ -374,6 +373,18 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
         buffer["uri"] = bin_uri
     doc["buffers"] = [buffer]
     return doc, builder
+
+
+def _displacements(basis: np.ndarray, source: np.ndarray, stacked: np.ndarray) -> np.ndarray:
+    """(T, n, 3) float32: every target's displacement of the written vertices, ``basis[source] @ stacked`` computed
+    in blocks of rows (one product for all targets; the float64 block stays small)."""
+    n, t = len(source), stacked.shape[1] // 3
+    out = np.empty((t, n, 3), dtype=np.float32)
+    for start in range(0, n, _BLOCK):
+        rows = source[start:start + _BLOCK]
+        block = (basis[rows] @ stacked).reshape(len(rows), t, 3)  # (b, T, 3) float64
+        out[:, start:start + len(rows)] = block.transpose(1, 0, 2)
+    return out
 
 
 def _version() -> str:

@@ -79,10 +79,6 @@ def page(chair_file, tmp_path_factory):
     driver = None
     try:
         driver = start_chromium(profile)
-        driver.get(url)
-        wait(driver, "return window.kpd && (window.kpd.ready || window.kpd.error)")
-        assert driver.execute_script("return window.kpd.error") is None
-        wait(driver, "return window.kpd.stats.firstPicture !== null")
         yield driver, out, url
     finally:
         if driver is not None:
@@ -98,6 +94,14 @@ def reference(chair_file):
     mesh = read_mesh(chair_file)
     rig = model.rig(mesh)
     return rig, MorphRig.from_rig(rig, model.prior), mesh
+
+
+def open_page(driver, url: str) -> None:
+    """Load the page afresh and wait for its first picture."""
+    driver.get(url)
+    wait(driver, "return window.kpd && (window.kpd.ready || window.kpd.error)")
+    assert driver.execute_script("return window.kpd.error") is None
+    wait(driver, "return window.kpd.stats.firstPicture !== null")
 
 
 def drag(driver, keypoint: int, dx: int, dy: int, steps: int = 8) -> tuple[float, float]:
@@ -126,9 +130,10 @@ def page_state(driver):
 
 
 def test_drag_moves_the_keypoint_and_the_mesh_as_the_rig_does(page, reference):
-    driver, _, _ = page
+    driver, _, url = page
     rig, morph, mesh = reference
     diagonal = np.linalg.norm(np.ptp(mesh.vertices, axis=0))
+    open_page(driver, url)
     end = drag(driver, 8, 0, -64)  # the backrest's top corner, up on the screen
     weights, keypoints, positions, rest = page_state(driver)
     moved = {name for name, value in weights.items() if value}
@@ -148,12 +153,11 @@ def test_prior_switch_sliders_undo_redo_reset_and_save(page, reference):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
 
-    driver, out, _ = page
+    driver, out, url = page
     rig, morph, mesh = reference
     diagonal = np.linalg.norm(np.ptp(mesh.vertices, axis=0))
+    open_page(driver, url)
     index = corresponding(page_state(driver)[3], mesh)
-    driver.find_element(By.ID, "reset").click()
-    assert not any(page_state(driver)[0].values())
     driver.find_element(By.ID, "prior").click()  # the prior switch on: the partner leg follows
     drag(driver, 1, -48, 0)
     weights, keypoints, positions, _ = page_state(driver)
@@ -192,6 +196,41 @@ def test_prior_switch_sliders_undo_redo_reset_and_save(page, reference):
     wait(driver, "return window.kpd.lastSave && window.kpd.lastSave.message.includes('saved') && "
                  "document.getElementById('status').textContent.startsWith('saved')")
     np.testing.assert_allclose(read_mesh(out).vertices, mesh.vertices, atol=1e-6 * diagonal)
+
+
+def picture(driver) -> np.ndarray:
+    """(H, W, 3) the page's WebGL picture as drawn now."""
+    import base64
+    import io
+
+    from PIL import Image
+
+    url = driver.execute_script("return window.kpd.snapshot()")
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(",", 1)[1]))).convert("RGB"), dtype=np.int16)
+
+
+def test_three_morph_targets_and_the_packed_basis_draw_the_same(page, reference):
+    """The same edit drawn by three.js's own morph targets (?morph=three) and by the page's packed basis: the same
+    positions as Rig.deform, and the same picture from the GPU."""
+    driver, _, url = page
+    rig, morph, mesh = reference
+    diagonal = np.linalg.norm(np.ptp(mesh.vertices, axis=0))
+    rng = np.random.default_rng(3)
+    weights = {n: float(rng.normal() * (0.04 * diagonal if n.startswith(("keypoint_", "prior_")) else 1.0))
+               for n in morph.names if rng.uniform() < 0.3}
+    pictures = {}
+    for mode in ("three", "basis"):
+        open_page(driver, url + ("?morph=three" if mode == "three" else ""))
+        rest_picture = picture(driver)
+        driver.execute_script("window.kpd.setWeights(arguments[0])", weights)
+        _, keypoints, positions, rest = page_state(driver)
+        np.testing.assert_allclose(keypoints, morph.keypoints_at(weights), atol=1e-9 * diagonal)
+        index = corresponding(rest, mesh)
+        assert np.abs(positions - rig.deform(keypoints)[index]).max() < TOLERANCE * diagonal
+        pictures[mode] = picture(driver)
+        assert (np.abs(pictures[mode] - rest_picture).max(axis=2) > 32).mean() > 0.01  # the edit shows
+    differs = (np.abs(pictures["three"] - pictures["basis"]).max(axis=2) > 32).mean()
+    assert differs < 0.002, differs  # a few edge pixels at most
 
 
 def test_refusals_in_one_line(chair_file, tmp_path):

@@ -4,21 +4,39 @@
 // pca_<c>). Each target t moves the keypoints by known offsets D_t (K x 3, asset.extras.kpd.keypointOffsets), and the
 // mesh by B D_t, so every edit is a sum of keypoint offsets: the page sets the morph influences of the
 // keypoint_<i>_<axis> targets to the keypoints' total offsets sum_t w_t D_t and the GPU moves the mesh.
+//
+// The keypoint targets of keypoint i are B_i (1, 0, 0), B_i (0, 1, 0), B_i (0, 0, 1) with B_i the rig's basis column,
+// so their weighted sum is sum_i B_i o_i with o_i keypoint i's offset. By default the page reads B_i from the
+// targets' data once and the vertex shader adds sum_i B_i o_i (K multiply-adds per vertex, the same sum as the
+// morph targets'); three.js's own morph targets (a texture fetch per target and vertex) draw the same mesh at a
+// fraction of the speed on a software renderer. ?morph=three uses three.js's morph targets.
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 
 const params = new URLSearchParams(location.search);
 const timing = params.has('timing'); // finish each frame on the GPU and record its time (benchmarks, tests)
+const threeMorphs = params.get('morph') === 'three';
 const PICK_PIXELS = 14; // a press this close to a keypoint's marker grabs it
 
-const kpd = { ready: false, error: null, stats: { firstPicture: null, frames: [], loaded: null } };
+// stats.firstPicture: ms from the page's start to its first finished frame; with ?timing, stats.steps: per drag or
+// slider step, {latency: ms from the input event to its finished frame, work: ms of the page's own work for it}
+const kpd = { ready: false, error: null, stats: { firstPicture: null, loaded: null, steps: [] } };
 window.kpd = kpd;
 
 const view = document.getElementById('view');
 const labels = document.getElementById('labels');
 const statusLine = document.getElementById('status');
-const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+// multisampling doubles the cost of a frame on a software renderer (SwiftShader, where there is no GPU): it is on
+// only where WebGL runs on a GPU
+function softwareWebGL() {
+  const gl = document.createElement('canvas').getContext('webgl2');
+  const info = gl && gl.getExtension('WEBGL_debug_renderer_info');
+  const name = info ? gl.getParameter(info.UNMASKED_RENDERER_WEBGL) : '';
+  gl?.getExtension('WEBGL_lose_context')?.loseContext();
+  return /swiftshader|llvmpipe|software/i.test(name);
+}
+const renderer = new THREE.WebGLRenderer({ antialias: !softwareWebGL() });
 renderer.setPixelRatio(window.devicePixelRatio);
 view.prepend(renderer.domElement);
 const scene = new THREE.Scene();
@@ -37,12 +55,14 @@ let rest = [];           // K x 3 rest keypoints, the user's frame
 let w = null;            // Float64Array of the target weights
 let root = null;         // the glTF root node: its local frame is the user's frame
 let meshes = [];         // the mesh's primitives (three.js Meshes with morph targets)
+let morphData = [];      // per mesh: its morph target attributes and their names (kept for the CPU's positions)
+let offsetUniforms = []; // K Vector3 uniforms: the keypoints' offsets (packed basis path)
 let markers = [];        // one sphere per keypoint, children of `root`
 let labelSpans = [];
 let history = [];
 let historyIndex = 0;
 let frameRequested = false;
-let pendingEvent = null; // the timestamp of the input that the next frame shows (timing)
+let pending = null;      // the input that the next frame shows: {start, work} (timing)
 const index = new Map();
 
 function status(text, error = false) {
@@ -73,15 +93,19 @@ function keypointsUser() {
 
 function apply() {
   const total = totalOffsets();
-  for (const mesh of meshes) {
-    const dictionary = mesh.morphTargetDictionary;
-    const influences = mesh.morphTargetInfluences;
-    for (let i = 0; i < rest.length; i++) {
-      for (let a = 0; a < 3; a++) {
-        const slot = dictionary[`keypoint_${i}_${'xyz'[a]}`];
-        if (slot !== undefined) influences[slot] = total[i][a];
+  if (threeMorphs) {
+    for (const mesh of meshes) {
+      const dictionary = mesh.morphTargetDictionary;
+      const influences = mesh.morphTargetInfluences;
+      for (let i = 0; i < rest.length; i++) {
+        for (let a = 0; a < 3; a++) {
+          const slot = dictionary[`keypoint_${i}_${'xyz'[a]}`];
+          if (slot !== undefined) influences[slot] = total[i][a];
+        }
       }
     }
+  } else {
+    total.forEach((o, i) => offsetUniforms[i].set(o[0], o[1], o[2]));
   }
   for (let i = 0; i < rest.length; i++) {
     markers[i].position.set(rest[i][0] + total[i][0], rest[i][1] + total[i][1], rest[i][2] + total[i][2]);
@@ -97,15 +121,22 @@ function requestFrame() {
 
 function draw() {
   frameRequested = false;
+  const start = performance.now();
   renderer.render(scene, camera);
+  placeLabels();
   if (timing || kpd.stats.firstPicture === null) {
     renderer.getContext().finish();
     const now = performance.now();
     if (kpd.stats.firstPicture === null) kpd.stats.firstPicture = now;
-    if (pendingEvent !== null) kpd.stats.frames.push(now - pendingEvent);
+    if (pending !== null) kpd.stats.steps.push({ latency: now - pending.start, work: pending.work + now - start });
   }
-  pendingEvent = null;
-  placeLabels();
+  pending = null;
+}
+
+function timed(event, work) { // run an input's work, remembering when the input came (timing)
+  const start = performance.now();
+  work();
+  if (timing) pending = { start: Math.min(start, event.timeStamp), work: performance.now() - start };
 }
 
 function screenOf(position) {
@@ -202,6 +233,10 @@ function onPointerDown(event) {
 
 function onPointerMove(event) {
   if (drag === null) return;
+  timed(event, () => dragTo(event));
+}
+
+function dragTo(event) {
   const hit = pointerRay(event).intersectPlane(drag.plane, new THREE.Vector3());
   if (hit === null) return;
   const target = root.worldToLocal(hit); // the user's frame
@@ -211,7 +246,6 @@ function onPointerMove(event) {
     w[index.get(`${prefix}_${drag.keypoint}_${'xyz'[a]}`)] += target.getComponent(a) - current[a];
   }
   drag.moved = true;
-  pendingEvent = performance.now();
   apply();
 }
 
@@ -241,6 +275,34 @@ async function save() {
   }
 }
 
+// --- the keypoint targets as K basis attributes ----------------------------------------------------------------
+
+function packBasis(mesh) {
+  // B_i of every vertex from the x component of target keypoint_<i>_x, into ceil(K / 4) vec4 attributes
+  const geometry = mesh.geometry;
+  const count = geometry.attributes.position.count;
+  const k = rest.length;
+  const slots = Math.ceil(k / 4);
+  const packed = Array.from({ length: slots }, () => new Float32Array(count * 4));
+  for (let i = 0; i < k; i++) {
+    const target = geometry.morphAttributes.position[mesh.morphTargetDictionary[`keypoint_${i}_x`]];
+    const column = packed[i >> 2];
+    for (let v = 0; v < count; v++) column[4 * v + (i & 3)] = target.getX(v);
+  }
+  packed.forEach((data, j) => geometry.setAttribute(`kpdBasis${j}`, new THREE.BufferAttribute(data, 4)));
+  geometry.morphAttributes = {}; // drawn by the shader below, not by three.js's morph targets
+  mesh.morphTargetInfluences = undefined;
+  const sum = Array.from({ length: k }, (_, i) => `kpdBasis${i >> 2}.${'xyzw'[i & 3]} * kpdOffsets[${i}]`);
+  mesh.material.onBeforeCompile = (shader) => {
+    shader.uniforms.kpdOffsets = { value: offsetUniforms };
+    shader.vertexShader = Array.from({ length: slots }, (_, j) => `attribute vec4 kpdBasis${j};\n`).join('')
+      + `uniform vec3 kpdOffsets[${k}];\n`
+      + shader.vertexShader.replace('#include <begin_vertex>', `#include <begin_vertex>\ntransformed += ${sum.join(' + ')};`);
+  };
+  mesh.material.customProgramCacheKey = () => `kpd-basis-${k}`;
+  mesh.material.needsUpdate = true;
+}
+
 // --- start ------------------------------------------------------------------------------------------------------
 
 function buildPanel(info) {
@@ -256,7 +318,7 @@ function buildPanel(info) {
     const slider = document.createElement('input');
     Object.assign(slider, { type: 'range', min: -3, max: 3, step: 0.01, value: 0 });
     slider.dataset.target = name;
-    slider.addEventListener('input', () => { w[index.get(name)] = Number(slider.value); pendingEvent = performance.now(); apply(); });
+    slider.addEventListener('input', (event) => timed(event, () => { w[index.get(name)] = Number(slider.value); apply(); }));
     slider.addEventListener('change', remember);
     label.append(slider);
     sliders.append(label);
@@ -308,10 +370,17 @@ async function start() {
   root = gltf.scene.children[0];
   gltf.scene.traverse((object) => {
     if (object.isMesh && object.morphTargetInfluences) {
+      // diffuse shading (kpd's materials are matte: no metal, full roughness) at a fraction of PBR's cost per pixel
+      const source = object.material;
+      object.material = new THREE.MeshLambertMaterial({ color: source.color, map: source.map,
+        vertexColors: source.vertexColors, flatShading: source.flatShading });
       meshes.push(object);
+      morphData.push({ targets: object.geometry.morphAttributes.position, names: { ...object.morphTargetDictionary } });
       object.frustumCulled = false; // the bounding sphere is the rest shape's
     }
   });
+  offsetUniforms = rest.map(() => new THREE.Vector3());
+  if (!threeMorphs) meshes.forEach(packBasis);
   scene.add(gltf.scene);
   gltf.scene.updateMatrixWorld(true);
   const radius = frameCamera(gltf.scene);
@@ -351,18 +420,34 @@ Object.assign(kpd, {
   setWeights: (values) => { w = new Float64Array(names.length); for (const [n, v] of Object.entries(values)) w[index.get(n)] = v; remember(); apply(); },
   keypoints: () => keypointsUser(),
   keypointScreen: (i) => { root.updateMatrixWorld(true); return screenOf(markers[i].getWorldPosition(new THREE.Vector3())); },
-  // vertex positions as three.js morphs them (Mesh.getVertexPosition), in the user's frame, per primitive
-  positions: () => meshes.map((mesh) => {
+  // vertex positions of the morph targets at the page's influences, in the user's frame, per primitive: three.js's
+  // own evaluation (Mesh.getVertexPosition) with ?morph=three, else the targets' sum with the influences the
+  // shader's offsets stand for
+  positions: () => meshes.map((mesh, m) => {
     const count = mesh.geometry.attributes.position.count;
     const out = new Array(count * 3);
     const p = new THREE.Vector3();
+    const total = totalOffsets();
+    const { targets, names: slots } = morphData[m];
     for (let v = 0; v < count; v++) {
-      mesh.getVertexPosition(v, p);
+      if (threeMorphs) {
+        mesh.getVertexPosition(v, p);
+      } else {
+        p.fromBufferAttribute(mesh.geometry.attributes.position, v);
+        for (let i = 0; i < rest.length; i++) {
+          for (let a = 0; a < 3; a++) {
+            const target = targets[slots[`keypoint_${i}_${'xyz'[a]}`]];
+            p.x += total[i][a] * target.getX(v); p.y += total[i][a] * target.getY(v); p.z += total[i][a] * target.getZ(v);
+          }
+        }
+      }
       root.worldToLocal(mesh.localToWorld(p));
       out[3 * v] = p.x; out[3 * v + 1] = p.y; out[3 * v + 2] = p.z;
     }
     return out;
   }),
+  // the picture as drawn now (a PNG data URL): the GPU's result, to compare the two ways of drawing
+  snapshot: () => { renderer.render(scene, camera); return renderer.domElement.toDataURL('image/png'); },
   restPositions: () => meshes.map((mesh) => {
     const attribute = mesh.geometry.attributes.position;
     const out = new Array(attribute.count * 3);
