@@ -647,12 +647,39 @@ def _edge_graph(tri: np.ndarray, n: int):
     """(n, n) CSR upper-triangular adjacency of the triangles' edges (each undirected edge once)."""
     import scipy.sparse as sparse
 
-    pairs = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])  # (3T, 2)
-    lo, hi = pairs.min(axis=1), pairs.max(axis=1)
-    graph = sparse.csr_matrix((np.ones(len(lo), dtype=np.int8), (lo, hi)), shape=(n, n))
-    graph.sum_duplicates()
-    graph.data[:] = 1
-    return graph
+    indptr, indices = _unique_edges(np.ascontiguousarray(tri, dtype=np.int64), n)
+    return sparse.csr_matrix((np.ones(len(indices), dtype=np.int8), indices, indptr), shape=(n, n))
+
+
+@numba.njit(cache=True, nogil=True)
+def _unique_edges(tri, n):  # pragma: no cover - compiled
+    """CSR (indptr (n + 1,), indices) of the edges (lo, hi), lo < hi, of triangles (T, 3), each once, sorted."""
+    count = np.zeros(n + 1, dtype=np.int64)
+    for t in range(tri.shape[0]):
+        for k in range(3):
+            a, b = tri[t, k], tri[t, (k + 1) % 3]
+            count[min(a, b) + 1] += 1
+    for i in range(n):
+        count[i + 1] += count[i]
+    fill = count[:-1].copy()
+    other = np.empty(count[n], dtype=np.int64)
+    for t in range(tri.shape[0]):
+        for k in range(3):
+            a, b = tri[t, k], tri[t, (k + 1) % 3]
+            lo = min(a, b)
+            other[fill[lo]] = max(a, b)
+            fill[lo] += 1
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    indices = np.empty(count[n], dtype=np.int64)
+    size = 0
+    for i in range(n):
+        row = np.sort(other[count[i]:count[i + 1]])
+        for j in range(len(row)):
+            if j == 0 or row[j] != row[j - 1]:
+                indices[size] = row[j]
+                size += 1
+        indptr[i + 1] = size
+    return indptr, indices[:size]
 
 
 def _straighten_basis_reference(basis: Any, vertices: Any, triangles: Any, *, thinness: float = STRAIGHTEN_THINNESS,
