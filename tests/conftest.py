@@ -41,3 +41,39 @@ def chair(data_dir):
     from kpd.io import read_mesh
 
     return read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply")
+
+
+# --- annotated datasets (tests/test_annotations_*.py) ---
+
+
+@pytest.fixture(scope="session")
+def kpn_root(data_dir) -> Path:
+    return data_dir / "keypointnet"
+
+
+@pytest.fixture(scope="session")
+def part_root(data_dir) -> Path:
+    return data_dir / "shapenetpart_sample"
+
+
+@pytest.fixture(scope="session")
+def chairs(kpn_root):
+    from kpd import annotations as ann
+
+    return ann.KeypointNet(kpn_root, "chair")
+
+
+@pytest.fixture(scope="session")
+def chair_shapes(chairs, part_root):
+    from kpd import annotations as ann
+
+    shapes, skipped = ann.keypointnet_shapes(chairs, "all", geometry_dirs=[part_root])
+    return {s.model_id: s for s in shapes}, skipped
+
+
+@pytest.fixture(scope="session")
+def part_shapes(part_root):
+    from kpd import annotations as ann
+
+    parts = ann.ShapeNetPart(part_root)
+    return {name: ann.shapenetpart_shapes(parts, name)[0] for name in sorted(parts.categories)}
