@@ -34,29 +34,14 @@ from kpd.io.common import incomplete, verify_companion
 from kpd.io.images import read_image
 from kpd.mesh import Mesh, PointSet, count_phrase
 
-__all__ = ["read", "write", "companions", "check_faces", "ObjSource"]
+__all__ = ["read", "write", "companions", "ObjSource", "turned_normals"]
 
 log = logging.getLogger("kpd.io.obj")
 
-_OBJ_POLYGON = re.compile(rb"^[ \t]*f[ \t]+\S+[ \t]+\S+[ \t]+\S+[ \t]+[^\s#]", re.M)
-_OBJ_SHORT_FACE = re.compile(rb"^[ \t]*f(?:[ \t]+[^\s#]+){0,2}[ \t]*(?:#.*)?\r?$", re.M)
 # MTL statements that name a file (the file name is the last token, after any options)
 _MAP_KEYS = (b"map_kd", b"map_ka", b"map_ks", b"map_ns", b"map_d", b"map_bump", b"bump", b"disp", b"decal",
              b"refl", b"norm", b"map_pr", b"map_pm", b"map_ps", b"map_ke", b"map_rma", b"map_orm")
 _DEFAULT_KD = (0.8, 0.8, 0.8)  # faces without a material (and materials without Kd), as the drawing code's grey
-
-
-def check_faces(p: Path, data: bytes) -> None:
-    """Refuse OBJ faces that are not triangles."""
-    polygons = len(_OBJ_POLYGON.findall(data))
-    if polygons:
-        raise InputError(
-            f"{p}: {count_phrase(polygons, 'faces')} more than 3 vertices; kpd reads triangle meshes only "
-            "(triangulate it first, e.g. Blender: Triangulate Faces)"
-        )
-    short = len(_OBJ_SHORT_FACE.findall(data))
-    if short:
-        raise InputError(f"{p}: {count_phrase(short, 'faces')} fewer than 3 vertices")
 
 
 # --- reading -------------------------------------------------------------------------------------------------------
@@ -89,133 +74,189 @@ class ObjSource:
     libraries: list = field(default_factory=list)
 
 
-def _lines(data: bytes) -> tuple[list[bytes], np.ndarray]:
-    """The lines of ``data`` (without the line break) and the byte offset of each."""
-    lines = data.split(b"\n")
-    lengths = np.fromiter((len(s) + 1 for s in lines), dtype=np.int64, count=len(lines))
-    starts = np.zeros(len(lines), dtype=np.int64)
-    np.cumsum(lengths[:-1], out=starts[1:])
-    return lines, starts
+_SPACE, _TAB, _HASH, _SLASH, _NEWLINE = 32, 9, 35, 47, 10
+_V, _F, _T, _N = ord("v"), ord("f"), ord("t"), ord("n")
+_KINDS = {"v": 1, "vt": 2, "vn": 3, "f": 4, "usemtl": 5, "mtllib": 6, "other": 0}
 
 
-def _numbers(p: Path, payload: list[bytes], kind: str, dtype) -> np.ndarray:
-    if not payload:
-        return np.zeros(0, dtype=dtype)
+def _scan(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Line starts, ends (before ``\\r\\n`` or ``\\n``), the first non-blank byte of each line and each line's kind
+    (:data:`_KINDS`), all (L,) int64, found with numpy over the whole file."""
+    buf = np.frombuffer(data, dtype=np.uint8)
+    breaks = np.flatnonzero(buf == _NEWLINE)
+    starts = np.concatenate([[0], breaks + 1]).astype(np.int64)
+    ends = np.concatenate([breaks, [len(buf)]]).astype(np.int64)
+    if len(starts) > 1 and starts[-1] == len(buf):
+        starts, ends = starts[:-1], ends[:-1]
+    cr = (ends > starts) & (buf[np.maximum(ends - 1, 0)] == 13)
+    ends = ends - cr
+    first = starts.copy()
+    padded = np.concatenate([buf, np.zeros(3, dtype=np.uint8)])
+    blank = (ends > first) & np.isin(padded[first], (_SPACE, _TAB))
+    for i in np.flatnonzero(blank):  # indented lines: rare, found one by one
+        j = first[i]
+        while j < ends[i] and padded[j] in (_SPACE, _TAB):
+            j += 1
+        first[i] = j
+    c0, c1, c2 = padded[first], padded[first + 1], padded[first + 2]
+    white1 = np.isin(c1, (_SPACE, _TAB)) & (first + 1 < ends)
+    white2 = np.isin(c2, (_SPACE, _TAB)) & (first + 2 < ends)
+    kind = np.zeros(len(starts), dtype=np.int64)
+    kind[(c0 == _V) & white1] = _KINDS["v"]
+    kind[(c0 == _V) & (c1 == _T) & white2] = _KINDS["vt"]
+    kind[(c0 == _V) & (c1 == _N) & white2] = _KINDS["vn"]
+    kind[(c0 == _F) & white1] = _KINDS["f"]
+    for i in np.flatnonzero(np.isin(c0, (ord("u"), ord("m")))).tolist():  # few lines
+        word = data[first[i] : first[i] + 7]
+        if word[:6] in (b"usemtl", b"mtllib") and (len(word) == 6 or word[6:7] in (b" ", b"\t")):
+            kind[i] = _KINDS[word[:6].decode()]
+    return starts, ends, first, kind
+
+
+def _runs(rows: np.ndarray) -> list[tuple[int, int]]:
+    """(start, stop) positions in ``rows`` of its runs of consecutive line numbers."""
+    if not len(rows):
+        return []
+    cut = np.flatnonzero(np.diff(rows) != 1) + 1
+    edges = np.concatenate([[0], cut, [len(rows)]])
+    return list(zip(edges[:-1].tolist(), edges[1:].tolist()))
+
+
+def _segments(data: bytes, starts, ends, first, rows, prefix: int):
+    """Per run of consecutive lines of one kind: (the run's bytes with each line's keyword and comment blanked,
+    the lines' offsets in it (n,), the run's rows)."""
+    for a, b in _runs(rows):
+        r = rows[a:b]
+        base = starts[r[0]]
+        segment = bytearray(data[base : ends[r[-1]] + 1])
+        view = np.frombuffer(segment, dtype=np.uint8)
+        heads = first[r] - base
+        for k in range(prefix):
+            view[heads + k] = _SPACE
+        if _HASH in segment:  # comments after the values: blank to the end of their line
+            line_ends = np.append(ends[r] - base, len(segment))
+            for h in np.flatnonzero(view == _HASH).tolist():
+                if view[h] == _HASH:
+                    stop = line_ends[np.searchsorted(line_ends, h)]
+                    view[h:stop] = _SPACE
+        yield segment, starts[r] - base, r
+
+
+def _values(p: Path, data: bytes, lines, rows: np.ndarray, prefix: int, widths: tuple,
+            kind: str) -> tuple[np.ndarray, bool]:
+    """(n, w) float64 of the lines ``rows`` of one kind, and whether all lines hold w numbers (one of ``widths``);
+    when they hold different counts, the first ``widths[0]`` numbers of each (the rest is their tail)."""
+    starts, ends, first, _ = lines
+    n = len(rows)
+    if not n:
+        return np.zeros((0, widths[0])), True
+    text = b" ".join(bytes(s) for s, _, _ in _segments(data, starts, ends, first, rows, prefix))
     try:
-        return np.fromstring(b" ".join(payload), dtype=dtype, sep=" ")  # noqa: NPY201 (text mode is not deprecated)
+        values = np.fromstring(text, dtype=np.float64, sep=" ")  # noqa: NPY201 (text mode is not deprecated)
     except ValueError:
-        raise InputError(f"{p}: a {kind} line holds something that is not a number") from None
-
-
-def _table(p: Path, payload: list[bytes], line_numbers: list[int], kind: str, least: int) -> tuple[np.ndarray, list]:
-    """(n, least) float64 of the first ``least`` numbers of each line; the text after them per line (or None)."""
-    values = _numbers(p, payload, kind, np.float64)
-    n = len(payload)
-    if values.size == least * n:
-        return values.reshape(n, least), None
-    rows, tails = [], []
-    for number, text in zip(line_numbers, payload):
-        parts = text.split()
-        if len(parts) < least:
-            raise InputError(f"{p}: line {number}: a '{kind}' line needs {least} numbers; got {len(parts)}")
+        values = None
+    if values is not None and values.size % n == 0 and values.size // n in widths:
+        return values.reshape(n, values.size // n), True
+    out = np.zeros((n, widths[0]))
+    for j, i in enumerate(rows.tolist()):  # lines of different lengths, or a bad number: line by line
+        parts = _strip_comment(data[first[i] + prefix : ends[i]]).split()
         try:
-            rows.append([float(x) for x in parts[:least]])
-            [float(x) for x in parts[least:]]
+            numbers = [float(x) for x in parts]
         except ValueError:
-            raise InputError(f"{p}: line {number}: a '{kind}' line holds something that is not a number") from None
-        tails.append(parts[least:])
-    return np.array(rows, dtype=np.float64).reshape(n, least), tails
+            raise InputError(f"{p}: line {i + 1}: a '{kind}' line holds something that is not a number") from None
+        if len(numbers) < widths[0]:
+            raise InputError(f"{p}: line {i + 1}: a '{kind}' line needs {widths[0]} numbers; got {len(numbers)}")
+        out[j] = numbers[: widths[0]]
+    return out, False
 
 
-def _colors(tails: list | None) -> np.ndarray | None:
-    """(V, 3) vertex colours of ``v x y z r g b`` lines (0-1, or 0-255 scaled down), or None."""
-    if not tails or not all(len(t) in (3, 4) for t in tails):
-        return None
-    colors = np.array([[float(x) for x in t[:3]] for t in tails], dtype=np.float64)
-    if colors.min() < 0.0:
-        return None
-    if colors.max() > 1.0 + 1e-6:
-        return colors / 255.0 if colors.max() <= 255.0 else None
-    return colors
+def _faces(p: Path, data: bytes, lines, rows: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) int64 corner indices (v, vt, vn; 1-based, negative relative, 0 none) of the face lines."""
+    starts, ends, first, _ = lines
+    corner = np.zeros((len(rows), 3, 3), dtype=np.int64)
+    done = 0
+    bad = {"polygons": [0, len(data)], "short": [0, len(data)]}  # count, first line
+    for segment, offsets, r in _segments(data, starts, ends, first, rows, 1):
+        view = np.frombuffer(segment, dtype=np.uint8)
+        bounds = np.append(offsets, len(segment))
+        k = np.diff(np.searchsorted(np.flatnonzero(view == _SLASH), bounds))  # (n,) slashes per line
+        word = view > _SPACE  # a corner is a run of non-blank bytes
+        starts_of_words = np.flatnonzero(word[1:] & ~word[:-1]) + 1
+        if len(view) and word[0]:
+            starts_of_words = np.concatenate([[0], starts_of_words])
+        corners = np.diff(np.searchsorted(starts_of_words, bounds))  # (n,)
+        for name, wrong in (("polygons", corners > 3), ("short", corners < 3)):
+            if wrong.any():
+                bad[name][0] += int(wrong.sum())
+                bad[name][1] = min(bad[name][1], int(r[np.argmax(wrong)]) + 1)
+        if (corners != 3).any():
+            done += len(r)
+            continue
+        cuts = np.concatenate([[0], np.flatnonzero(np.diff(k)) + 1, [len(k)]])
+        for a, b in zip(cuts[:-1].tolist(), cuts[1:].tolist()):
+            slashes = int(k[a])
+            if slashes not in (0, 3, 6):
+                i = int(r[a])
+                raise InputError(f"{p}: line {i + 1}: the corners of a face must all have the same form (v, v/vt, "
+                                 f"v/vt/vn or v//vn); got {data[first[i]:ends[i]].decode(errors='replace')!r}")
+            stop = offsets[b] if b < len(offsets) else len(segment)
+            text = bytes(segment[offsets[a] : stop]).replace(b"//", b"/0/").replace(b"/", b" ")
+            width = slashes // 3 + 1
+            try:
+                numbers = np.fromstring(text, dtype=np.int64, sep=" ")  # noqa: NPY201
+            except ValueError:
+                raise InputError(f"{p}: a face line near line {int(r[a]) + 1} holds something that is not an "
+                                 "index") from None
+            if numbers.size != 3 * width * (b - a):
+                raise InputError(f"{p}: a face line near line {int(r[a]) + 1} does not hold 3 corners of {width} "
+                                 "indices")
+            corner[done + a : done + b, :, :width] = numbers.reshape(b - a, 3, width)
+        done += len(r)
+    polygons, short = bad["polygons"], bad["short"]
+    if polygons[0]:  # Assimp would drop these silently; kpd refuses rather than triangulating behind the user
+        raise InputError(f"{p}: {count_phrase(polygons[0], 'faces')} more than 3 vertices (first: line "
+                         f"{polygons[1]}); kpd reads triangle meshes only (triangulate it first, e.g. Blender: "
+                         "Triangulate Faces)")
+    if short[0]:
+        raise InputError(f"{p}: {count_phrase(short[0], 'faces')} fewer than 3 vertices (first: line {short[1]})")
+    return corner
 
 
-def _strip_comment(s: bytes) -> bytes:
-    i = s.find(b"#")
-    return s if i < 0 else s[:i]
+def _keyword_lines(data: bytes, lines, keyword: str) -> list[tuple[int, bytes]]:
+    """(line index, argument text) of the ``usemtl`` or ``mtllib`` lines."""
+    starts, ends, first, kind = lines
+    return [(i, _strip_comment(data[first[i] + 6 : ends[i]]).strip())
+            for i in np.flatnonzero(kind == _KINDS[keyword]).tolist()]
 
 
 def parse(p: Path, data: bytes, points: bool = False) -> tuple[dict, ObjSource | None]:
     """Parse an OBJ's geometry; returns the arrays of :func:`read` and the :class:`ObjSource` for writing."""
-    check_faces(p, data)
-    lines, starts = _lines(data)
-    v_rows, vt_rows, vn_rows, f_rows, mtl_rows, lib_rows = [], [], [], [], [], []
-    for i, line in enumerate(lines):
-        s = line.lstrip(b" \t")
-        if not s:
-            continue
-        c = s[:1]
-        if c == b"v":
-            t = s[1:2]
-            if t in (b" ", b"\t"):
-                v_rows.append(i)
-            elif t == b"t":
-                vt_rows.append(i)
-            elif t == b"n":
-                vn_rows.append(i)
-        elif c == b"f" and s[1:2] in (b" ", b"\t"):
-            f_rows.append(i)
-        elif c == b"u" and s.startswith(b"usemtl"):
-            mtl_rows.append(i)
-        elif c == b"m" and s.startswith(b"mtllib"):
-            lib_rows.append(i)
-
-    def payload(rows: list[int], skip: int) -> list[bytes]:
-        return [_strip_comment(lines[i].lstrip(b" \t")[skip:]).strip() for i in rows]
-
-    v_text = payload(v_rows, 1)
-    vertices, v_tails = _table(p, v_text, [i + 1 for i in v_rows], "v", 3)
-    if not len(vertices):
+    lines = _scan(data)
+    starts, ends, first, kind = lines
+    v_rows, vt_rows, vn_rows, f_rows = (np.flatnonzero(kind == _KINDS[k]) for k in ("v", "vt", "vn", "f"))
+    table, uniform = _values(p, data, lines, v_rows, 1, (3, 4, 6, 7), "v")
+    if not len(table):
         raise InputError(f"{p}: no vertices (empty geometry)")
-    if not f_rows:
+    vertices = np.ascontiguousarray(table[:, :3])
+    colors = _colors(table[:, 3:6]) if table.shape[1] >= 6 else None
+    if not len(f_rows):
         if points:
-            return {"vertices": vertices, "colors": _colors(v_tails)}, None
+            return {"vertices": vertices, "colors": colors}, None
         raise InputError(f"{p}: has {len(vertices)} vertices but no triangles (a point cloud? use read_points or "
                          "read_shape)")
-    colors = _colors(v_tails)
-    vt = _table(p, [b" ".join(s.split()[:2]) for s in payload(vt_rows, 2)], [i + 1 for i in vt_rows], "vt", 2)[0] \
-        if vt_rows else np.zeros((0, 2))
-    vn = _table(p, payload(vn_rows, 2), [i + 1 for i in vn_rows], "vn", 3)[0] if vn_rows else np.zeros((0, 3))
+    vt = _values(p, data, lines, vt_rows, 2, (2, 3, 1), "vt")[0]
+    if vt.shape[1] == 1:
+        vt = np.hstack([vt, np.zeros_like(vt)])
+    vt = vt[:, :2]
+    vn = _values(p, data, lines, vn_rows, 2, (3,), "vn")[0]
+    corner = _faces(p, data, lines, f_rows)
+    T = len(f_rows)
 
-    # faces: corners 'a', 'a/b', 'a/b/c' or 'a//c'; '//' becomes '/0/' so each form has a fixed count of numbers
-    faces = payload(f_rows, 1)
-    T = len(faces)
-    corner = np.zeros((T, 3, 3), dtype=np.int64)  # v, vt, vn per corner (1-based, negative relative, 0 none)
-    kinds: dict[int, list[int]] = {0: [], 3: [], 6: []}
-    texts: dict[int, list[bytes]] = {0: [], 3: [], 6: []}
-    for j, text in enumerate(faces):
-        text = text.replace(b"//", b"/0/")
-        slashes = text.count(b"/")
-        if slashes not in kinds:
-            raise InputError(f"{p}: line {f_rows[j] + 1}: the corners of a face must all have the same form "
-                             f"(v, v/vt, v/vt/vn or v//vn); got {faces[j].decode(errors='replace')!r}")
-        kinds[slashes].append(j)
-        texts[slashes].append(text.replace(b"/", b" "))
-    for slashes, rows in kinds.items():
-        if not rows:
-            continue
-        k = slashes // 3 + 1
-        numbers = _numbers(p, texts[slashes], "f", np.int64)
-        if numbers.size != 3 * k * len(rows):
-            raise InputError(f"{p}: a face line does not hold 3 corners of {k} indices")
-        corner[rows, :, :k] = numbers.reshape(len(rows), 3, k)
-
-    f_lines = np.asarray(f_rows, dtype=np.int64)
-
-    def resolve(index: np.ndarray, rows: list[int], kind: str, n: int, optional: bool) -> np.ndarray:
+    def resolve(index: np.ndarray, rows: np.ndarray, kind: str, n: int, optional: bool) -> np.ndarray:
         out = index - 1
         negative = index < 0
         if negative.any():  # relative to the elements defined before the face
-            before = np.searchsorted(np.asarray(rows, dtype=np.int64), f_lines)[:, None]
+            before = np.searchsorted(rows, f_rows)[:, None]
             out = np.where(negative, before + index, out)
         missing = index == 0
         if not optional and missing.any():
@@ -238,37 +279,53 @@ def parse(p: Path, data: bytes, points: bool = False) -> tuple[dict, ObjSource |
 
     normals = None
     if (normal_index >= 0).any():
-        normals = np.zeros_like(vertices)
-        used = normal_index >= 0
-        np.add.at(normals, triangles[used], vn[normal_index[used]])
-        length = np.linalg.norm(normals, axis=1, keepdims=True)
         from kpd.triangles import vertex_normals
 
+        used = normal_index >= 0
+        corners_v, corners_n = triangles[used], vn[normal_index[used]]
+        normals = np.stack([np.bincount(corners_v, weights=corners_n[:, k], minlength=len(vertices))
+                            for k in range(3)], axis=1)
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
         fallback = vertex_normals(vertices, triangles)
         normals = np.where(length > 1e-12, normals / np.maximum(length, 1e-300), fallback)
 
     # materials: the last 'usemtl' before each face
-    mtl_names = [_strip_comment(lines[i].lstrip(b" \t")[6:]).strip().decode("utf-8", "replace") for i in mtl_rows]
-    which = np.searchsorted(np.asarray(mtl_rows, dtype=np.int64), f_lines) - 1 if mtl_rows else np.full(T, -1)
-    face_material = [None if w < 0 else mtl_names[w] for w in which] if mtl_rows else None
-
-    libraries = []
-    for i in lib_rows:
-        names = _strip_comment(lines[i].lstrip(b" \t")[6:]).strip()
-        libraries.append((int(starts[i]), int(starts[i] + len(lines[i].rstrip(b"\r"))),
-                          names.decode("utf-8", "replace")))
-
-    v_spans = np.stack([starts[v_rows], starts[v_rows] + [len(lines[i].rstrip(b"\r")) for i in v_rows]], axis=1)
-    vn_spans = (np.stack([starts[vn_rows], starts[vn_rows] + [len(lines[i].rstrip(b"\r")) for i in vn_rows]], axis=1)
-                if vn_rows else np.zeros((0, 2), dtype=np.int64))
-    source = ObjSource(path=p, data=data, v_spans=v_spans,
-                       v_tails=None if v_tails is None else [b" ".join(t) for t in v_tails],
-                       vn_spans=vn_spans, corner_normals=normal_index, normals=vn, vertices=vertices,
-                       libraries=libraries)
+    usemtl = _keyword_lines(data, lines, "usemtl")
+    face_material = None
+    if usemtl:
+        names = [None] + [text.decode("utf-8", "replace") for _, text in usemtl]
+        which = np.searchsorted(np.array([i for i, _ in usemtl], dtype=np.int64), f_rows)  # 0: before any
+        face_material = [names[w] for w in which.tolist()]
+    libraries = [(int(starts[i]), int(ends[i]), text.decode("utf-8", "replace"))
+                 for i, text in _keyword_lines(data, lines, "mtllib")]
+    source = ObjSource(path=p, data=data, v_spans=np.stack([starts[v_rows], ends[v_rows]], axis=1),
+                       v_tails=_tails(data, lines, v_rows) if table.shape[1] > 3 or not uniform else None,
+                       vn_spans=np.stack([starts[vn_rows], ends[vn_rows]], axis=1), corner_normals=normal_index,
+                       normals=vn, vertices=vertices, libraries=libraries)
     arrays = {"vertices": vertices, "triangles": triangles, "vertex_normals": normals, "vertex_colors": colors,
               "triangle_uvs": uvs, "uv_mask": has_uv if uvs is not None and not has_uv.all() else None,
               "face_material": face_material}
     return arrays, source
+
+
+def _tails(data: bytes, lines, rows: np.ndarray) -> list[bytes]:
+    """The text after the three coordinates of each ``v`` line (``w`` or ``r g b``)."""
+    starts, ends, first, _ = lines
+    return [b" ".join(_strip_comment(data[first[i] + 1 : ends[i]]).split()[3:]) for i in rows.tolist()]
+
+
+def _colors(values: np.ndarray) -> np.ndarray | None:
+    """(V, 3) vertex colours of ``v x y z r g b`` lines (0-1, or 0-255 scaled down), or None."""
+    if not len(values) or values.min() < 0.0:
+        return None
+    if values.max() > 1.0 + 1e-6:
+        return values / 255.0 if values.max() <= 255.0 else None
+    return np.ascontiguousarray(values)
+
+
+def _strip_comment(s: bytes) -> bytes:
+    i = s.find(b"#")
+    return s if i < 0 else s[:i]
 
 
 @dataclass
@@ -612,24 +669,30 @@ def _write_arrays(target: Path, mesh: Mesh) -> None:
     ids = mesh.triangle_material_ids
     if materials and ids is None:
         ids = np.zeros(T, dtype=np.int64)
-    tri = (mesh.triangles + 1).tolist()
-    uvs = None if uv_index is None else (uv_index + 1).tolist()
+    # faces in runs of one material and one form (with or without UVs), each run formatted at once
+    has_uv = np.zeros(T, dtype=bool) if uv_index is None else uv_index[:, 0] >= 0
+    key = has_uv.astype(np.int64) if ids is None else ids * 2 + has_uv
+    cuts = np.concatenate([[0], np.flatnonzero(np.diff(key)) + 1, [T]]).tolist()
     normals = mesh.vertex_normals is not None
-    current = None
+    tri = mesh.triangles + 1
     lines = []
-    for j in range(T):
-        if materials and ids[j] != current:
-            current = int(ids[j])
+    current = None
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        if materials and ids[a] != current:
+            current = int(ids[a])
             lines.append(f"usemtl material_{current}".encode())
-        a = tri[j]
-        if uvs is not None and uvs[j][0] > 0:
-            b = uvs[j]
-            lines.append(b"f %d/%d/%d %d/%d/%d %d/%d/%d" % (a[0], b[0], a[0], a[1], b[1], a[1], a[2], b[2], a[2])
-                         if normals else b"f %d/%d %d/%d %d/%d" % (a[0], b[0], a[1], b[1], a[2], b[2]))
+        v = tri[a:b]
+        if has_uv[a]:
+            t = uv_index[a:b] + 1
+            if normals:
+                table, form = np.stack([v, t, v], axis=2), b"f %d/%d/%d %d/%d/%d %d/%d/%d"
+            else:
+                table, form = np.stack([v, t], axis=2), b"f %d/%d %d/%d %d/%d"
         elif normals:
-            lines.append(b"f %d//%d %d//%d %d//%d" % (a[0], a[0], a[1], a[1], a[2], a[2]))
+            table, form = np.stack([v, v], axis=2), b"f %d//%d %d//%d %d//%d"
         else:
-            lines.append(b"f %d %d %d" % tuple(a))
+            table, form = v, b"f %d %d %d"
+        lines.append(b"\n".join(map(form.__mod__, map(tuple, table.reshape(b - a, -1).tolist()))))
     out.append(b"\n".join(lines) + b"\n")
     target.write_bytes(b"".join(out))
     if materials:
@@ -651,8 +714,8 @@ def _write_arrays(target: Path, mesh: Mesh) -> None:
 def _verify(p: Path, tmp: Path, mesh: Mesh) -> None:
     V, T = len(mesh.vertices), len(mesh.triangles)
     data = tmp.read_bytes()
-    v = len(re.findall(rb"^[ \t]*v[ \t]", data, re.M))
-    f = len(re.findall(rb"^[ \t]*f[ \t]", data, re.M))
+    kind = _scan(data)[3]
+    v, f = int((kind == _KINDS["v"]).sum()), int((kind == _KINDS["f"]).sum())
     if v != V or f != T or not data.endswith(b"\n"):
         raise incomplete(p, f"{v} of {V} vertices and {f} of {T} faces")
     for companion in tmp.parent.iterdir():
