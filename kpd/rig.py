@@ -404,7 +404,7 @@ def transfer_influence(
     reaches the far side of the shape. A cage fitted closer to the shape is more local, but the learned W applied to
     it as it is overshoots (its coefficients of up to 5-7 were learned to move a distant cage) and folds the
     surface. Instead, for each keypoint ``k`` this solves for the row on the target cage whose motion of the
-    shape's surface reproduces, near the keypoint, the motion the learned row gives through the source cage:
+    shape's surface reproduces, near the keypoint, the motion the learned row gives through the source cage::
 
         min_w  sum_p g_p (A_t[p, mask_k] w - A_s[p] W_k)^2 + ridge * sum_p g_p * |w|^2,
         g_p = exp(-|p - keypoint_k|^2 / (2 sigma^2)),
@@ -470,7 +470,7 @@ def straighten_basis(
     ends while the third corner follows the bend, and a bend larger than the sliver's height carries that corner
     across the edge: the triangle turns over and shows as a dark crease. This solves, once per rig, for a
     correction ``D`` of the (V, K) basis (each keypoint's column alike) that makes every sliver's third corner
-    move as the linear interpolation of its long edge's ends, spread smoothly over the surface:
+    move as the linear interpolation of its long edge's ends, spread smoothly over the surface::
 
         min_D  sum_slivers min((L/h)^2, cap) |B_c + D_c - (1-s)(B_a + D_a) - s(B_b + D_b)|^2
              + sum_edges |D_i - D_j|^2 / l_ij^2  +  sum_v e_v (a_v / mean a) |D_v|^2 / reach^2
