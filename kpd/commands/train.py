@@ -145,14 +145,14 @@ def check_run_folder(args: argparse.Namespace, out: Path) -> None:
     while not parent.exists():
         made.append(parent)
         parent = parent.parent
-    for folder in reversed(made):
-        folder.mkdir()
+    for missing in reversed(made):
+        missing.mkdir()
     try:
         _check_run_folder(args, out, check_folder)
     except BaseException:
-        for folder in made:  # nothing left behind by a refused run
+        for missing in made:  # nothing left behind by a refused run
             try:
-                folder.rmdir()
+                missing.rmdir()
             except OSError:
                 break
         raise

@@ -148,8 +148,6 @@ def _read_open3d_mesh(p: Path, ext: str) -> "open3d.geometry.TriangleMesh":
         raise InputError(f"{p}: no vertices (empty geometry)")
     if ext == ".stl":
         m = stl.weld(m)
-    elif ext in (".gltf", ".glb"):
-        gltf.fill_textures(p, m)
     return m
 
 

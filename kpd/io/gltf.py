@@ -1,9 +1,18 @@
-"""glTF 2.0: kpd's own writer, and the base-colour images Open3D leaves out when it reads.
+"""glTF 2.0, read and written by kpd itself.
 
-Open3D 0.20 writes neither UVs nor textures to glTF and writes ``.glb`` files without their binary chunk, so kpd
-writes glTF itself: one primitive per material, vertices split where UVs differ, PNG textures (embedded in ``.glb``,
-beside a ``.gltf``). Reading goes through Open3D (Assimp), after which the images inside a ``.glb`` or a data URI are
-filled in here.
+Reading (:func:`read`) takes every triangle primitive (strips and fans turned into triangles) of every node with a
+mesh in the default scene, in world coordinates (node matrices applied), each primitive's vertices in the file's
+order; UVs on the faces of primitives that have ``TEXCOORD_0`` (``Mesh.triangle_uv_mask`` marks the others); vertex
+colours from ``COLOR_0``; one texture per used material, its base-colour image or a 1x1 image of its
+``baseColorFactor`` (sRGB). glTF is y up; :func:`kpd.io.file_up` says so to the commands.
+
+Writing a mesh read from a glTF file of the same kind (``.glb`` to ``.glb``, ``.gltf`` to ``.gltf``) keeps that file
+whole (:func:`write_from_source`): only the POSITION (and NORMAL) data change, in place where they are plain float32
+data, every node, primitive, material, image, sampler, extension and morph target stays; a ``.gltf``'s external
+buffers and images are written beside it as ``<stem>_<name>``. Any other mesh is written from its arrays: one
+primitive per material and per presence of UVs, a 1x1 texture as a plain ``baseColorFactor``, an image read from a
+JPEG file embedded or copied as that JPEG, others as PNG. (Open3D 0.20 writes neither UVs nor textures to glTF and
+writes ``.glb`` files without their binary chunk; its reader, Assimp, merges primitives and drops base colours.)
 """
 
 from __future__ import annotations
@@ -12,7 +21,6 @@ import base64
 import json
 import logging
 import struct
-import tempfile
 import urllib.parse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -21,16 +29,15 @@ import numpy as np
 
 from kpd.grouping import first_occurrence_groups
 from kpd.io.atomic import atomic_files, atomic_output
-from kpd.io.capture import open3d_log, open3d_module
 from kpd.io.common import verify_companion
 from kpd.io.images import encode_png
 from kpd.errors import InputError
 from kpd.mesh import Mesh, PointSet
 
 if TYPE_CHECKING:  # pragma: no cover
-    import open3d
+    pass
 
-__all__ = ["write", "companions", "fill_textures", "read_gltf_json", "GLB_MAGIC"]
+__all__ = ["read", "write", "companions", "read_gltf_json", "GltfSource", "GLB_MAGIC"]
 
 log = logging.getLogger(__name__)
 
@@ -206,37 +213,6 @@ def _write_gltf(target: Path, mesh: Mesh, *, binary: bool) -> None:
 
 
 
-def fill_textures(p: Path, m: "open3d.geometry.TriangleMesh") -> None:
-    """Load the base-colour images that Open3D leaves out (images inside a .glb or a data URI); warn for missing
-    ones. Open3D's texture i belongs to glTF material i."""
-    try:
-        doc, chunk = read_gltf_json(p)
-    except (ValueError, KeyError, struct.error, UnicodeDecodeError) as exc:
-        log.warning("%s: could not inspect the glTF materials (%s); textures may be missing", p, exc)
-        return
-    o3d = open3d_module()
-    textures = list(m.textures)
-    changed = False
-    for i, material in enumerate(doc.get("materials", [])):
-        ref = material.get("pbrMetallicRoughness", {}).get("baseColorTexture")
-        if ref is None or (i < len(textures) and not textures[i].is_empty()):
-            continue
-        try:
-            image = doc["images"][doc["textures"][ref["index"]]["source"]]
-            image_array = _gltf_image(p, doc, chunk, image)
-        except (KeyError, IndexError, TypeError, ValueError) as exc:
-            log.warning("%s: the texture of material %d cannot be read (%s); read without it", p, i, exc)
-            continue
-        if image_array is None:
-            continue
-        while len(textures) <= i:
-            textures.append(o3d.geometry.Image())
-        textures[i] = o3d.geometry.Image(np.ascontiguousarray(image_array[::-1]))  # Open3D's flipped convention
-        changed = True
-    if changed:
-        m.textures = textures
-
-
 def read_gltf_json(p: Path) -> tuple[dict, bytes | None]:
     data = p.read_bytes()
     if p.suffix.lower() != ".glb":
@@ -256,34 +232,6 @@ def read_gltf_json(p: Path) -> tuple[dict, bytes | None]:
     if doc is None:
         raise ValueError("no JSON chunk")
     return doc, chunk
-
-
-def _gltf_image(p: Path, doc: dict, chunk: bytes | None, image: dict) -> np.ndarray | None:
-    """Decode one glTF image; None (with a warning) when its file is missing."""
-    if "bufferView" in image:
-        view = doc["bufferViews"][image["bufferView"]]
-        buffer = doc["buffers"][view["buffer"]]
-        data = _gltf_uri_bytes(p, buffer["uri"]) if "uri" in buffer else chunk
-        if data is None:
-            return None
-        start = view.get("byteOffset", 0)
-        raw = data[start : start + view["byteLength"]]
-        suffix = ".jpg" if image.get("mimeType") == "image/jpeg" else ".png"
-    else:
-        raw = _gltf_uri_bytes(p, image["uri"])
-        if raw is None:
-            return None
-        jpeg = image["uri"].lower().endswith((".jpg", ".jpeg")) or image["uri"].startswith("data:image/jpeg")
-        suffix = ".jpg" if jpeg else ".png"
-    o3d = open3d_module()
-    with tempfile.TemporaryDirectory() as folder:
-        f = Path(folder) / f"texture{suffix}"
-        f.write_bytes(raw)
-        with open3d_log():
-            decoded = np.asarray(o3d.io.read_image(str(f)))
-    if not decoded.size:
-        raise ValueError("the image data cannot be decoded")
-    return decoded.copy()
 
 
 def _gltf_uri_bytes(p: Path, uri: str) -> bytes | None:
