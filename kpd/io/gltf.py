@@ -23,7 +23,7 @@ import logging
 import struct
 import urllib.parse
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -33,9 +33,6 @@ from kpd.io.common import verify_companion
 from kpd.io.images import encode_png
 from kpd.errors import InputError
 from kpd.mesh import Mesh, PointSet
-
-if TYPE_CHECKING:  # pragma: no cover
-    pass
 
 __all__ = ["read", "write", "companions", "read_gltf_json", "GltfSource", "GLB_MAGIC"]
 
