@@ -244,11 +244,89 @@ def galleries(tmp: Path, runs: Path) -> None:
                 DOCS / f"{category}_runs_alignment.png", "--gallery-pairs", "3", "--quiet")
 
 
+# The same edit of the same chair in Blender and in the browser editor: its backrest raised by 8 units (its two top
+# keypoints, 8 and 9) through the shape keys / morph targets that `kpd rig` writes (docs/rigs.md).
+RIG_EDIT = {"keypoint_8_z": 8.0, "keypoint_9_z": 8.0}
+RIG_VIEW = {"azimuth": 30.0, "elevation": 20.0}  # the browser page's default camera (degrees)
+
+BLENDER_RENDER = """
+import json, math, sys
+import bpy
+from mathutils import Vector
+
+glb, weights, out, azimuth, elevation = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4]), float(sys.argv[5])
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.import_scene.gltf(filepath=glb)
+chair = next(o for o in bpy.context.scene.objects if o.type == "MESH")
+for name, value in json.loads(weights).items():  # the shape keys kpd rig wrote
+    key = chair.data.shape_keys.key_blocks[name]
+    key.slider_min, key.slider_max = -10.0, 10.0
+    key.value = value
+scene = bpy.context.scene
+bpy.context.view_layer.update()
+evaluated = chair.evaluated_get(bpy.context.evaluated_depsgraph_get())
+points = [evaluated.matrix_world @ v.co for v in evaluated.to_mesh().vertices]
+lo = Vector([min(p[i] for p in points) for i in range(3)])
+hi = Vector([max(p[i] for p in points) for i in range(3)])
+center, radius = (lo + hi) / 2, (hi - lo).length / 2
+camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
+scene.collection.objects.link(camera)
+camera.data.sensor_fit = "VERTICAL"
+camera.data.angle_y = math.radians(35.0)  # as the browser page's camera
+# the page's camera (azimuth from the front, +z up) in the chair's own frame, which Blender's world is
+a, e = math.radians(azimuth), math.radians(elevation)
+direction = Vector((math.sin(a) * math.cos(e), -math.cos(a) * math.cos(e), math.sin(e)))
+camera.location = center + direction * radius / math.sin(camera.data.angle_y / 2) * 1.05
+camera.rotation_euler = (center - camera.location).to_track_quat("-Z", "Y").to_euler()
+scene.camera = camera
+scene.render.engine = "BLENDER_WORKBENCH"
+scene.render.resolution_x, scene.render.resolution_y = 900, 800
+scene.display.shading.light = "STUDIO"
+scene.display.shading.color_type = "OBJECT"
+scene.display.shading.show_cavity = True
+chair.color = (0.8, 0.8, 0.8, 1.0)
+scene.render.filepath = out
+bpy.ops.render.render(write_still=True)
+"""
+
+
+def rig_blender(tmp: Path) -> None:
+    """The chair's rig written by kpd rig, imported by Blender's own glTF importer, edited with its shape keys and
+    rendered by Blender's Workbench (bpy 4.2 in .venv-blender, made by make blender)."""
+    glb = tmp / "chair.glb"
+    kpd("rig", "chair", CHAIR, "--out", glb, "--force")
+    (tmp / "render.py").write_text(BLENDER_RENDER)
+    done = subprocess.run([str(REPO / ".venv-blender" / "bin" / "python"), str(tmp / "render.py"), str(glb),
+                           json.dumps(RIG_EDIT), str(DOCS / "rig_blender.png"), str(RIG_VIEW["azimuth"]),
+                           str(RIG_VIEW["elevation"])], capture_output=True, text=True)
+    if done.returncode:
+        raise SystemExit(f"Blender's render failed: {done.stderr.strip()[-2000:]}")
+
+
+def rig_browser(tmp: Path) -> None:
+    """The same edit in kpd view --browser, in headless Chromium (the page as a user sees it)."""
+    sys.path.insert(0, str(REPO / "tests"))
+    from test_browser import open_page, start_chromium, start_editor
+
+    process, url = start_editor("chair", str(CHAIR), "--port", "0", "--out", str(tmp / "edited.obj"))
+    driver = start_chromium(str(tmp / "chromium"))
+    try:
+        open_page(driver, url)
+        driver.execute_script("window.kpd.setWeights(arguments[0])", RIG_EDIT)
+        time.sleep(0.5)
+        driver.save_screenshot(str(DOCS / "rig_browser.png"))
+    finally:
+        driver.quit()
+        process.terminate()
+        process.wait(timeout=10)
+
+
 PICTURES = {"demo": demo, "render_chair": render_chair, "sample_chair": sample_chair,
             "scan_chair_ambiguous": scan_chair_ambiguous, "scan_sneaker": scan_sneaker, "editor_chair": editor_chair,
             "editor_sneaker": editor_sneaker, "chair_alignment": chair_alignment, "table_alignment": table_alignment,
             "samples_chair": samples_chair, "samples_chair_scale1": samples_chair_scale1,
-            "samples_table": samples_table, "edits_chair": edits_chair, "edits_table": edits_table}
+            "samples_table": samples_table, "edits_chair": edits_chair, "edits_table": edits_table,
+            "rig_blender": rig_blender, "rig_browser": rig_browser}
 
 
 def main() -> None:

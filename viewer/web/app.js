@@ -42,8 +42,8 @@ view.prepend(renderer.domElement);
 const scene = new THREE.Scene();
 scene.background = new THREE.Color(0xf4f4f2);
 const camera = new THREE.PerspectiveCamera(35, 1, 0.01, 1000);
-scene.add(new THREE.HemisphereLight(0xffffff, 0x8c8c8c, 1.6));
-const light = new THREE.DirectionalLight(0xffffff, 1.8);
+scene.add(new THREE.HemisphereLight(0xffffff, 0x6c6c6c, 0.9));
+const light = new THREE.DirectionalLight(0xffffff, 1.3);
 light.position.set(0.4, 0.6, 1.0);
 camera.add(light);
 scene.add(camera);
@@ -384,7 +384,7 @@ async function start() {
   scene.add(gltf.scene);
   gltf.scene.updateMatrixWorld(true);
   const radius = frameCamera(gltf.scene);
-  const sphere = new THREE.SphereGeometry(radius * 0.025, 16, 12);
+  const sphere = new THREE.SphereGeometry(radius * 0.018, 16, 12);
   const material = new THREE.MeshBasicMaterial({ color: 0xff7a00, depthTest: false });
   rest.forEach((p, i) => {
     const marker = new THREE.Mesh(sphere, material);
