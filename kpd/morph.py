@@ -414,7 +414,8 @@ def gltf_bytes(morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z", target
     return out.getvalue()
 
 
-def write_gltf(path: str | os.PathLike, morph: MorphRig, *, name: str | None = None, up: str = "+z") -> Path:
+def write_gltf(path: str | os.PathLike, morph: MorphRig, *, name: str | None = None, up: str = "+z",
+               targets: Sequence[str] | None = None) -> Path:
     """Write a rig as glTF 2.0 with morph targets, atomically.
 
     Parameters
@@ -424,6 +425,8 @@ def write_gltf(path: str | os.PathLike, morph: MorphRig, *, name: str | None = N
     name : the scene's, root node's and mesh's name; the file's stem by default.
     up : the shape's up axis (``+z`` for ModelNet); a root node turns it to glTF's +Y, so that viewers show the
         shape upright. The mesh node's coordinates stay the user's.
+    targets : the morph targets to write (names of ``morph.names``, in its order); all when None.
+        ``asset.extras.kpd`` lists every target's keypoint offsets either way.
 
     Returns
     -------
@@ -435,13 +438,13 @@ def write_gltf(path: str | os.PathLike, morph: MorphRig, *, name: str | None = N
         raise InputError(f"{p}: a glTF rig file must end in .glb or .gltf; got {ext or 'no extension'!r}")
     name = p.stem if name is None else name
     if ext == ".glb":
-        doc, builder = _document(morph, name=name, up=up, bin_uri=None)
+        doc, builder = _document(morph, name=name, up=up, bin_uri=None, targets=targets)
         with atomic_output(p) as tmp:
             with open(tmp, "wb") as fh:
                 _write_glb(fh, doc, builder)
         return p
     bin_name = p.stem + ".bin"
-    doc, builder = _document(morph, name=name, up=up, bin_uri=_uri(bin_name))
+    doc, builder = _document(morph, name=name, up=up, bin_uri=_uri(bin_name), targets=targets)
     with atomic_files(p) as target:
         with open(target.parent / bin_name, "wb") as fh:
             builder.write(fh)

@@ -205,6 +205,16 @@ def test_scan_rig_is_in_the_scans_frame(chair_file, tmp_path):
     assert np.abs(gltf.morphed(weights)[0] - expected).max() < TOLERANCE * diagonal
 
 
+def test_keypoint_targets_alone(written, chair_file, tmp_path):
+    out = tmp_path / "keypoints.glb"
+    assert kpd("rig", "chair", chair_file, "--out", out, "--targets", "keypoint") == 0
+    small, full = read_gltf(out), read_gltf(written)
+    assert small.names == [n for n in full.names if n.startswith("keypoint_")]
+    assert small.document["asset"]["extras"]["kpd"]["targets"] == full.names  # every edit's offsets still listed
+    np.testing.assert_array_equal(small.targets[0], full.targets[0][: len(small.names)])
+    assert validate(out)["issues"]["numErrors"] == 0
+
+
 def test_npz_is_kpds_rig(chair_file, model, tmp_path):
     from kpd.rig import Rig
 
@@ -229,6 +239,7 @@ def test_up_rotation_turns_the_axis_to_gltf_y():
     (["--out", "{tmp}/companion.gltf"], "its companion file"),
     (["--out", "{tmp}/scan.npz", "--scan"], "holds no scan frame"),
     (["--out", "{tmp}/up.glb", "--view-up", "w"], "up axis must be one of"),
+    (["--out", "{tmp}/kinds.glb", "--targets", "keypoint,nose"], "--targets must name some of keypoint, prior, pca"),
 ])
 def test_refusals_are_one_line(argv, message, chair_file, tmp_path, capfd):
     (tmp_path / "exists.glb").write_bytes(b"mine")

@@ -27,6 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--view-up", default="+z", metavar="AXIS",
                         help="the shape's up axis (default +z, as ModelNet); glTF files turn it to glTF's +Y with "
                              "a root node, so that Blender and web viewers show the shape upright")
+    parser.add_argument("--targets", default="keypoint,prior,pca", metavar="KINDS",
+                        help="glTF files: the kinds of morph targets to write, of keypoint, prior, pca (default all; "
+                             "'keypoint' alone is 45%% of the size and spans every edit as sums)")
     add_scan_arguments(parser)
     parser.add_argument("--force", action="store_true", help="replace --out (and a .gltf's .bin) if it exists")
 
@@ -55,6 +58,10 @@ def run(args: argparse.Namespace) -> int:
         if ext == ".gltf":
             outputs.companions(out, [out.stem + ".bin"])
         up_rotation(args.view_up)  # a bad axis ends here, before any work
+        kinds = [k.strip() for k in args.targets.split(",") if k.strip()]
+        unknown = sorted(set(kinds) - {"keypoint", "prior", "pca"})
+        if unknown or not kinds:
+            raise InputError(f"--targets must name some of keypoint, prior, pca; got {args.targets!r}")
         model = load_model(args)
         mesh = read_mesh(args.shape)
         frame = None
@@ -74,8 +81,12 @@ def run(args: argparse.Namespace) -> int:
                     "seed": args.seed, "scan": bool(args.scan)}
             morph = MorphRig.from_rig(rig, model.prior, mesh=mesh if frame is not None else None, frame=frame,
                                       meta=meta)
-            write_gltf(outputs.stage(out), morph, name=Path(args.shape).stem, up=args.view_up)
-            what = f"{len(morph.names)} morph targets"
+            chosen = [n for n in morph.names if n.split("_", 1)[0] in kinds]
+            if not chosen:
+                raise InputError(f"--targets {args.targets}: this bundle has no category prior, so only keypoint "
+                                 "targets can be written")
+            write_gltf(outputs.stage(out), morph, name=Path(args.shape).stem, up=args.view_up, targets=chosen)
+            what = f"{len(chosen)} morph targets"
     companion = f" and {out.with_suffix('.bin').name}" if ext == ".gltf" else ""
     prior_note = "" if ext == ".npz" or model.prior is not None else " (the bundle has no prior: keypoint targets only)"
     print(f"wrote {out}{companion} ({len(mesh.vertices)} vertices, {what}{prior_note})")
