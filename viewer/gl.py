@@ -27,6 +27,7 @@ import tempfile
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
+import numba
 import numpy as np
 
 from kpd.errors import KpdError
@@ -46,19 +47,13 @@ class NoWindowError(KpdError):
 
 
 class _Welding:
-    """Vertices grouped by position, and the sparse map from triangles to the groups they touch."""
+    """Vertices grouped by position (``inverse`` (V,): the group of each vertex; ``groups``: how many)."""
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
-        import scipy.sparse as sp
+        from kpd.grouping import merge_coincident
 
-        from kpd.grouping import first_occurrence_groups
-
-        self.inverse = first_occurrence_groups(np.asarray(vertices, dtype=np.float64)).index  # (V,) group of each vertex
-        groups = int(self.inverse.max()) + 1 if len(vertices) else 0
-        t = len(triangles)
-        rows = self.inverse[triangles].reshape(-1)  # (3T,)
-        cols = np.repeat(np.arange(t), 3)
-        self.incidence = sp.csr_matrix((np.ones(3 * t, np.float32), (rows, cols)), shape=(groups, t))  # (G, T)
+        self.inverse = merge_coincident(np.asarray(vertices, dtype=np.float64))[1]  # (V,) group of each vertex
+        self.groups = int(self.inverse.max()) + 1 if len(vertices) else 0
 
 
 def shading_normals(vertices: np.ndarray, triangles: np.ndarray, eye: np.ndarray | None = None, *,
@@ -72,24 +67,49 @@ def shading_normals(vertices: np.ndarray, triangles: np.ndarray, eye: np.ndarray
     eye : (3,) the camera position: each triangle's normal is turned towards it before averaging (two-sided lighting),
         so a surface shades the same whichever way its triangles wind. None keeps the winding.
     welding : the vertex groups of these triangles (computed when not given): vertices at one position share a normal.
+
+    Each vertex's normal is the sum of its position's triangles' ``(b - a) x (c - a)`` (area-weighted), in one
+    compiled pass over the triangles (a few tens of milliseconds per million triangles).
     """
-    triangles = np.asarray(triangles, dtype=np.int64)
-    welding = welding or _Welding(np.asarray(vertices, dtype=np.float64), triangles)
-    corners = np.asarray(vertices, dtype=np.float32)[triangles]  # (T, 3, 3); float32 is plenty for shading
-    a = corners[:, 0]
-    u, v = corners[:, 1] - a, corners[:, 2] - a
-    face = np.empty_like(u)  # (T, 3) u x v, length = twice the area
-    face[:, 0] = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
-    face[:, 1] = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
-    face[:, 2] = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
-    if eye is not None:  # the side of the triangle's plane the eye is on (any corner of it will do)
-        away = np.einsum("ij,ij->i", face, np.asarray(eye, dtype=np.float32) - a) < 0
-        face[away] *= -1.0
-    grouped = welding.incidence @ face  # (G, 3)
-    length = np.sqrt(np.einsum("ij,ij->i", grouped, grouped))
-    length[length == 0] = 1.0  # a vertex of degenerate triangles only: no normal
-    grouped /= length[:, None]
-    return grouped[welding.inverse]
+    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    welding = welding or _Welding(vertices, triangles)
+    out = np.empty((len(vertices), 3), dtype=np.float32)
+    if not len(vertices):
+        return out
+    eye_point = np.zeros(3) if eye is None else np.asarray(eye, dtype=np.float64).reshape(3)
+    _welded_normals(vertices, triangles, welding.inverse, welding.groups, eye_point, eye is not None, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _welded_normals(vertices, triangles, inverse, groups, eye, towards, out):  # pragma: no cover - compiled
+    acc = np.zeros((groups, 3))
+    for t in range(triangles.shape[0]):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
+        ux, uy, uz = vertices[b, 0] - ax, vertices[b, 1] - ay, vertices[b, 2] - az
+        vx, vy, vz = vertices[c, 0] - ax, vertices[c, 1] - ay, vertices[c, 2] - az
+        nx = uy * vz - uz * vy
+        ny = uz * vx - ux * vz
+        nz = ux * vy - uy * vx
+        if towards and nx * (eye[0] - ax) + ny * (eye[1] - ay) + nz * (eye[2] - az) < 0:
+            nx, ny, nz = -nx, -ny, -nz  # the eye is on the other side of the triangle's plane
+        for corner in (a, b, c):
+            g = inverse[corner]
+            acc[g, 0] += nx
+            acc[g, 1] += ny
+            acc[g, 2] += nz
+    for g in range(groups):
+        length = np.sqrt(acc[g, 0] ** 2 + acc[g, 1] ** 2 + acc[g, 2] ** 2)
+        if length == 0.0:  # a position of degenerate triangles only: no normal
+            length = 1.0
+        acc[g] /= length
+    for v in range(inverse.shape[0]):
+        g = inverse[v]
+        out[v, 0] = acc[g, 0]
+        out[v, 1] = acc[g, 1]
+        out[v, 2] = acc[g, 2]
 
 
 def camera_lights(camera: Any) -> np.ndarray:
@@ -139,10 +159,12 @@ class ShadedMesh:
         textured = bool(mesh.textures) and mesh.triangle_uvs is not None and not override
         ids = (mesh.triangle_material_ids if mesh.triangle_material_ids is not None else np.zeros(t, np.int64)) \
             if textured else np.zeros(t, np.int64)
-        for material in np.unique(ids) if t else [0]:
-            chosen = np.flatnonzero(ids == material)
-            used = np.unique(self.triangles[chosen]) if len(chosen) else np.zeros(0, np.int64)
-            whole = len(used) == len(mesh.vertices)
+        for material in np.unique(ids) if textured and t else [0]:
+            chosen = np.flatnonzero(ids == material) if textured else np.arange(t)
+            present = np.zeros(len(mesh.vertices), dtype=bool)
+            present[self.triangles[chosen]] = True
+            whole = bool(present.all())
+            used = np.flatnonzero(present)  # sorted, as the local indices below need
             part = o3d.geometry.TriangleMesh()
             part.vertices = o3d.utility.Vector3dVector(mesh.vertices if whole else mesh.vertices[used])
             local = self.triangles[chosen] if whole else np.searchsorted(used, self.triangles[chosen])
