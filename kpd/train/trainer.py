@@ -1,5 +1,8 @@
 """The training loop (REFERENCE §1, §6, §7) with exact resumption.
 
+The recipe is :mod:`kpd.train.config`, the checkpoint files :mod:`kpd.train.checkpoint`, one iteration's losses
+:mod:`kpd.train.objective`; their names stay importable from here.
+
 Defaults are the authors' code; every paper value of REFERENCE §11 is a :class:`TrainConfig` option. Each iteration's
 randomness (source order, targets, which cached sample, FPS starts) is drawn from ``numpy.random.default_rng`` seeded
 by ``(seed, iteration)``, so a run resumed from a checkpoint continues with exactly the numbers an uninterrupted run
@@ -29,14 +32,12 @@ Output folder::
 from __future__ import annotations
 
 import io
-import json
 import logging
 import math
 import os
 import platform
 import sys
 import time
-from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -46,199 +47,32 @@ from torch import nn
 from kpd.data import PreparedData, SampleSettings, ShapeSamples
 from kpd.errors import InputError, TrainingError
 from kpd.train import distributed
+from kpd.train.checkpoint import (  # noqa: F401  (as before)
+    CHECKPOINT_FORMAT,
+    CHECKPOINT_NAME,
+    CHECKPOINT_VERSION,
+    _atomic_write,
+    _write_json,
+    load_checkpoint,
+)
+from kpd.train.config import TrainConfig, resolve_device  # noqa: F401  (importable from here as before)
 from kpd.train.distributed import World
-from kpd.train.losses import influence_loss, keypoint_loss, similarity_loss
 from kpd.train.nets import KeypointDeformer, ModelConfig
-from kpd.train.ops import chamfer, farthest_point_sampling, fps_keypoints, gather_points, mvc_weights, serial
+from kpd.train.objective import Objective  # noqa: F401
+from kpd.train.ops import (
+    chamfer,
+    fps_keypoints,
+    mvc_weights,
+    serial,
+)
 
 __all__ = ["TrainConfig", "Trainer", "train", "resolve_device", "load_checkpoint", "CHECKPOINT_FORMAT",
            "CHECKPOINT_VERSION", "LOG_EVERY"]
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = "kpd-checkpoint"
-CHECKPOINT_VERSION = 1
-CHECKPOINT_NAME = "checkpoint.pt"
 HISTORY_COLUMNS = ("iteration", "loss", "sim", "kpt", "inf")
 LOG_EVERY = 10  # iterations between bringing the loss terms to the host
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """The training recipe. Defaults are the authors' code (REFERENCE §11 lists the paper's values).
-
-    - keypoints : K.
-    - iterations : optimisation steps.
-    - batch : source/target pairs per step.
-    - seed : everything random (initial weights, pairs, samples, FPS starts) derives from it.
-    - lr : Adam learning rate of Φ and of Γ.
-    - wc_lr : learning rate of W_C (code 1e-2; paper: same as Γ, 1e-3).
-    - alpha_kpt : weight of the FPS keypoint regulariser (code 2.0; paper 1.0).
-    - alpha_inf, inf_reg : influence regulariser, ``code`` = alpha_inf * mean(W_I²) with 1e6, ``paper`` =
-      alpha_inf * ‖W_I‖_F with 1e-6.
-    - fps_factor : J = fps_factor * K farthest points for the regulariser.
-    - warmup : keypoint-only iterations at the start (code 200; paper 0).
-    - clamp : clamp keypoints to [-1, 1] (code; the paper has no clamp).
-    - paper_m : M = ⌊C/K⌋ (paper) instead of max(5, ⌊C/K⌋) (code); ``m`` overrides both.
-    - keypoint_source : ``learned`` (Φ) or ``fps`` (farthest-point keypoints of each shape; only the deformer trains,
-      from the first iteration: ``warmup`` and the keypoint regulariser do not apply).
-    - save_every : checkpoint (and validation) interval in iterations.
-    - val_pairs : fixed validation pairs scored at every checkpoint.
-    """
-
-    keypoints: int = 12
-    iterations: int = 2000
-    batch: int = 16
-    seed: int = 0
-    lr: float = 1e-3
-    wc_lr: float = 1e-2
-    alpha_kpt: float = 2.0
-    alpha_inf: float = 1e6
-    inf_reg: str = "code"
-    fps_factor: int = 2
-    warmup: int = 200
-    clamp: bool = True
-    paper_m: bool = False
-    m: int | None = None
-    keypoint_source: str = "learned"
-    save_every: int = 200
-    val_pairs: int = 64
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "TrainConfig":
-        return cls(**{k: data[k] for k in cls.__dataclass_fields__ if k in data})
-
-    def check(self) -> None:
-        for name in ("keypoints", "iterations", "batch", "fps_factor", "save_every"):
-            if getattr(self, name) < 1:
-                raise InputError(f"{name} must be at least 1; got {getattr(self, name)}")
-        if self.warmup < 0 or self.val_pairs < 0:
-            raise InputError(f"warmup and val_pairs must be >= 0; got {self.warmup}, {self.val_pairs}")
-        if self.inf_reg not in ("code", "paper"):
-            raise InputError(f"inf_reg must be 'code' or 'paper'; got {self.inf_reg!r}")
-        if self.keypoint_source not in ("learned", "fps"):
-            raise InputError(f"keypoint_source must be 'learned' or 'fps'; got {self.keypoint_source!r}")
-        for name in ("lr", "wc_lr", "alpha_kpt", "alpha_inf"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise InputError(f"{name} must be a finite number >= 0; got {value}")
-
-
-def resolve_device(device: str = "auto") -> torch.device:
-    """``auto`` -> cuda when available, else cpu; otherwise the named device (checked)."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        dev = torch.device(device)
-    except RuntimeError as exc:
-        raise InputError(f"unknown device {device!r}; expected auto, cpu, cuda or cuda:N") from exc
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError(f"device {device!r} requested but CUDA is not available")
-    return dev
-
-
-def _atomic_write(path: Path, write) -> None:
-    """Write ``path`` through ``write(tmp)`` with kpd's one atomic writer (:func:`kpd.io.atomic_output`: a temporary
-    name that ``--resume`` cleans up after a kill, fsync, one-line :class:`~kpd.errors.WriteError` on a full disk)."""
-    from kpd.io import atomic_output
-
-    with atomic_output(path) as tmp:
-        write(str(tmp))
-
-
-def _write_json(path: Path, data: dict) -> None:
-    def write(tmp: str) -> None:
-        with open(tmp, "w") as f:
-            json.dump(data, f, indent=2, sort_keys=False)
-            f.write("\n")
-
-    _atomic_write(path, write)
-
-
-def load_checkpoint(path: str | os.PathLike) -> dict:
-    """Load and check a checkpoint file (or a run folder holding ``checkpoint.pt``) with ``weights_only=True``."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / CHECKPOINT_NAME
-    if not path.is_file():
-        raise InputError(f"checkpoint {path} does not exist")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several kinds for damaged or foreign files
-        from kpd.io.integrity import checkpoint_failure
-
-        raise InputError(f"cannot load checkpoint {path}: {checkpoint_failure(path, exc)}") from exc
-    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
-        raise InputError(f"{path} is not a kpd checkpoint (format {CHECKPOINT_FORMAT!r} missing)")
-    if ckpt.get("version") != CHECKPOINT_VERSION:
-        raise InputError(f"{path}: checkpoint version {ckpt.get('version')}; this kpd reads {CHECKPOINT_VERSION}")
-    from kpd.io.integrity import HASH_KEY, check_hash
-
-    check_hash(ckpt, ckpt.get(HASH_KEY), str(path), "checkpoint")  # a flipped byte is refused, not trained on
-    return ckpt
-
-
-class Objective(nn.Module):
-    """One iteration's forward pass and losses as a module call, the unit DistributedDataParallel wraps.
-
-    The warm-up objective (``warm=True``: the keypoint regulariser alone) holds Φ only and the full one the whole
-    model, so each holds exactly the parameters its loss reaches and DDP never meets an unused one.
-
-    Parameters
-    ----------
-    model : the networks (shared, not copied).
-    config : the recipe (K, J factor, loss weights).
-    warm : the warm-up objective.
-    """
-
-    def __init__(self, model: KeypointDeformer, config: TrainConfig, warm: bool) -> None:
-        super().__init__()
-        self.config, self.warm, self.clamp = config, warm, model.config.clamp
-        self.keypoint_predictor = model.keypoint_predictor  # Φ, None for farthest-point keypoints
-        self.model = None if warm else model
-
-    def forward(self, points: torch.Tensor, cage: torch.Tensor, weights: torch.Tensor, fps_start: torch.Tensor,
-                fps_keypoints: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """Losses of ``b`` pairs.
-
-        Parameters
-        ----------
-        points : (2b, N, 3) the sources, then the targets.
-        cage : (b, C, 3) the sources' cages; weights : (b, N, C) their MVC weights.
-        fps_start : (2b,) int64 first farthest point of each cloud (keypoint regulariser).
-        fps_keypoints : (2b, K, 3) the keypoints of the farthest-point baseline; None for Φ's.
-
-        Returns
-        -------
-        out : ``loss`` (what is backpropagated) and the terms ``sim``, ``kpt``, ``inf`` it has (scalars); the full
-            objective also gives ``deformed``, ``new_cage`` (b, ...) and its inputs ``cage``, ``weights``.
-        """
-        cfg = self.config
-        b = len(points) // 2
-        out: dict[str, torch.Tensor] = {}
-        if fps_keypoints is None:
-            keypoints = self.keypoint_predictor(points)  # (2b, K, 3); as KeypointDeformer.keypoints
-            if self.clamp:
-                keypoints = keypoints.clamp(-1.0, 1.0)
-            fps = farthest_point_sampling(points, cfg.fps_factor * cfg.keypoints, fps_start)
-            out["kpt"] = keypoint_loss(keypoints, gather_points(points, fps))
-        else:
-            keypoints = fps_keypoints
-        if self.warm:
-            out["loss"] = cfg.alpha_kpt * out["kpt"]
-            return out
-        result = self.model.deform(points[:b], cage, weights, keypoints[:b], keypoints[b:])
-        out["sim"] = similarity_loss(result.deformed, points[b:])
-        out["inf"] = influence_loss(result.offset, cfg.inf_reg)
-        loss = out["sim"] + cfg.alpha_inf * out["inf"]
-        if fps_keypoints is None:
-            loss = loss + cfg.alpha_kpt * out["kpt"]
-        out["loss"] = loss
-        out["deformed"], out["new_cage"], out["cage"], out["weights"] = result.deformed, result.new_cage, cage, weights
-        return out
 
 
 class Trainer:
