@@ -256,9 +256,9 @@ class GltfSource:
     """
 
     def __init__(self, path: Path, doc: dict, buffers: list, blocks: list, vertices: np.ndarray,
-                 triangles: np.ndarray) -> None:
+                 triangles: np.ndarray, normals: np.ndarray | None) -> None:
         self.path, self.doc, self.buffers, self.blocks = path, doc, buffers, blocks
-        self.vertices, self.triangles = vertices, triangles
+        self.vertices, self.triangles, self.normals = vertices, triangles, normals
 
 
 def _buffers(p: Path, doc: dict, chunk: bytes | None) -> list:
@@ -477,7 +477,7 @@ def _read(p, doc, chunk, name, points, read_image_bytes, PointSet):
                 triangle_material_ids=texture_ids, triangle_uv_mask=mask if uvs is not None else None, path=name)
     mesh_uses = [n.get("mesh") for n in doc.get("nodes", []) if "mesh" in n]
     if len(mesh_uses) == len(set(mesh_uses)):  # an instanced mesh cannot take two deformations: written anew
-        mesh._source = GltfSource(p, doc, buffers, blocks, V, T)
+        mesh._source = GltfSource(p, doc, buffers, blocks, V, T, N)
     return mesh
 
 
@@ -558,11 +558,11 @@ def write_from_source(target: Path, mesh: Mesh, source: GltfSource) -> None:
     doc = copy.deepcopy(source.doc)
     buffers = [bytearray(b) for b in source.buffers]
     changed = not np.array_equal(mesh.vertices, source.vertices)
-    written: dict[int, np.ndarray] = {}  # accessor -> local rows already written (an accessor shared by nodes)
+    written: dict[tuple, np.ndarray] = {}  # data region -> rows written there (data shared by two placements)
     normals_new = None
     if changed and any(b["normal"] is not None for b in source.blocks):
         normals_new = turned_normals(source.vertices, mesh.vertices, source.triangles, source.triangles,
-                                     _world_normals(source))
+                                     source.normals)
     for block in source.blocks:
         if not changed:
             break
@@ -602,25 +602,20 @@ def write_from_source(target: Path, mesh: Mesh, source: GltfSource) -> None:
         target.write_text(json.dumps(doc, indent=1), encoding="utf-8")
 
 
-def _world_normals(source: GltfSource) -> np.ndarray:
-    from kpd.triangles import vertex_normals
-
-    return vertex_normals(source.vertices, source.triangles)
-
-
 def _put(doc: dict, buffers: list, block: dict, attribute: str, accessor: int, rows: np.ndarray, written: dict,
          *, bounds: bool) -> None:
     """Store ``rows`` (n, 3) as the accessor's data: in place when it is plain float32 data of its own, else as a
     new accessor that this node's primitives use."""
     acc = doc["accessors"][accessor]
     values = rows.astype(np.float32)
-    if accessor in written and not np.array_equal(written[accessor], values):
+    region = (acc.get("bufferView"), acc.get("byteOffset", 0), accessor if "bufferView" not in acc else None)
+    if region in written and not np.array_equal(written[region], values):
         new = _new_accessor(doc, buffers, values, bounds)  # one accessor in two meshes placed apart: split
         for prim in _block_primitives(doc, block):
             if prim["attributes"].get(attribute) == accessor:
                 prim["attributes"][attribute] = new
         return
-    written[accessor] = values
+    written[region] = values
     plain = (acc["componentType"] == _FLOAT and "sparse" not in acc and "bufferView" in acc)
     if plain:
         view = doc["bufferViews"][acc["bufferView"]]

@@ -547,7 +547,7 @@ def _map_statements(data: bytes) -> list[tuple[int, bytes]]:
 
 def turned_normals(old_vertices: np.ndarray, new_vertices: np.ndarray, triangles: np.ndarray,
                    corner_normals: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(N, 3) the file's normals turned with the surface around them.
+    """(N, 3) the file's normals turned with the surface around them, each keeping its length.
 
     Each normal ``n`` is turned by the smallest rotation that takes the area-weighted normal of the faces whose
     corners use it, before the edit, to the same after the edit: a normal that was the faces' own (flat or smooth)
@@ -580,8 +580,7 @@ def turned_normals(old_vertices: np.ndarray, new_vertices: np.ndarray, triangles
     opposite = valid & ((1.0 + c) <= 1e-12)
     turned[opposite] = -v[opposite]
     out[valid] = turned[valid]
-    length = np.linalg.norm(out, axis=1, keepdims=True)
-    return np.divide(out, length, out=normals.copy(), where=length > 0)
+    return out  # a rotation: each normal keeps its length (some files store them scaled)
 
 
 def _write_from_source(target: Path, mesh: Mesh, source: ObjSource) -> None:
