@@ -242,13 +242,15 @@ class Rig:
             raise InputError("keypoints must be finite")
         return keypoints - self._rest_keypoints  # (K, 3)
 
-    def deform(self, keypoints: Any, *, out: np.ndarray | None = None) -> np.ndarray:
+    def deform(self, keypoints: Any, *, out: np.ndarray | None = None, rows: Any = None) -> np.ndarray:
         """Mesh vertices for moved keypoints.
 
         Parameters
         ----------
         keypoints : (K, 3) float64, in the user's units.
         out : optional (V, 3) float64 buffer to write into (avoids an allocation per edit).
+        rows : optional (P,) int, vertex indices: only these rows of ``out`` are computed and written, the others are
+            left as they were (a coarse stand-in of a large mesh needs only its own vertices).
 
         Returns
         -------
@@ -262,7 +264,14 @@ class Rig:
                              f"{out.shape} {out.dtype}")
         # One pass over the basis on the calling thread, in float64: the product is memory-bound, and a
         # multi-threaded BLAS call stalls for tens of milliseconds when another process holds the other cores.
-        _edit(self._basis, offsets, self._rest_vertices, out)
+        if rows is None:
+            _edit(self._basis, offsets, self._rest_vertices, out)
+        else:
+            rows = np.asarray(rows)
+            if rows.ndim != 1 or rows.dtype.kind not in "iu" or (len(rows) and (
+                    rows.min() < 0 or rows.max() >= len(out))):
+                raise InputError(f"rows must be (P,) vertex indices in [0, {len(out)})")
+            _edit_rows(self._basis, offsets, self._rest_vertices, rows.astype(np.int64, copy=False), out)
         return out
 
     def deform_cage(self, keypoints: Any) -> np.ndarray:
@@ -781,6 +790,24 @@ def _edit(basis, offsets, rest, out):  # pragma: no cover - compiled
     """``out = rest + basis @ offsets`` with float64 sums: (V, K) basis of float32 or float64, (K, 3) offsets."""
     k = offsets.shape[0]
     for v in range(rest.shape[0]):
+        x = rest[v, 0]
+        y = rest[v, 1]
+        z = rest[v, 2]
+        for j in range(k):
+            b = np.float64(basis[v, j])
+            x += b * offsets[j, 0]
+            y += b * offsets[j, 1]
+            z += b * offsets[j, 2]
+        out[v, 0] = x
+        out[v, 1] = y
+        out[v, 2] = z
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _edit_rows(basis, offsets, rest, rows, out):  # pragma: no cover - compiled
+    """:func:`_edit` for the vertices ``rows`` only."""
+    k = offsets.shape[0]
+    for v in rows:
         x = rest[v, 0]
         y = rest[v, 1]
         z = rest[v, 2]

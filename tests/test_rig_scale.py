@@ -201,3 +201,16 @@ def test_a_mesh_larger_than_memory_allows_ends_in_one_line(tmp_path, monkeypatch
     assert not (tmp_path / "out.ply").exists()
     monkeypatch.setattr(kpd.rig, "available_memory", lambda: need)
     assert isinstance(fps_rig(mesh, k=8).cage, Cage)
+
+
+def test_deforming_some_rows_writes_those_rows_only():
+    rig = fps_rig(box_mesh(), k=8, straighten=False)
+    keypoints = rig.moved({2: [0.1, 0.2, -0.3]})
+    out = np.full_like(rig.mesh.vertices, 7.0)
+    rows = np.array([5, 1, 6])
+    assert rig.deform(keypoints, out=out, rows=rows) is out
+    full = rig.deform(keypoints)
+    np.testing.assert_array_equal(out[rows], full[rows])
+    assert (np.delete(out, rows, axis=0) == 7.0).all()
+    with pytest.raises(InputError, match=r"rows must be \(P,\) vertex indices in \[0, 8\)"):
+        rig.deform(keypoints, rows=np.array([8]))

@@ -293,13 +293,16 @@ class EditorApp:
 
     # --- the scene --------------------------------------------------------------------------------------------
 
-    def _frame(self) -> Frame:
+    def _frame(self, rows: np.ndarray | None = None) -> Frame:
+        """The current state; with ``rows``, only those vertices are deformed (the others keep older positions)."""
         keypoints = self.session.keypoints
-        vertices = self.rig.deform(keypoints, out=self._buffer)
+        vertices = self.rig.deform(keypoints, out=self._buffer, rows=rows)
         return Frame(vertices, keypoints, self.rig.deform_cage(keypoints), tuple(self.selection))
 
     def _show(self, *, mesh: bool = True, fast: bool = False) -> None:
-        self.drawing.show(self._frame(), self.camera, mesh=mesh, fast=fast)
+        # a frame drawn by a large mesh's stand-in needs the stand-in's vertices only
+        stand_in = fast and self.drawing.proxy is not None and not self.settings.xray
+        self.drawing.show(self._frame(self.drawing._kept if stand_in else None), self.camera, mesh=mesh, fast=fast)
 
     def _changed(self, *, mesh: bool = True) -> None:
         self._dirty = True
