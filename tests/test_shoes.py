@@ -147,6 +147,7 @@ def test_a_small_collection_turned_at_random_comes_back_to_one_frame(turned_shoe
 
 def test_collection_alignment_continues_from_its_state(turned_shoes, tmp_path, monkeypatch):
     import kpd.collection as collection
+    import kpd.collection.align as align
 
     names, clouds, truth = turned_shoes
     state = tmp_path / "state.json"
@@ -155,7 +156,7 @@ def test_collection_alignment_continues_from_its_state(turned_shoes, tmp_path, m
     def refuse(item):
         raise AssertionError("a shape was oriented again although its result was saved")
 
-    monkeypatch.setattr(collection, "_worker_orient", refuse)
+    monkeypatch.setattr(align, "_worker_orient", refuse)
     again = collection.align_collection(clouds[:3], names[:3], rounds=1, state=state, **FAST)
     assert np.array_equal(first.rotations, again.rotations)
     with pytest.raises(InputError, match="other shapes or settings"):
