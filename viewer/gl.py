@@ -180,7 +180,9 @@ class ShadedMesh:
                 # tiled maps (UVs beyond [0, 1], common in CAD models): the legacy renderer does not repeat a
                 # texture (black beyond it), so each triangle moves by whole tiles into the first one
                 uvs -= np.floor(uvs.min(axis=1, keepdims=True))
-                uvs = np.clip(uvs, 0.0, 1.0).reshape(-1, 2)
+                # within the outer texel centres: the renderer's border (black) lies beyond them
+                edge = 0.5 / np.array([texture.shape[1], texture.shape[0]], dtype=np.float64)
+                uvs = np.clip(uvs, edge, 1.0 - edge).reshape(-1, 2)
                 uvs[:, 1] = 1.0 - uvs[:, 1]  # the legacy renderer reads v from the top row down
                 part.triangle_uvs = o3d.utility.Vector2dVector(uvs)
                 image = np.ascontiguousarray(texture[:, :, :3] if texture.ndim == 3 else
