@@ -227,7 +227,8 @@ class Model:
         shape = _as_shape(shape)
         n = self.point_count
         if isinstance(shape, Mesh) and len(shape.triangles):
-            used = np.unique(shape.triangles)
+            used = np.zeros(len(shape.vertices), dtype=bool)
+            used[shape.triangles] = True  # the vertices of some triangle (as np.unique, without sorting 3T indices)
             normalizer = Normalizer().fit(shape.vertices[used])
             points = sample_surface(normalizer.apply(shape.vertices), shape.triangles, n, seed=seed,
                                     outer=self.outer_surface).points
