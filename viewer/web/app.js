@@ -9,7 +9,8 @@
 // so their weighted sum is sum_i B_i o_i with o_i keypoint i's offset. By default the page reads B_i from the
 // targets' data once and the vertex shader adds sum_i B_i o_i (K multiply-adds per vertex, the same sum as the
 // morph targets'); three.js's own morph targets (a texture fetch per target and vertex) draw the same mesh at a
-// fraction of the speed on a software renderer. ?morph=three uses three.js's morph targets.
+// fraction of the speed on a software renderer. ?morph=three uses three.js's morph targets; ?morph=none draws the
+// rest mesh only (the cost of the draw without deformation, for benchmarks).
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -17,6 +18,7 @@ import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 const params = new URLSearchParams(location.search);
 const timing = params.has('timing'); // finish each frame on the GPU and record its time (benchmarks, tests)
 const threeMorphs = params.get('morph') === 'three';
+const noMorphs = params.get('morph') === 'none'; // the rest mesh only, the same draw without deformation (benchmarks)
 const PICK_PIXELS = 14; // a press this close to a keypoint's marker grabs it
 
 // stats.firstPicture: ms from the page's start to its first finished frame; with ?timing, stats.steps: per drag or
@@ -104,7 +106,7 @@ function apply() {
         }
       }
     }
-  } else {
+  } else if (!noMorphs) {
     total.forEach((o, i) => offsetUniforms[i].set(o[0], o[1], o[2]));
   }
   for (let i = 0; i < rest.length; i++) {
@@ -380,7 +382,11 @@ async function start() {
     }
   });
   offsetUniforms = rest.map(() => new THREE.Vector3());
-  if (!threeMorphs) meshes.forEach(packBasis);
+  if (noMorphs) {
+    meshes.forEach((mesh) => { mesh.geometry.morphAttributes = {}; mesh.morphTargetInfluences = undefined; });
+  } else if (!threeMorphs) {
+    meshes.forEach(packBasis);
+  }
   scene.add(gltf.scene);
   gltf.scene.updateMatrixWorld(true);
   const radius = frameCamera(gltf.scene);
