@@ -10,10 +10,14 @@ keypoints                  ``.json`` (``{"keypoints": [[x, y, z], ...], ...}`` o
                            ``x y z`` or the authors' ``%03d x y z``) (:func:`read_keypoints`, :func:`write_keypoints`)
 =========================  ==========================================================================================
 
-Meshes and point clouds go through Open3D, with the checks Open3D leaves out: Open3D returns an empty or half-read
-geometry with a console warning for a missing, broken or truncated file, and kpd raises
-:class:`~kpd.errors.InputError` naming the file and the problem instead. glTF is written by kpd itself (Open3D 0.20
-writes neither UVs nor textures to glTF and writes ``.glb`` files without their binary chunk).
+OBJ and glTF are read and written by kpd itself, so that a user's file comes back whole (see docs/formats.md): an
+OBJ's vertices are its ``v`` lines in order, its faces keep their texture coordinates (faces without them are marked
+in ``Mesh.triangle_uv_mask``), every material is kept (its map, or its ``Kd`` colour as a 1x1 texture), and a mesh
+read from an OBJ or glTF file is written back in that file's own structure with only the positions (and the normals,
+turned with the surface) changed, its material library and images copied beside the output under the output's
+name. PLY, OFF, STL and point clouds go through Open3D, with the checks Open3D leaves out: Open3D returns an empty
+or half-read geometry with a console warning for a missing, broken or truncated file, and kpd raises
+:class:`~kpd.errors.InputError` naming the file and the problem instead.
 
 Layout
 ------
@@ -26,20 +30,20 @@ hands each format's own work to its module: :mod:`kpd.io.ply`, :mod:`kpd.io.pcd`
 
 Conventions
 -----------
-- OBJ, STL and glTF are read by Assimp inside Open3D, which splits a vertex wherever its UV or normal differs between
-  triangles (the banana scan: 7,866 ``v`` lines become 10,710 vertices) and orders vertices by first use in the face
-  list. STL vertices are welded back by position (STL stores no shared vertices). OBJ faces must be triangles:
-  Assimp would drop polygons silently, so kpd refuses them.
-- Precision: PLY keeps float64, PCD and glTF float32, OBJ and OFF (written by Open3D) six significant digits, and
+- OBJ faces must be triangles (kpd refuses polygons with their count rather than triangulating behind the user's
+  back). STL vertices are welded back by position (STL stores no shared vertices). glTF files are y up
+  (:func:`file_up`).
+- Precision: PLY keeps float64, PCD and glTF float32, OBJ nine significant digits (float32-exact), OFF (written by
+  Open3D) six significant digits, and
   the text formats kpd writes (``.xyz``, ``.pts``) nine significant digits (float32-exact).
 
 Writes are atomic (:mod:`kpd.io.atomic`, the one writer every kpd output goes through): everything is written
 under a temporary name in the target folder, fsynced, checked (Open3D's writers report a full disk only on stderr
 and return success, so the file is re-read: PLY/PCD/OFF headers against the bytes that follow, OBJ vertex and face
 counts, STL size, PNG end chunk) and renamed into place only when complete; a failed write raises
-:class:`~kpd.errors.WriteError` and leaves nothing behind. Formats with companion files (OBJ: ``.mtl`` and one
-``<name>_<i>.png`` per texture; ``.gltf``: the PNGs) are written under their final names into a temporary folder
-first, then moved together.
+:class:`~kpd.errors.WriteError` and leaves nothing behind. Formats with companion files (OBJ: its ``.mtl`` and maps;
+``.gltf``: its images and buffers) are written under their final names into a temporary folder first, then moved
+together; messages name the final paths, never the temporary ones.
 """
 
 from __future__ import annotations
