@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -543,6 +544,7 @@ def _check_straighten(basis: Any, vertices: Any, triangles: Any, thinness: float
 
 
 _SOLVE_BATCH = 1 << 17  # merged points per sparse factorisation: small connected pieces are solved together
+_MAX_SOLVE_THREADS = 2
 
 
 class _StraightenSystem:
@@ -623,22 +625,21 @@ class _StraightenSystem:
         weighted = self.weight[:, None] * (straight @ merged)  # (S, K) straightness of each sliver, weighted
         rhs_all = -(straight.T @ weighted)  # (n, K)
         del weighted, straight
-        order_points = np.argsort(self.point_batch, kind="stable")
+        order_points = np.argsort(self.point_batch, kind="stable")  # each batch's points in ascending order
         order_edges = np.argsort(self.edge_batch, kind="stable")
         order_slivers = np.argsort(self.sliver_batch, kind="stable")
-        local = np.full(self.n, -1)
-        for b in range(self.batches):
-            members = order_points[np.searchsorted(self.point_batch[order_points], b):
-                                   np.searchsorted(self.point_batch[order_points], b, side="right")]
-            edges = order_edges[np.searchsorted(self.edge_batch[order_edges], b):
-                                np.searchsorted(self.edge_batch[order_edges], b, side="right")]
-            slivers = order_slivers[np.searchsorted(self.sliver_batch[order_slivers], b):
-                                    np.searchsorted(self.sliver_batch[order_slivers], b, side="right")]
+
+        def part(order: np.ndarray, labels: np.ndarray, b: int) -> np.ndarray:
+            ordered = labels[order]
+            return order[np.searchsorted(ordered, b):np.searchsorted(ordered, b, side="right")]
+
+        def solve_batch(b: int) -> None:
+            members = part(order_points, self.point_batch, b)  # sorted: a point's local index is a search
+            edges, slivers = part(order_edges, self.edge_batch, b), part(order_slivers, self.sliver_batch, b)
             m = len(members)
-            local[members] = np.arange(m)
-            i, j = local[self.edges[edges, 0]], local[self.edges[edges, 1]]
+            i, j = np.searchsorted(members, self.edges[edges, 0]), np.searchsorted(members, self.edges[edges, 1])
             c = self.stiffness[edges]
-            q = local[self.ends3[slivers]]  # (S', 3)
+            q = np.searchsorted(members, self.ends3[slivers])  # (S', 3)
             coef, w = self.coef3[slivers], self.weight[slivers]
             block = w[:, None, None] * coef[:, :, None] * coef[:, None, :]  # (S', 3, 3)
             rows = np.concatenate([np.arange(m), i, j, i, j, np.repeat(q, 3, axis=1).ravel()])
@@ -648,7 +649,15 @@ class _StraightenSystem:
             factor = splu(system, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                           options={"SymmetricMode": True})
             correction[members] = factor.solve(rhs_all[members])
-            local[members] = -1
+
+        # SuperLU lets go of the GIL: two batches at a time on two cores
+        threads = min(_MAX_SOLVE_THREADS, self.batches, os.cpu_count() or 1)
+        if threads == 1:
+            for b in range(self.batches):
+                solve_batch(b)
+        else:
+            with ThreadPoolExecutor(threads) as pool:
+                list(pool.map(solve_batch, range(self.batches)))
         return correction
 
 
