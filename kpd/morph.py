@@ -55,7 +55,7 @@ GLTF_FORMATS = (".glb", ".gltf")
 _GLB_MAGIC, _GLB_JSON, _GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
 _FLOAT, _UINT, _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 5126, 5125, 34962, 34963
 _AXES = {"x": 0, "y": 1, "z": 2}
-_BLOCK = 65536  # mesh vertices per product in MorphRig.vertices
+_BLOCK = 4096  # mesh vertices per product: small enough that BLAS runs each on the calling thread (as Rig.deform)
 
 
 class MorphRig:
@@ -256,13 +256,15 @@ class _Builder:
         return len(self.views) - 1
 
     def accessor(self, array: np.ndarray, kind: str, component: int, target: int | None,
-                 bounds: bool = False) -> int:
+                 bounds: bool | tuple = False) -> int:
+        """An accessor of ``array``; ``bounds``: write its min and max (True: computed here, or given as a pair)."""
         array = np.ascontiguousarray(array)
         entry = {"bufferView": self.view(array, target), "componentType": component, "count": len(array),
                  "type": kind}
-        if bounds:
-            entry["min"] = [float(x) for x in array.min(axis=0)] if len(array) else [0.0] * array.shape[1]
-            entry["max"] = [float(x) for x in array.max(axis=0)] if len(array) else [0.0] * array.shape[1]
+        if bounds is True:
+            bounds = (array.min(axis=0), array.max(axis=0))
+        if bounds is not False:
+            entry["min"], entry["max"] = [float(x) for x in bounds[0]], [float(x) for x in bounds[1]]
         self.accessors.append(entry)
         return len(self.accessors) - 1
 
@@ -334,8 +336,9 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
             st = uv * [1.0, -1.0] + [0.0, 1.0]  # glTF puts the UV origin at the top left
             attributes["TEXCOORD_0"] = builder.accessor(st.astype(np.float32), "VEC2", _FLOAT, _ARRAY_BUFFER)
         indices = builder.accessor(triangles.reshape(-1).astype(np.uint32), "SCALAR", _UINT, _ELEMENT_ARRAY_BUFFER)
-        moved = _displacements(morph.basis, source, stacked)  # (T, n, 3) float32
-        targets = [{"POSITION": builder.accessor(d, "VEC3", _FLOAT, _ARRAY_BUFFER, bounds=True)} for d in moved]
+        moved, low, high = _displacements(morph.basis, source, stacked)  # (T, n, 3), (T, 3), (T, 3) float32
+        targets = [{"POSITION": builder.accessor(d, "VEC3", _FLOAT, _ARRAY_BUFFER, bounds=(lo, hi))}
+                   for d, lo, hi in zip(moved, low, high)]
         primitive = {"attributes": attributes, "indices": indices, "mode": 4, "targets": targets}
         if material is not None:
             primitive["material"] = material
@@ -375,16 +378,26 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
     return doc, builder
 
 
-def _displacements(basis: np.ndarray, source: np.ndarray, stacked: np.ndarray) -> np.ndarray:
-    """(T, n, 3) float32: every target's displacement of the written vertices, ``basis[source] @ stacked`` computed
-    in blocks of rows (one product for all targets; the float64 block stays small)."""
+def _displacements(basis: np.ndarray, source: np.ndarray, stacked: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Every target's displacement of the written vertices, ``basis[source] @ stacked`` computed in blocks of rows
+    (one product for all targets; the float64 block stays small).
+
+    Returns
+    -------
+    moved : (T, n, 3) float32.
+    low, high : (T, 3) float32, the accessors' bounds (float32 rounding keeps the order, so the bounds of the
+        float64 values, rounded, are the bounds of the float32 data).
+    """
     n, t = len(source), stacked.shape[1] // 3
     out = np.empty((t, n, 3), dtype=np.float32)
+    low, high = np.full(3 * t, np.inf), np.full(3 * t, -np.inf)
     for start in range(0, n, _BLOCK):
         rows = source[start:start + _BLOCK]
-        block = (basis[rows] @ stacked).reshape(len(rows), t, 3)  # (b, T, 3) float64
-        out[:, start:start + len(rows)] = block.transpose(1, 0, 2)
-    return out
+        block = basis[rows] @ stacked  # (b, 3T) float64
+        np.minimum(low, block.min(axis=0), out=low)
+        np.maximum(high, block.max(axis=0), out=high)
+        out[:, start:start + len(rows)] = block.reshape(len(rows), t, 3).transpose(1, 0, 2)
+    return out, low.reshape(t, 3).astype(np.float32), high.reshape(t, 3).astype(np.float32)
 
 
 def _version() -> str:
