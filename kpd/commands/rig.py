@@ -114,7 +114,8 @@ def browse(args: argparse.Namespace) -> int:
     editor = BrowserEditor(out=args.out, force=args.force, inputs=inputs, host=args.host, port=args.port)
     try:
         source = load_source(args, need_prior=args.prior)
-        meta = {"model": str(args.model or args.prior_model), "shape": source.name, "scan": bool(args.scan)}
+        model = args.model or args.prior_model
+        meta = {**({"model": str(model)} if model is not None else {}), "shape": source.name, "scan": bool(args.scan)}
         up = args.view_up or getattr(source, "up", None) or "+z"
         editor.show(morph_rig(source.rig, source.prior, meta), name=Path(source.name).stem, up=up, prior=args.prior)
         port = editor.server.server_address[1]
