@@ -233,8 +233,10 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh) -> None:
 
     Parameters
     ----------
-    path : ``.obj`` (with ``<stem>.mtl`` and ``<stem>_<i>.png`` per texture when the mesh has UVs), ``.ply``
-        (binary, float64), ``.off``, ``.stl`` (binary), ``.gltf`` (PNG textures beside it) or ``.glb``.
+    path : ``.obj`` (with ``<stem>.mtl`` and its maps), ``.ply`` (binary, float64), ``.off``, ``.stl`` (binary),
+        ``.gltf`` (images beside it) or ``.glb``. A mesh read from an OBJ or glTF file (and moved by
+        :meth:`~kpd.mesh.Mesh.with_vertices`) is written in that file's own structure (:mod:`kpd.io.obj`,
+        :mod:`kpd.io.gltf`).
     mesh : Mesh
 
     Attributes the format cannot store (UVs and textures in PLY, OFF, STL; colours and normals in STL) are dropped
@@ -278,8 +280,8 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh) -> None:
 
 
 def mesh_companions(path: str | os.PathLike, mesh: "Mesh") -> list[str]:
-    """Names of the companion files :func:`write_mesh` adds beside ``path`` for ``mesh`` (OBJ: the ``.mtl`` and one
-    PNG per texture when the mesh has UVs; ``.gltf``: the PNGs)."""
+    """Names of the companion files :func:`write_mesh` adds beside ``path`` for ``mesh`` (OBJ: the ``.mtl`` and the
+    maps, ``<stem>_<name>``; ``.gltf``: its images and buffers), so that a command checks them before any work."""
     p = Path(path)
     ext = p.suffix.lower()
     if ext == ".obj":

@@ -483,8 +483,8 @@ def companions(p: Path, mesh: Mesh) -> list[str]:
     """The files :func:`write` adds beside ``p``."""
     source = _own_source(mesh)
     if source is not None:
-        return [name for name, _ in _source_companions(p.stem, source)[0].values()] + \
-            list(_source_companions(p.stem, source)[1].values())
+        libraries, images = _source_companions(p.stem, source)
+        return [name for name, _ in libraries.values()] + list(images.values())
     if not mesh.textures:
         return []
     return [p.stem + ".mtl"] + [f"{p.stem}_{i}.png" for i, t in enumerate(mesh.textures) if _is_image(t)]
