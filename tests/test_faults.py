@@ -317,22 +317,23 @@ def test_companions_written_together_under_final_names(inputs, tmp_path, capfd):
     """Not a fault: a textured OBJ names its .mtl and texture by their final names, and nothing else is left."""
     code, _, _ = kpd(capfd, "deform", inputs / "toy.kpd", inputs / "tex.obj", "--out", tmp_path / "out.obj")
     assert code == 0
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mtl", "out.obj", "out_0.png"]
+    # the input's own map (tex_0.png), copied under the output's name
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mtl", "out.obj", "out_tex_0.png"]
     assert "mtllib out.mtl" in (tmp_path / "out.obj").read_text()
-    assert "out_0.png" in (tmp_path / "out.mtl").read_text()
+    assert "out_tex_0.png" in (tmp_path / "out.mtl").read_text()
     # --force replaces the output and its companions, nothing else
     (tmp_path / "other.txt").write_text("mine\n")
     assert kpd(capfd, "deform", inputs / "toy.kpd", inputs / "tex.obj", "--move", "0:0,0,2", "--out",
                tmp_path / "out.obj", "--force")[0] == 0
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.txt", "out.mtl", "out.obj", "out_0.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.txt", "out.mtl", "out.obj", "out_tex_0.png"]
     # kpd scan of a textured mesh: the same, next to its report
     scans = tmp_path / "scan"
     scans.mkdir()
     code, _, err = kpd(capfd, "scan", inputs / "tex.obj", "--out", scans / "s.obj", "--report", scans / "s.json",
                        "--no-pieces")
     assert code == 0, err
-    assert sorted(p.name for p in scans.iterdir()) == ["s.json", "s.mtl", "s.obj", "s_0.png"]
-    assert "mtllib s.mtl" in (scans / "s.obj").read_text() and "s_0.png" in (scans / "s.mtl").read_text()
+    assert sorted(p.name for p in scans.iterdir()) == ["s.json", "s.mtl", "s.obj", "s_tex_0.png"]
+    assert "mtllib s.mtl" in (scans / "s.obj").read_text() and "s_tex_0.png" in (scans / "s.mtl").read_text()
 
 
 # --- --force never touches an input -------------------------------------------------------------------------------
