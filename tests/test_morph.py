@@ -203,6 +203,23 @@ def test_scan_rig_is_in_the_scans_frame(chair_file, tmp_path):
     expected = read_mesh(deformed).vertices[index]
     assert np.abs(expected - original.vertices[index]).max() > 0.01 * diagonal
     assert np.abs(gltf.morphed(weights)[0] - expected).max() < TOLERANCE * diagonal
+    # the browser editor's rig of a scan (kpd view --scan --browser): kpd.frame.ScanRig, in the scan's frame too
+    from kpd.commands.rig import morph_rig
+    from kpd.frame import ScanFrame, ScanRig
+
+    model = Model.load("chair")
+    frame = ScanFrame(model, original, "z")
+    scan_rig = ScanRig(model.rig(original.with_vertices(frame.to_aligned(original.vertices))), original, frame)
+    morph = morph_rig(scan_rig, model.prior, {})
+    np.testing.assert_allclose(morph.keypoints, scan_rig.keypoints, atol=1e-9 * diagonal)
+    everything = {name: 0.01 * np.sin(j) for j, name in enumerate(morph.names)}  # every kind of target
+    np.testing.assert_allclose(morph.vertices_at(everything), scan_rig.deform(morph.keypoints_at(everything)),
+                               atol=1e-9 * diagonal)
+    np.testing.assert_allclose(morph.vertices_at(weights)[index], expected, atol=TOLERANCE * diagonal)
+    move = np.array([0.02, -0.01, 0.03])  # a prior target in the scan's frame is Model.sync of the scan's rig
+    synced = model.sync(scan_rig, {5: scan_rig.keypoints[5] + move})
+    prior_weights = {f"prior_5_{a}": move[j] for j, a in enumerate("xyz")}
+    np.testing.assert_allclose(morph.keypoints_at(prior_weights), synced, atol=1e-9 * diagonal)
 
 
 def test_keypoint_targets_alone(written, chair_file, tmp_path):
