@@ -46,6 +46,7 @@ import numpy as np
 
 from kpd.errors import InputError
 from kpd.io import Mesh, atomic_files, atomic_output
+from kpd.io.images import encode_png
 
 __all__ = ["MorphRig", "GltfRig", "write_gltf", "gltf_bytes", "read_gltf", "GLTF_FORMATS", "up_rotation"]
 
@@ -302,17 +303,6 @@ def _primitive_groups(mesh: Mesh) -> list[tuple[int | None, np.ndarray, np.ndarr
     return result
 
 
-def _png(texture: np.ndarray) -> bytes:
-    from PIL import Image
-
-    image = np.asarray(texture)
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
-    buffer = io.BytesIO()
-    Image.fromarray(image).save(buffer, format="PNG")
-    return buffer.getvalue()
-
-
 def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
               targets: Sequence[str] | None = None) -> tuple[dict, _Builder]:
     mesh = morph.mesh
@@ -363,7 +353,7 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
     doc["meshes"] = [{"name": name, "primitives": primitives, "weights": [0.0] * len(chosen),
                       "extras": {"targetNames": [morph.names[t] for t in chosen]}}]
     if bool(mesh.textures) and mesh.triangle_uvs is not None:
-        doc["images"] = [{"bufferView": builder.view(_png(t)), "mimeType": "image/png"} for t in mesh.textures]
+        doc["images"] = [{"bufferView": builder.view(encode_png(t)), "mimeType": "image/png"} for t in mesh.textures]
         doc["samplers"] = [{"magFilter": 9729, "minFilter": 9987, "wrapS": 10497, "wrapT": 10497}]
         doc["textures"] = [{"source": i, "sampler": 0} for i in range(len(mesh.textures))]
         doc["materials"] = [{"name": f"{name}_{i}", "pbrMetallicRoughness": {

@@ -140,6 +140,13 @@ def test_textured_gltf_with_bin_validates_and_keeps_uvs(model, tmp_path):
     gltf = read_gltf(out)
     doc = gltf.document
     assert doc["buffers"][0]["uri"] == "textured.bin" and len(doc["images"]) == 1
+    import io
+
+    from PIL import Image
+
+    view = doc["bufferViews"][doc["images"][0]["bufferView"]]
+    png = (tmp_path / "textured.bin").read_bytes()[view["byteOffset"]:view["byteOffset"] + view["byteLength"]]
+    np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(png))), texture)  # the texture, as it was
     attributes = doc["meshes"][0]["primitives"][0]["attributes"]
     assert {"POSITION", "COLOR_0", "TEXCOORD_0"} <= set(attributes) and "NORMAL" not in attributes
     assert len(gltf.positions[0]) > len(np.unique(mesh.triangles))  # split where the UVs differ
