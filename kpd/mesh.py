@@ -11,9 +11,13 @@ Conventions
   Textures are stored as they appear in the image file (top row first), so the nearest texel of ``(u, v)`` is
   ``texture[int((1 - v) * H), int(u * W)]``. (Open3D keeps its textures upside down in memory;
   :meth:`Mesh.from_open3d` and :meth:`Mesh.to_open3d` flip them.)
-- ``triangle_material_ids`` index ``textures``. Reading compacts them to the materials the triangles use; a used
-  material without an image gets a 1x1 white texture; a mesh without any texture image has ``textures == []`` and
-  ``triangle_material_ids is None``.
+- ``triangle_material_ids`` index ``textures``: one texture per material the triangles use (in order of first use
+  when read from OBJ or glTF). A material without an image has a 1x1 texture of its colour (OBJ ``Kd``, glTF
+  ``baseColorFactor``; white through Open3D), which the drawing code shades like a vertex colour; a mesh whose
+  materials all look the same and have no image has ``textures == []`` and ``triangle_material_ids is None``.
+- ``triangle_uv_mask`` marks the triangles that have texture coordinates when only some do (an OBJ that mixes
+  ``f 1/1/1`` and ``f 5//2``, a glTF with primitives without ``TEXCOORD_0``); the others' UVs are zeros. None means
+  every triangle has them (or none, with ``triangle_uvs`` None).
 """
 
 from __future__ import annotations
