@@ -344,9 +344,15 @@ function buildPanel(info) {
   });
 }
 
-function frameCamera(object) {
-  const sphere = new THREE.Box3().setFromObject(object).getBoundingSphere(new THREE.Sphere());
-  const distance = sphere.radius / Math.sin(THREE.MathUtils.degToRad(camera.fov / 2)) * 1.05;
+function frameCamera() {
+  // the rest shape's box (three.js's own bounds of a mesh with morph targets grow by a unit weight of each target,
+  // which is a unit of the user's length: a metre around a banana scanned in metres)
+  const box = new THREE.Box3();
+  for (const mesh of meshes) {
+    box.union(new THREE.Box3().setFromBufferAttribute(mesh.geometry.attributes.position).applyMatrix4(mesh.matrixWorld));
+  }
+  const sphere = box.getBoundingSphere(new THREE.Sphere());
+  const distance = sphere.radius / Math.sin(THREE.MathUtils.degToRad(camera.fov / 2)) * 1.2; // room for edits
   const azimuth = THREE.MathUtils.degToRad(Number(params.get('azimuth') ?? 30));
   const elevation = THREE.MathUtils.degToRad(Number(params.get('elevation') ?? 20));
   camera.position.copy(sphere.center).add(new THREE.Vector3(Math.sin(azimuth) * Math.cos(elevation),
@@ -389,7 +395,7 @@ async function start() {
   }
   scene.add(gltf.scene);
   gltf.scene.updateMatrixWorld(true);
-  const radius = frameCamera(gltf.scene);
+  const radius = frameCamera();
   const sphere = new THREE.SphereGeometry(radius * 0.018, 16, 12);
   const material = new THREE.MeshBasicMaterial({ color: 0xff7a00, depthTest: false });
   rest.forEach((p, i) => {
