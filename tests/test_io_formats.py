@@ -470,3 +470,37 @@ def test_shapenet_deformed_by_a_rig_writes_the_rigs_positions(data_dir, tmp_path
         vertices = rig.deform(rig.moved({8: scan.vector_to_aligned(np.array([0, 0.05, 0]))}))
         expected = mesh.vertices + scan.vector_to_original(vertices - work.vertices)
         assert_obj_kept(path, out, expected)
+
+
+def test_gltf_with_external_buffer_and_images_keeps_them_beside_the_output(tmp_path):
+    """A .gltf whose buffer and images are files beside it: the output's buffer holds the new positions, its images
+    are the input's bytes, both under the output's name, and the companions are named before writing."""
+    from kpd.io import mesh_companions
+
+    glb = make_glb(tmp_path)
+    doc, chunk = read_gltf_json(glb)
+    folder = tmp_path / "scene"
+    folder.mkdir()
+    for i, image in enumerate(doc["images"]):
+        view = doc["bufferViews"][image.pop("bufferView")]
+        name = f"map {i}.{'jpg' if image.pop('mimeType') == 'image/jpeg' else 'png'}"
+        (folder / name).write_bytes(chunk[view["byteOffset"] : view["byteOffset"] + view["byteLength"]])
+        image["uri"] = name.replace(" ", "%20")
+    (folder / "data.bin").write_bytes(chunk)
+    doc["buffers"][0]["uri"] = "data.bin"
+    (folder / "scene.gltf").write_text(json.dumps(doc))
+    mesh = read_mesh(folder / "scene.gltf")
+    moved = mesh.with_vertices(affine(mesh.vertices))
+    out = tmp_path / "out" / "moved.gltf"
+    out.parent.mkdir()
+    names = mesh_companions(out, moved)
+    write_mesh(out, moved)
+    assert sorted(os.listdir(out.parent)) == sorted(["moved.gltf", *names])
+    assert sorted(names) == ["moved_data.bin", "moved_map 0.jpg", "moved_map 1.png"]
+    for i in range(2):
+        suffix = "jpg" if i == 0 else "png"
+        assert (out.parent / f"moved_map {i}.{suffix}").read_bytes() == (folder / f"map {i}.{suffix}").read_bytes()
+    back = read_mesh(out)
+    assert_same_features(mesh, back)
+    np.testing.assert_allclose(back.vertices, moved.vertices, atol=2e-6)
+    assert (folder / "data.bin").read_bytes() == chunk  # the input untouched
