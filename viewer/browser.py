@@ -69,6 +69,7 @@ class BrowserEditor:
         self.morph = None
         self.name = "shape"
         self.prior_on = False
+        self.camera = {"azimuth": 30.0, "elevation": 20.0}
         self.glb = b""
         self._saved = False
         self._lock = threading.Lock()
@@ -81,9 +82,10 @@ class BrowserEditor:
             raise InputError(f"--host {host} --port {port}: cannot listen there ({exc.strerror or exc})") from None
         self.server.daemon_threads = True
 
-    def show(self, morph: Any, *, name: str = "shape", up: str = "+z", prior: bool = False) -> None:
+    def show(self, morph: Any, *, name: str = "shape", up: str = "+z", prior: bool = False, azimuth: float = 30.0,
+             elevation: float = 20.0) -> None:
         """Serve ``morph`` (a :class:`kpd.morph.MorphRig`) under ``name``, its ``up`` axis turned to the page's up;
-        ``prior``: start with the prior switch on."""
+        ``prior``: start with the prior switch on; ``azimuth``, ``elevation``: the camera's start, in degrees."""
         from kpd.morph import gltf_bytes
 
         keypoint_targets = [n for n in morph.names if n.startswith("keypoint_")]
@@ -91,6 +93,7 @@ class BrowserEditor:
         # offsets travel in asset.extras.kpd
         self.glb = gltf_bytes(morph, name=name, up=up, targets=keypoint_targets)
         self.morph, self.name, self.prior_on = morph, name, bool(prior)
+        self.camera = {"azimuth": float(azimuth), "elevation": float(elevation)}
 
     @property
     def url(self) -> str:
@@ -111,7 +114,8 @@ class BrowserEditor:
     # --- what the page asks for ---------------------------------------------------------------------------------
 
     def info(self) -> dict:
-        return {"name": self.name, "out": None if self.out is None else str(self.out), "prior": self.prior_on}
+        return {"name": self.name, "out": None if self.out is None else str(self.out), "prior": self.prior_on,
+                **self.camera}
 
     def save(self, weights: dict) -> str:
         """Write the mesh of ``{target: weight}`` to ``out``; returns the message the page shows."""

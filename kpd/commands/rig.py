@@ -102,7 +102,9 @@ def browse(args: argparse.Namespace) -> int:
     from kpd.viewer.browser import BrowserEditor
 
     window_only = [option for option, value in (("--session", args.session), ("--load-session", args.load_session),
-                                                ("--events", args.events)) if value is not None]
+                                                ("--events", args.events), ("--cage", args.cage or None),
+                                                ("--ghost", args.ghost or None), ("--size", args.size))
+                   if value is not None]
     if window_only:
         raise InputError(f"{window_only[0]} belongs to the window editor; the browser page has none (drop it or "
                          "--browser)")
@@ -117,7 +119,8 @@ def browse(args: argparse.Namespace) -> int:
         model = args.model or args.prior_model
         meta = {**({"model": str(model)} if model is not None else {}), "shape": source.name, "scan": bool(args.scan)}
         up = args.view_up or getattr(source, "up", None) or "+z"
-        editor.show(morph_rig(source.rig, source.prior, meta), name=Path(source.name).stem, up=up, prior=args.prior)
+        editor.show(morph_rig(source.rig, source.prior, meta), name=Path(source.name).stem, up=up, prior=args.prior,
+                    azimuth=args.azimuth, elevation=args.elevation)
         port = editor.server.server_address[1]
         print(f"kpd view: the editor is at {editor.url} (from another machine: ssh -L {port}:localhost:{port} "
               f"THIS_HOST, then open http://localhost:{port}/); Ctrl+C stops it", flush=True)

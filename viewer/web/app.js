@@ -344,7 +344,7 @@ function buildPanel(info) {
   });
 }
 
-function frameCamera() {
+function frameCamera(info) {
   // the rest shape's box (three.js's own bounds of a mesh with morph targets grow by a unit weight of each target,
   // which is a unit of the user's length: a metre around a banana scanned in metres)
   const box = new THREE.Box3();
@@ -353,8 +353,8 @@ function frameCamera() {
   }
   const sphere = box.getBoundingSphere(new THREE.Sphere());
   const distance = sphere.radius / Math.sin(THREE.MathUtils.degToRad(camera.fov / 2)) * 1.2; // room for edits
-  const azimuth = THREE.MathUtils.degToRad(Number(params.get('azimuth') ?? 30));
-  const elevation = THREE.MathUtils.degToRad(Number(params.get('elevation') ?? 20));
+  const azimuth = THREE.MathUtils.degToRad(Number(params.get('azimuth') ?? info.azimuth));
+  const elevation = THREE.MathUtils.degToRad(Number(params.get('elevation') ?? info.elevation));
   camera.position.copy(sphere.center).add(new THREE.Vector3(Math.sin(azimuth) * Math.cos(elevation),
     Math.sin(elevation), Math.cos(azimuth) * Math.cos(elevation)).multiplyScalar(distance));
   camera.near = distance / 100;
@@ -395,7 +395,7 @@ async function start() {
   }
   scene.add(gltf.scene);
   gltf.scene.updateMatrixWorld(true);
-  const radius = frameCamera();
+  const radius = frameCamera(info);
   const sphere = new THREE.SphereGeometry(radius * 0.018, 16, 12);
   const material = new THREE.MeshBasicMaterial({ color: 0xff7a00, depthTest: false });
   rest.forEach((p, i) => {
