@@ -195,3 +195,17 @@ def test_a_bad_checkpoint_is_one_line(kind, tmp_path, capsys):
                 "truncated": "the file is truncated or damaged", "pickled": "it holds pickled Python objects"}[kind]
     assert f"cannot load checkpoint {path}: {expected}" in line and "weights_only" not in line
     assert sorted(os.listdir(tmp_path)) == ["checkpoint.pt"]
+
+
+def test_editor_checks_the_companions_of_its_output_before_opening(tmp_path, capsys, monkeypatch):
+    """kpd view --out x.obj on a file with maps: a companion already there (x_wood.jpg) is refused at start, as the
+    other commands refuse it, not overwritten by the first 'save mesh'."""
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    obj = make_obj(tmp_path / "in")
+    (tmp_path / "x_wood.jpg").write_bytes(b"mine")
+    assert kpd("view", "chair", obj, "--out", tmp_path / "x.obj") == 2
+    errors = [s for s in capsys.readouterr().err.splitlines() if s.startswith("kpd view: error")]
+    line = errors[-1]  # after the frame check's warning (a flat test shape is no chair)
+    assert len(errors) == 1 and "its companion file" in line and "x_wood.jpg exists; pass --force" in line
+    assert (tmp_path / "x_wood.jpg").read_bytes() == b"mine"

@@ -198,6 +198,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--step must be a positive number; got {args.step}")
     view_settings(args)  # bad --size or --view-up ends here, before any work
     source = load_source(args, need_prior=args.prior)
+    if args.out is not None:  # 'save mesh' adds the companions of --out (an OBJ's .mtl and maps): checked now
+        from kpd.io import Outputs, mesh_companions
+
+        Outputs(force=args.force, inputs=(args.rig, args.shape)).companions(
+            Path(args.out), mesh_companions(args.out, source.rig.mesh))
     settings = view_settings(args, source.up, prior=bool(args.prior), nudge_step=float(args.step))
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise InputError("kpd view needs a display ($DISPLAY is not set); for images without one use kpd render, "
