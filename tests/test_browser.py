@@ -253,8 +253,9 @@ def test_refusals_in_one_line(chair_file, tmp_path):
     assert len(result.stderr.strip().splitlines()) == 1 and existing.read_text() == "mine"
 
 
-def test_a_file_that_appears_before_the_first_save_is_kept(chair_file, tmp_path):
-    """The page's save refuses (in its status line) to replace a file it did not write, without --force."""
+def test_save_refusals_and_nothing_served_outside_the_page(chair_file, tmp_path):
+    """The save refuses (in the page's status line) to replace a file the editor did not write, without --force, and
+    an unknown target; the server sends no file outside the page's folder."""
     import json
     import urllib.error
     import urllib.request
@@ -270,6 +271,15 @@ def test_a_file_that_appears_before_the_first_save_is_kept(chair_file, tmp_path)
         answer = json.loads(failure.value.read())
         assert not answer["ok"] and "exists; pass --force" in answer["message"]
         assert out.read_text() == "someone else's"
+        import http.client
+        from urllib.parse import urlsplit
+
+        address = urlsplit(url)
+        for path in ("/../browser.py", "/vendor/../../browser.py", "/%2e%2e/browser.py", "/nothing.js"):
+            connection = http.client.HTTPConnection(address.hostname, address.port, timeout=30)
+            connection.request("GET", path)  # sent as written: nothing outside the page's folder is served
+            assert connection.getresponse().status == 404, path
+            connection.close()
         bad = urllib.request.Request(url + "save", data=json.dumps({"weights": {"nose_x": 1.0}}).encode())
         with pytest.raises(urllib.error.HTTPError) as failure:
             urllib.request.urlopen(bad, timeout=30)
