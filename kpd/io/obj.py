@@ -351,9 +351,8 @@ def read_library(p: Path, mtl: Path) -> dict[str, Material]:
         s = _strip_comment(raw).strip()
         if not s:
             continue
-        key, _, rest = s.partition(b" ")
-        key = key.lower()
-        rest = rest.strip()
+        parts = s.split(None, 1)
+        key, rest = parts[0].lower(), (parts[1].strip() if len(parts) > 1 else b"")
         if key == b"newmtl":
             current = Material(rest.decode("utf-8", "replace"))
             materials[current.name] = current
@@ -538,8 +537,8 @@ def _map_statements(data: bytes) -> list[tuple[int, bytes]]:
     """(line index, arguments) of each map statement of an ``.mtl``."""
     out = []
     for i, raw in enumerate(data.split(b"\n")):
-        s = raw.strip()
-        key, _, rest = s.partition(b" ")
+        parts = raw.strip().split(None, 1)
+        key, rest = (parts[0], parts[1]) if len(parts) == 2 else (b"", b"")
         if key.lower() in _MAP_KEYS and rest.strip():
             out.append((i, _strip_comment(rest).strip()))
     return out
