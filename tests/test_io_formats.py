@@ -504,3 +504,88 @@ def test_gltf_with_external_buffer_and_images_keeps_them_beside_the_output(tmp_p
     assert_same_features(mesh, back)
     np.testing.assert_allclose(back.vertices, moved.vertices, atol=2e-6)
     assert (folder / "data.bin").read_bytes() == chunk  # the input untouched
+
+
+# --- the vectorised OBJ reader against a line-by-line reading -------------------------------------------------------
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+def _reference(text: str):
+    """The plain reading of an OBJ, line by line: vertices, triangles, per-face UV presence, material per face."""
+    v, vt, faces, has_uv, material, current = [], [], [], [], [], None
+    for line in text.splitlines():
+        line = line.split("#")[0].strip()
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "v":
+            v.append([float(x) for x in parts[1:4]])
+        elif parts[0] == "vt":
+            vt.append([float(x) for x in parts[1:3]])
+        elif parts[0] == "usemtl":
+            current = parts[1]
+        elif parts[0] == "f":
+            corners = [c.split("/") for c in parts[1:]]
+
+            def index(s, n):
+                i = int(s)
+                return i - 1 if i > 0 else n + i
+
+            faces.append([index(c[0], len(v)) for c in corners])
+            has_uv.append(all(len(c) > 1 and c[1] != "" for c in corners))
+            material.append(current)
+    return np.array(v), np.array(faces), np.array(has_uv), material
+
+
+@st.composite
+def obj_texts(draw):
+    n = draw(st.integers(3, 12))
+    rows = draw(st.lists(st.tuples(*[st.floats(-100, 100, allow_nan=False, width=32)] * 3), min_size=n, max_size=n))
+    lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in rows]
+    lines += [f"vt {i / 10} {i / 20}" for i in range(4)] + ["vn 0 0 1"]
+    newline = draw(st.sampled_from(["\n", "\r\n"]))
+    for _ in range(draw(st.integers(1, 15))):
+        kind = draw(st.sampled_from(["v", "v/vt", "v/vt/vn", "v//vn", "usemtl", "g", "comment", "blank"]))
+        if kind == "usemtl":
+            lines.append(f"usemtl m{draw(st.integers(0, 2))}")
+        elif kind == "g":
+            lines.append("g part  # a group")
+        elif kind == "comment":
+            lines.append("# f 1 2 3 is not a face")
+        elif kind == "blank":
+            lines.append("  ")
+        else:
+            corners = []
+            for _ in range(3):
+                a = draw(st.integers(1, n))
+                a = str(a) if draw(st.booleans()) else str(a - n - 1)  # relative: -1 is the last v so far
+                t = str(draw(st.integers(1, 4)))
+                corners.append({"v": a, "v/vt": f"{a}/{t}", "v/vt/vn": f"{a}/{t}/1", "v//vn": f"{a}//1"}[kind])
+            sep = draw(st.sampled_from([" ", "\t", "  "]))
+            lines.append("f" + sep + sep.join(corners) + draw(st.sampled_from(["", " # comment"])))
+    if not any(s.startswith("f") for s in lines):
+        lines.append("f 1 2 3")
+    return newline.join(lines) + draw(st.sampled_from(["", newline]))
+
+
+@settings(max_examples=60, deadline=None)
+@given(obj_texts())
+def test_obj_reader_agrees_with_a_line_by_line_reading(tmp_path_factory, text):
+    path = tmp_path_factory.mktemp("obj") / "h.obj"
+    path.write_bytes(text.encode())
+    mesh = read_mesh(path)
+    v, faces, has_uv, material = _reference(text)
+    np.testing.assert_array_equal(mesh.vertices, v)
+    np.testing.assert_array_equal(mesh.triangles, faces)
+    mask = np.ones(len(faces), bool) if mesh.triangle_uv_mask is None else mesh.triangle_uv_mask
+    if mesh.triangle_uvs is None:
+        assert not has_uv.any()
+    else:
+        np.testing.assert_array_equal(mask, has_uv)
+    write_mesh(path.with_name("w.obj"), mesh.with_vertices(mesh.vertices * 2))
+    written = path.with_name("w.obj").read_bytes().decode()
+    assert [s for s in written.splitlines() if not s.startswith("v ")] == \
+        [s for s in text.splitlines() if not s.startswith("v ")]  # line endings and everything else kept
+    np.testing.assert_allclose(read_mesh(path.with_name("w.obj")).vertices, v * 2, rtol=1e-8)

@@ -561,7 +561,8 @@ def turned_normals(old_vertices: np.ndarray, new_vertices: np.ndarray, triangles
     def around(vertices: np.ndarray) -> np.ndarray:
         face = cross(vertices, triangles)  # (T, 3)
         per_corner = np.repeat(face[:, None, :], 3, axis=1)[used]  # (c, 3)
-        out = np.stack([np.bincount(index, weights=per_corner[:, k], minlength=n) for k in range(3)], axis=1)
+        out = np.stack([np.bincount(index, weights=per_corner[:, k], minlength=n) for k in range(3)],
+                       axis=1).astype(np.float64)  # (n, 3); bincount of nothing is integer
         length = np.linalg.norm(out, axis=1, keepdims=True)
         return np.divide(out, length, out=np.zeros_like(out), where=length > 0)
 
