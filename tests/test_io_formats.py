@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from PIL import Image
 
 from kpd.io import Mesh, read_mesh, write_mesh
@@ -508,8 +510,6 @@ def test_gltf_with_external_buffer_and_images_keeps_them_beside_the_output(tmp_p
 
 # --- the vectorised OBJ reader against a line-by-line reading -------------------------------------------------------
 
-from hypothesis import given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
 
 
 def _reference(text: str):
