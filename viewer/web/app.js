@@ -30,7 +30,8 @@ const view = document.getElementById('view');
 const labels = document.getElementById('labels');
 const statusLine = document.getElementById('status');
 // multisampling doubles the cost of a frame on a software renderer (SwiftShader, where there is no GPU): it is on
-// only where WebGL runs on a GPU
+// only where WebGL runs on a GPU. Without one, a drag also draws at half the resolution (a quarter of the pixels),
+// full again on release
 function softwareWebGL() {
   const gl = document.createElement('canvas').getContext('webgl2');
   const info = gl && gl.getExtension('WEBGL_debug_renderer_info');
@@ -38,7 +39,8 @@ function softwareWebGL() {
   gl?.getExtension('WEBGL_lose_context')?.loseContext();
   return /swiftshader|llvmpipe|software/i.test(name);
 }
-const renderer = new THREE.WebGLRenderer({ antialias: !softwareWebGL() });
+const software = softwareWebGL();
+const renderer = new THREE.WebGLRenderer({ antialias: !software });
 renderer.setPixelRatio(window.devicePixelRatio);
 view.prepend(renderer.domElement);
 const scene = new THREE.Scene();
@@ -228,6 +230,7 @@ function onPointerDown(event) {
   const plane = new THREE.Plane().setFromNormalAndCoplanarPoint(normal,
     markers[keypoint].getWorldPosition(new THREE.Vector3()));
   drag = { keypoint, plane, moved: false };
+  if (software) renderer.setPixelRatio(window.devicePixelRatio / 2); // a quarter of the pixels while dragging
   renderer.domElement.setPointerCapture(event.pointerId);
   event.preventDefault();
   event.stopImmediatePropagation();
@@ -256,6 +259,7 @@ function onPointerUp(event) {
   if (drag.moved) remember();
   drag = null;
   controls.enabled = true;
+  if (software) { renderer.setPixelRatio(window.devicePixelRatio); requestFrame(); }
   renderer.domElement.releasePointerCapture(event.pointerId);
 }
 
