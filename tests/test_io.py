@@ -408,11 +408,10 @@ def test_out_of_range_face_indices(tmp_path):
         read_mesh(path)
 
 
-def test_polygon_obj_is_refused_not_silently_dropped(tmp_path):
+def test_polygon_obj_faces_are_read_as_fans_not_dropped(tmp_path):
     text = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nf 1 2 3 4\nf 1 2 5\n"
     path = write_text(tmp_path / "quad.obj", text)
-    with pytest.raises(InputError, match=r"quad\.obj: 1 face has more than 3 vertices"):
-        read_mesh(path)
+    np.testing.assert_array_equal(read_mesh(path).triangles, [[0, 1, 2], [0, 2, 3], [0, 1, 4]])
 
 
 def test_off_polygons_are_triangulated(tmp_path):

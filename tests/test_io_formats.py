@@ -283,7 +283,7 @@ def test_missing_material_library_and_map_are_warnings(tmp_path, caplog):
 
 
 @pytest.mark.parametrize("text, message", [
-    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3 4\nf 1 2 3\n", r"1 face has more than 3 vertices \(first: line 5\)"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3 4\nf 1/1 2/2 3 4\n", r"line 6: the corners of a face must"),
     ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\n", r"1 face has fewer than 3 vertices"),
     ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1/1 2 3\n", r"line 4: the corners of a face must all have the same form"),
     ("v 0 0 0\nv 1 0 x\nv 0 1 0\nf 1 2 3\n", r"line 2: a 'v' line holds something that is not a number"),
@@ -296,6 +296,26 @@ def test_malformed_obj_is_one_line(tmp_path, text, message):
     (tmp_path / "bad.obj").write_text(text)
     with pytest.raises(InputError, match=r"bad\.obj: .*" + message):
         read_mesh(tmp_path / "bad.obj")
+
+
+def test_quads_and_ngons_read_as_fans_and_written_back_as_they_were(tmp_path):
+    """Blender writes quads and n-gons: read as fans of triangles (materials and UVs per triangle), written back in
+    the file's own lines."""
+    text = ("mtllib q.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 0 0\nv 2 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+            "usemtl a\nf 1/1 2/2 3/3 4/4\nusemtl b\nf 2 5 6 3\nf 1 2 5 6 3\n")
+    (tmp_path / "q.obj").write_text(text)
+    (tmp_path / "q.mtl").write_text("newmtl a\nKd 1 0 0\nnewmtl b\nKd 0 0 1\n")
+    mesh = read_mesh(tmp_path / "q.obj")
+    np.testing.assert_array_equal(mesh.triangles, [[0, 1, 2], [0, 2, 3], [1, 4, 5], [1, 5, 2], [0, 1, 4], [0, 4, 5],
+                                                   [0, 5, 2]])
+    np.testing.assert_array_equal(mesh.triangle_material_ids, [0, 0, 1, 1, 1, 1, 1])
+    np.testing.assert_array_equal(mesh.triangle_uv_mask, [True, True, False, False, False, False, False])
+    np.testing.assert_allclose(mesh.triangle_uvs[:6], [[0, 0], [1, 0], [1, 1], [0, 0], [1, 1], [0, 1]])
+    write_mesh(tmp_path / "out.obj", mesh.with_vertices(mesh.vertices + [0, 0, 1]))
+    out = obj_lines(tmp_path / "out.obj")
+    assert [s for s in out if not s.startswith(("v ", "mtllib"))] == \
+        [s for s in text.splitlines() if not s.startswith(("v ", "mtllib"))]
+    np.testing.assert_allclose(read_mesh(tmp_path / "out.obj").vertices, mesh.vertices + [0, 0, 1])
 
 
 def test_negative_obj_indices_count_back_from_the_face(tmp_path):
@@ -513,7 +533,8 @@ def test_gltf_with_external_buffer_and_images_keeps_them_beside_the_output(tmp_p
 
 
 def _reference(text: str):
-    """The plain reading of an OBJ, line by line: vertices, triangles, per-face UV presence, material per face."""
+    """The plain reading of an OBJ, line by line: vertices, triangles (polygons as fans), per-triangle UV presence and
+    material."""
     v, vt, faces, has_uv, material, current = [], [], [], [], [], None
     for line in text.splitlines():
         line = line.split("#")[0].strip()
@@ -533,9 +554,11 @@ def _reference(text: str):
                 i = int(s)
                 return i - 1 if i > 0 else n + i
 
-            faces.append([index(c[0], len(v)) for c in corners])
-            has_uv.append(all(len(c) > 1 and c[1] != "" for c in corners))
-            material.append(current)
+            polygon = [index(c[0], len(v)) for c in corners]
+            for i in range(1, len(polygon) - 1):  # a fan from the first corner
+                faces.append([polygon[0], polygon[i], polygon[i + 1]])
+                has_uv.append(all(len(c) > 1 and c[1] != "" for c in corners))
+                material.append(current)
     return np.array(v), np.array(faces), np.array(has_uv), material
 
 
@@ -558,7 +581,7 @@ def obj_texts(draw):
             lines.append("  ")
         else:
             corners = []
-            for _ in range(3):
+            for _ in range(draw(st.integers(3, 5))):
                 a = draw(st.integers(1, n))
                 a = str(a) if draw(st.booleans()) else str(a - n - 1)  # relative: -1 is the last v so far
                 t = str(draw(st.integers(1, 4)))

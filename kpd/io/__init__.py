@@ -30,8 +30,8 @@ hands each format's own work to its module: :mod:`kpd.io.ply`, :mod:`kpd.io.pcd`
 
 Conventions
 -----------
-- OBJ faces must be triangles (kpd refuses polygons with their count rather than triangulating behind the user's
-  back). STL vertices are welded back by position (STL stores no shared vertices). glTF files are y up
+- OBJ faces of more than three corners are read as fans of triangles (and written back as the polygons they are, in
+  the file's own structure). STL vertices are welded back by position (STL stores no shared vertices). glTF files are y up
   (:func:`file_up`).
 - Precision: PLY keeps float64, PCD and glTF float32, OBJ nine significant digits (float32-exact), OFF (written by
   Open3D) six significant digits, and

@@ -15,7 +15,8 @@ so that the outputs of one folder never collide. Any other mesh is written by :f
 (with ``r g b`` when it has vertex colours), ``vt`` on the faces that have UVs, ``vn``, one material per texture
 (a 1x1 texture as a plain ``Kd`` colour, others as ``<stem>_<i>.png``).
 
-Faces must be triangles (kpd refuses polygons rather than triangulating them behind the user's back).
+Faces of more than three corners (Blender's quads and n-gons) are read as fans of triangles from their first corner;
+the file's own structure written back keeps them as the polygons they are.
 """
 
 from __future__ import annotations
@@ -71,6 +72,7 @@ class ObjSource:
     normals: np.ndarray
     vertices: np.ndarray
     libraries: list = field(default_factory=list)
+    face_lines: int = 0
 
 
 _SPACE, _TAB, _HASH, _SLASH, _NEWLINE = 32, 9, 35, 47, 10
@@ -169,56 +171,60 @@ def _values(p: Path, data: bytes, lines, rows: np.ndarray, prefix: int, widths: 
     return out, False
 
 
-def _faces(p: Path, data: bytes, lines, rows: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) int64 corner indices (v, vt, vn; 1-based, negative relative, 0 none) of the face lines."""
+def _faces(p: Path, data: bytes, lines, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3, 3) int64 corner indices (v, vt, vn; 1-based, negative relative, 0 none) of the triangles of the face
+    lines, and (T,) the line of each. A face of c > 3 corners (Blender's quads and n-gons) gives c - 2 triangles, a
+    fan from its first corner; the file keeps the face as it is."""
     starts, ends, first, _ = lines
-    corner = np.zeros((len(rows), 3, 3), dtype=np.int64)
-    done = 0
-    bad = {"polygons": [0, len(data)], "short": [0, len(data)]}  # count, first line
+    pieces: list[tuple[np.ndarray, np.ndarray]] = []
+    short = [0, len(data)]  # count, first line
     for segment, offsets, r in _segments(data, starts, ends, first, rows, 1):
         view = np.frombuffer(segment, dtype=np.uint8)
         bounds = np.append(offsets, len(segment))
-        k = np.diff(np.searchsorted(np.flatnonzero(view == _SLASH), bounds))  # (n,) slashes per line
         word = view > _SPACE  # a corner is a run of non-blank bytes
-        starts_of_words = np.flatnonzero(word[1:] & ~word[:-1]) + 1
-        if len(view) and word[0]:
-            starts_of_words = np.concatenate([[0], starts_of_words])
-        corners = np.diff(np.searchsorted(starts_of_words, bounds))  # (n,)
-        for name, wrong in (("polygons", corners > 3), ("short", corners < 3)):
-            if wrong.any():
-                bad[name][0] += int(wrong.sum())
-                bad[name][1] = min(bad[name][1], int(r[np.argmax(wrong)]) + 1)
-        if (corners != 3).any():
-            done += len(r)
+        edges = np.flatnonzero(np.diff(np.concatenate([[False], word, [False]]).astype(np.int8)))
+        word_starts, word_ends = edges[0::2], edges[1::2]  # (W,) each
+        corners = np.diff(np.searchsorted(word_starts, bounds))  # (n,) corners per line
+        slash = np.flatnonzero(view == _SLASH)
+        per_word = np.searchsorted(slash, word_ends) - np.searchsorted(slash, word_starts)  # (W,) slashes
+        if (corners < 3).any():
+            wrong = corners < 3
+            short[0] += int(wrong.sum())
+            short[1] = min(short[1], int(r[np.argmax(wrong)]) + 1)
             continue
-        cuts = np.concatenate([[0], np.flatnonzero(np.diff(k)) + 1, [len(k)]])
+        first_word = np.concatenate([[0], np.cumsum(corners)[:-1]])  # (n,) index of each line's first word
+        low, high = np.minimum.reduceat(per_word, first_word), np.maximum.reduceat(per_word, first_word)
+        mixed = (low != high) | (high > 2)
+        if mixed.any():
+            i = int(r[np.argmax(mixed)])
+            raise InputError(f"{p}: line {i + 1}: the corners of a face must all have the same form (v, v/vt, "
+                             f"v/vt/vn or v//vn); got {data[first[i]:ends[i]].decode(errors='replace')!r}")
+        key = corners * 3 + low  # (n,) one value per (corner count, form)
+        cuts = np.concatenate([[0], np.flatnonzero(np.diff(key)) + 1, [len(key)]])
         for a, b in zip(cuts[:-1].tolist(), cuts[1:].tolist()):
-            slashes = int(k[a])
-            if slashes not in (0, 3, 6):
-                i = int(r[a])
-                raise InputError(f"{p}: line {i + 1}: the corners of a face must all have the same form (v, v/vt, "
-                                 f"v/vt/vn or v//vn); got {data[first[i]:ends[i]].decode(errors='replace')!r}")
+            c, width = int(corners[a]), int(low[a]) + 1
             stop = offsets[b] if b < len(offsets) else len(segment)
             text = bytes(segment[offsets[a] : stop]).replace(b"//", b"/0/").replace(b"/", b" ")
-            width = slashes // 3 + 1
             try:
                 numbers = np.fromstring(text, dtype=np.int64, sep=" ")  # noqa: NPY201
             except ValueError:
                 raise InputError(f"{p}: a face line near line {int(r[a]) + 1} holds something that is not an "
                                  "index") from None
-            if numbers.size != 3 * width * (b - a):
-                raise InputError(f"{p}: a face line near line {int(r[a]) + 1} does not hold 3 corners of {width} "
+            if numbers.size != c * width * (b - a):
+                raise InputError(f"{p}: a face line near line {int(r[a]) + 1} does not hold {c} corners of {width} "
                                  "indices")
-            corner[done + a : done + b, :, :width] = numbers.reshape(b - a, 3, width)
-        done += len(r)
-    polygons, short = bad["polygons"], bad["short"]
-    if polygons[0]:  # Assimp would drop these silently; kpd refuses rather than triangulating behind the user
-        raise InputError(f"{p}: {count_phrase(polygons[0], 'faces')} more than 3 vertices (first: line "
-                         f"{polygons[1]}); kpd reads triangle meshes only (triangulate it first, e.g. Blender: "
-                         "Triangulate Faces)")
+            faces = numbers.reshape(b - a, c, width)
+            if c > 3:  # fan: (0, i, i + 1)
+                fan = np.stack([np.zeros(c - 2, np.int64), np.arange(1, c - 1), np.arange(2, c)], axis=1)
+                faces = faces[:, fan].reshape(-1, 3, width)
+            tri = np.zeros((len(faces), 3, 3), dtype=np.int64)
+            tri[:, :, :width] = faces
+            pieces.append((tri, np.repeat(r[a:b], c - 2)))
     if short[0]:
         raise InputError(f"{p}: {count_phrase(short[0], 'faces')} fewer than 3 vertices (first: line {short[1]})")
-    return corner
+    if not pieces:
+        return np.zeros((0, 3, 3), dtype=np.int64), np.zeros(0, dtype=np.int64)
+    return np.concatenate([t for t, _ in pieces]), np.concatenate([r for _, r in pieces])
 
 
 def _keyword_lines(data: bytes, lines, keyword: str) -> list[tuple[int, bytes]]:
@@ -248,14 +254,14 @@ def parse(p: Path, data: bytes, points: bool = False) -> tuple[dict, ObjSource |
         vt = np.hstack([vt, np.zeros_like(vt)])
     vt = vt[:, :2]
     vn = _values(p, data, lines, vn_rows, 2, (3,), "vn")[0]
-    corner = _faces(p, data, lines, f_rows)
-    T = len(f_rows)
+    corner, face_rows = _faces(p, data, lines, f_rows)  # (T, 3, 3), (T,) the line of each triangle
+    T = len(face_rows)
 
     def resolve(index: np.ndarray, rows: np.ndarray, kind: str, n: int, optional: bool) -> np.ndarray:
         out = index - 1
         negative = index < 0
         if negative.any():  # relative to the elements defined before the face
-            before = np.searchsorted(rows, f_rows)[:, None]
+            before = np.searchsorted(rows, face_rows)[:, None]
             out = np.where(negative, before + index, out)
         missing = index == 0
         if not optional and missing.any():
@@ -293,14 +299,14 @@ def parse(p: Path, data: bytes, points: bool = False) -> tuple[dict, ObjSource |
     face_material = None
     if usemtl:
         names = [None] + [text.decode("utf-8", "replace") for _, text in usemtl]
-        which = np.searchsorted(np.array([i for i, _ in usemtl], dtype=np.int64), f_rows)  # 0: before any
+        which = np.searchsorted(np.array([i for i, _ in usemtl], dtype=np.int64), face_rows)  # 0: before any
         face_material = [names[w] for w in which.tolist()]
     libraries = [(int(starts[i]), int(ends[i]), text.decode("utf-8", "replace"))
                  for i, text in _keyword_lines(data, lines, "mtllib")]
     source = ObjSource(path=p, data=data, v_spans=np.stack([starts[v_rows], ends[v_rows]], axis=1),
                        v_tails=_tails(data, lines, v_rows) if table.shape[1] > 3 or not uniform else None,
                        vn_spans=np.stack([starts[vn_rows], ends[vn_rows]], axis=1), corner_normals=normal_index,
-                       normals=vn, vertices=vertices, libraries=libraries)
+                       normals=vn, vertices=vertices, libraries=libraries, face_lines=len(f_rows))
     arrays = {"vertices": vertices, "triangles": triangles, "vertex_normals": normals, "vertex_colors": colors,
               "triangle_uvs": uvs, "uv_mask": has_uv if uvs is not None and not has_uv.all() else None,
               "face_material": face_material}
@@ -475,7 +481,7 @@ def write(p: Path, mesh: Mesh) -> None:
             _write_from_source(target, mesh, source)
         else:
             _write_arrays(target, mesh)
-        _verify(p, target, mesh)
+        _verify(p, target, mesh, len(mesh.triangles) if source is None else source.face_lines)
 
 
 def companions(p: Path, mesh: Mesh) -> list[str]:
@@ -709,8 +715,9 @@ def _write_arrays(target: Path, mesh: Mesh) -> None:
         target.parent.joinpath(f"{stem}.mtl").write_text("\n".join(mtl), encoding="utf-8")
 
 
-def _verify(p: Path, tmp: Path, mesh: Mesh) -> None:
-    V, T = len(mesh.vertices), len(mesh.triangles)
+def _verify(p: Path, tmp: Path, mesh: Mesh, T: int) -> None:
+    """The written file holds every vertex and its ``T`` face lines, and ends with a line break."""
+    V = len(mesh.vertices)
     data = tmp.read_bytes()
     kind = _scan(data)[3]
     v, f = int((kind == _KINDS["v"]).sum()), int((kind == _KINDS["f"]).sum())
