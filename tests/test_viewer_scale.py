@@ -63,3 +63,13 @@ def test_editor_session_of_many_drags_on_a_million_vertex_mesh_loses_nothing(tmp
     assert shift.max() > 1e-3 * np.ptp(mesh.vertices)
     near = np.linalg.norm(mesh.vertices - rest[index], axis=1).argsort()[:100]
     assert shift[near].mean() > np.median(shift)  # what moved is around the dragged keypoint
+
+
+def test_distinct_triangles_drop_a_triangle_stored_again_either_way_round():
+    from kpd.viewer.gl import distinct_triangles
+
+    triangles = np.array([[0, 1, 2], [2, 1, 0], [1, 2, 3], [0, 1, 2], [3, 2, 1], [0, 2, 3]])
+    np.testing.assert_array_equal(distinct_triangles(triangles), [0, 2, 5])
+    big = triangles + (1 << 21)  # indices past 2^21 take the sorting path
+    np.testing.assert_array_equal(distinct_triangles(big), [0, 2, 5])
+    assert distinct_triangles(np.zeros((0, 3), np.int64)).shape == (0,)

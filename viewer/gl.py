@@ -168,8 +168,12 @@ class ShadedMesh:
             part = o3d.geometry.TriangleMesh()
             part.vertices = o3d.utility.Vector3dVector(mesh.vertices if whole else mesh.vertices[used])
             local = self.triangles[chosen] if whole else np.searchsorted(used, self.triangles[chosen])
-            part.triangles = o3d.utility.Vector3iVector(local.astype(np.int32))
             texture = mesh.textures[int(material)] if textured and 0 <= material < len(mesh.textures) else None
+            if texture is None or texture.shape[0] * texture.shape[1] == 1:
+                # a triangle over the same corners as an earlier one draws nothing new: two-sided lighting and back
+                # faces shown (CAD meshes store many triangles twice, once each way round: half of ShapeNet's)
+                local = local[distinct_triangles(local)]
+            part.triangles = o3d.utility.Vector3iVector(local.astype(np.int32))
             if texture is not None and texture.shape[0] * texture.shape[1] == 1:
                 # a material's plain colour (kpd.io reads an OBJ material without a map as a 1x1 image): shaded
                 rgb = texture.reshape(-1)[:3] if texture.shape[-1] >= 3 else np.repeat(texture.reshape(-1)[:1], 3)
@@ -214,6 +218,23 @@ class ShadedMesh:
             part.vertex_normals = o3d.utility.Vector3dVector(n.astype(np.float64))
             if albedo is not None:
                 part.vertex_colors = o3d.utility.Vector3dVector(shade(albedo, n, camera).astype(np.float64))
+
+
+def distinct_triangles(triangles: np.ndarray) -> np.ndarray:
+    """(T',) sorted indices of the first triangle over each set of three corners (whatever their order)."""
+    triangles = np.asarray(triangles, dtype=np.int64)
+    if not len(triangles):
+        return np.zeros(0, dtype=np.int64)
+    ordered = np.sort(triangles, axis=1)
+    top = int(ordered.max()) + 1
+    if top < 1 << 21:  # three indices in one int64
+        _, first = np.unique((ordered[:, 0] << 42) | (ordered[:, 1] << 21) | ordered[:, 2], return_index=True)
+    else:
+        order = np.lexsort(ordered.T[::-1])
+        new = np.ones(len(order), dtype=bool)
+        new[1:] = (ordered[order[1:]] != ordered[order[:-1]]).any(axis=1)
+        first = order[new]
+    return np.sort(first)
 
 
 def proxy_triangles(vertices: np.ndarray, triangles: np.ndarray, limit: int) -> tuple[np.ndarray, np.ndarray] | None:
