@@ -17,7 +17,7 @@ import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 
 const params = new URLSearchParams(location.search);
 const timing = params.has('timing'); // finish each frame on the GPU and record its time (benchmarks, tests)
-const threeMorphs = params.get('morph') === 'three';
+let threeMorphs = params.get('morph') === 'three'; // also when the packed basis needs more attributes than WebGL has
 const noMorphs = params.get('morph') === 'none'; // the rest mesh only, the same draw without deformation (benchmarks)
 const PICK_PIXELS = 14; // a press this close to a keypoint's marker grabs it
 
@@ -392,6 +392,7 @@ async function start() {
     }
   });
   offsetUniforms = rest.map(() => new THREE.Vector3());
+  threeMorphs ||= Math.ceil(rest.length / 4) + 4 > renderer.capabilities.maxAttributes;
   if (noMorphs) {
     meshes.forEach((mesh) => { mesh.geometry.morphAttributes = {}; mesh.morphTargetInfluences = undefined; });
   } else if (!threeMorphs) {
