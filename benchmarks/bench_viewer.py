@@ -146,8 +146,9 @@ def bench_editor(mesh: Path, drags: int, folder: Path) -> dict:
             xdo("key", "y", kind="key")
             redo = wait_for(lambda: [e for e in read_events(events) if e["event"] == "redo"], 60, "redo")[0]
             # the frame after input paused: a large mesh's stand-in is then replaced by the whole mesh
+            # (a frame that was being drawn when the redo key arrived ends after it but shows the state before it)
             wait_for(lambda: [f for f in read_events(events) if f["event"] == "frame" and f["time"] > redo["time"]
-                           and not f.get("stand_in")], 60, "the last frame")
+                              and f["serial"] >= len(sent) and not f.get("stand_in")], 60, "the last frame")
             time.sleep(0.5)
             log = read_events(events)
         finally:
