@@ -49,8 +49,49 @@ bpy.context.view_layer.update()
 moved = world()
 np.savez(out, rest=rest, moved=moved)
 empties = {o.name: list(o.matrix_world.translation) for o in bpy.context.scene.objects if o.type == "EMPTY"}
-json.dump({"shape_keys": [k.name for k in keys], "meshes": len(meshes), "empties": empties}, open(out + ".json", "w"))
+json.dump({"shape_keys": [k.name for k in keys], "meshes": len(meshes), "empties": empties,
+           "uv_layers": len(obj.data.uv_layers), "images": [list(image.size) for image in bpy.data.images],
+           "color_attributes": len(obj.data.color_attributes)}, open(out + ".json", "w"))
 """
+
+
+def run_blender(path: Path, weights: dict, tmp_path: Path) -> tuple[dict, dict]:
+    """Import ``path`` in Blender, set ``weights`` on its shape keys; the evaluated mesh and what Blender saw."""
+    (tmp_path / "weights.json").write_text(json.dumps(weights))
+    (tmp_path / "import.py").write_text(IMPORT)
+    out = tmp_path / "blender.npz"
+    subprocess.run([str(BLENDER_PYTHON), str(tmp_path / "import.py"), str(path), str(tmp_path / "weights.json"),
+                    str(out)], check=True, capture_output=True, timeout=300)
+    return dict(np.load(out)), json.loads(Path(str(out) + ".json").read_text())
+
+
+def test_blender_reads_the_gltf_with_its_bin_texture_and_colours(tmp_path):
+    """A textured, coloured mesh far from the origin as .gltf + .bin: Blender's import has its UVs, image, colours and
+    shape keys, and the keys edit it as kpd does."""
+    needs(BLENDER_PYTHON, "Blender as a Python module (bpy)")
+    from kpd.io import Mesh
+    from kpd.morph import MorphRig, write_gltf
+    from kpd.procedural import procedural_chair
+
+    chair = procedural_chair(edge=2.0)
+    t = len(chair.triangles)
+    texture = np.random.default_rng(1).integers(0, 255, (8, 8, 3), dtype=np.uint8)
+    mesh = Mesh(vertices=chair.vertices + [1000.0, -500.0, 20.0], triangles=chair.triangles,
+                vertex_colors=chair.vertex_colors, triangle_uvs=np.random.default_rng(0).uniform(0, 1, (3 * t, 2)),
+                textures=[texture], triangle_material_ids=np.zeros(t, np.int64))
+    model = Model.load("chair")
+    rig = model.rig(mesh)
+    path = tmp_path / "chair.gltf"
+    write_gltf(path, MorphRig.from_rig(rig, None))
+    weights = {"keypoint_3_z": 2.5, "keypoint_0_x": -1.0}
+    result, info = run_blender(path, weights, tmp_path)
+    assert info["uv_layers"] == 1 and info["images"] == [[8, 8]] and info["color_attributes"] == 1
+    assert info["shape_keys"] == ["Basis", *[f"keypoint_{i}_{a}" for i in range(rig.num_keypoints) for a in "xyz"]]
+    diagonal = np.linalg.norm(np.ptp(mesh.vertices, axis=0))
+    # Blender's world coordinates are float32 (its object matrix): about 1e-7 of 1000, a few 1e-6 of this chair
+    index = corresponding(result["rest"], mesh, TOLERANCE)
+    expected = rig.deform(rig.moved({3: [0.0, 0.0, 2.5], 0: [-1.0, 0.0, 0.0]}))[index]
+    assert np.abs(result["moved"] - expected).max() < TOLERANCE * diagonal
 
 
 def test_blender_imports_the_rig_and_its_shape_keys_edit_like_kpd(data_dir, tmp_path):
@@ -73,16 +114,10 @@ def test_blender_imports_the_rig_and_its_shape_keys_edit_like_kpd(data_dir, tmp_
         keypoints += weight * rig.normalizer.invert_vectors(np.sqrt(prior.explained_variance_[c])
                                                             * prior.components_[c])
     expected = rig.deform(keypoints)
-    (tmp_path / "weights.json").write_text(json.dumps(weights))
-    (tmp_path / "import.py").write_text(IMPORT)
-    out = tmp_path / "blender.npz"
-    subprocess.run([str(BLENDER_PYTHON), str(tmp_path / "import.py"), str(glb), str(tmp_path / "weights.json"),
-                    str(out)], check=True, capture_output=True, timeout=300)
-    info = json.loads(Path(str(out) + ".json").read_text())
+    result, info = run_blender(glb, weights, tmp_path)
     names = read_gltf_names(glb)
     assert info["meshes"] == 1 and info["shape_keys"] == ["Basis", *names]
     assert len(names) == 6 * rig.num_keypoints + len(prior.components_)
-    result = np.load(out)
     index = corresponding(result["rest"], mesh)  # Blender's world = the chair's own frame (+z up)
     assert np.abs(result["moved"] - expected[index]).max() < TOLERANCE * diagonal
     assert np.abs(result["moved"] - result["rest"]).max() > 0.05 * diagonal  # the shape keys did move it

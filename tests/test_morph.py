@@ -51,10 +51,11 @@ def written(chair_file, tmp_path_factory):
     return out
 
 
-def corresponding(rest_positions: np.ndarray, mesh: Mesh) -> np.ndarray:
-    """Index of the mesh vertex at each written position (coincident vertices deform alike)."""
+def corresponding(rest_positions: np.ndarray, mesh: Mesh, tolerance: float = 1e-6) -> np.ndarray:
+    """Index of the mesh vertex at each written position (coincident vertices deform alike), which must lie within
+    ``tolerance`` of the box diagonal of it."""
     distance, index = cKDTree(mesh.vertices).query(rest_positions)
-    assert distance.max() < 1e-6 * np.linalg.norm(np.ptp(mesh.vertices, axis=0))
+    assert distance.max() < tolerance * np.linalg.norm(np.ptp(mesh.vertices, axis=0))
     return index
 
 
