@@ -60,6 +60,22 @@ def test_pictures_show_the_materials_colours_and_maps(tmp_path):
     assert red.sum() > 200 and blue.sum() > 100 and brown.sum() > 100, (red.sum(), blue.sum(), brown.sum())
 
 
+def test_shapenet_pictures_show_their_materials(data_dir, tmp_path):
+    """Two real models drawn as kpd sample's sheet draws them: the cup's green Kd material and the bench's wood map."""
+    from kpd.io.images import read_png
+    from kpd.viewer.pictures import render_sheet
+
+    root = data_dir / "shapenetcore_obj"
+    cup = read_mesh(root / "cup/1f035aa5fc6da0983ecac81e09b15ea9/models/model_normalized.obj")
+    bench = read_mesh(root / "bench/a047cb14c22517e6f33e284fed03c3fc/models/model_normalized.obj")
+    for mesh, name in ((cup, "cup"), (bench, "bench")):
+        render_sheet([mesh], tmp_path / f"{name}.png", up="y", cell=2.4)
+    r, g, b = np.moveaxis(read_png(tmp_path / "cup.png").astype(int), 2, 0)
+    assert ((g > 120) & (g > r + 50) & (g > b + 80)).sum() > 2000  # Kd 0.498 1 0, shaded
+    r, g, b = np.moveaxis(read_png(tmp_path / "bench.png").astype(int), 2, 0)
+    assert ((r > b + 50) & (g > b + 20) & (r > 120)).sum() > 1500  # the light wood map (a flat bench)
+
+
 def test_gltf_draws_y_up_unless_view_up_says_otherwise(tmp_path, capsys):
     from kpd.io.images import read_png
 
