@@ -1,10 +1,8 @@
 """kpd.io: real files, round trips through every format, clear errors, atomic writes, keypoint files."""
 
 import errno
-import json
 import logging
 import os
-import re
 from pathlib import Path
 
 import numpy as np
@@ -18,12 +16,9 @@ from kpd.errors import InputError, KpdError
 from kpd.io import (
     Mesh,
     PointSet,
-    atomic_output,
-    read_keypoints,
     read_mesh,
     read_points,
     read_shape,
-    write_keypoints,
     write_mesh,
     write_points,
 )
@@ -548,38 +543,7 @@ def test_write_points_warns_for_what_the_format_drops(tmp_path, caplog):
     assert "cannot store normals and colors" in caplog.text
 
 
-# --- atomic writes ---------------------------------------------------------------------------------------------------
-
-
-def test_atomic_output_keeps_the_old_file_when_the_block_raises(tmp_path):
-    path = write_text(tmp_path / "result.json", "old")
-    with pytest.raises(RuntimeError, match="boom"):
-        with atomic_output(path) as tmp:
-            assert tmp.parent == tmp_path and tmp.suffix == ".json" and tmp != path
-            tmp.write_text("half")
-            raise RuntimeError("boom")
-    assert path.read_text() == "old"
-    assert os.listdir(tmp_path) == ["result.json"]
-
-
-def test_atomic_output_replaces_on_success(tmp_path):
-    path = write_text(tmp_path / "result.json", "old")
-    with atomic_output(path) as tmp:
-        tmp.write_text("new")
-        assert path.read_text() == "old"
-    assert path.read_text() == "new" and os.listdir(tmp_path) == ["result.json"]
-
-
-def test_atomic_output_errors(tmp_path):
-    with pytest.raises(KpdError, match="nothing was written"):
-        with atomic_output(tmp_path / "never.json"):
-            pass
-    with pytest.raises(InputError, match="does not exist"):
-        with atomic_output(tmp_path / "missing" / "x.json"):
-            pass
-    with pytest.raises(InputError, match="does not exist"):
-        write_mesh(tmp_path / "missing" / "x.obj", sphere_mesh())
-    assert os.listdir(tmp_path) == []
+# --- a failed write ---------------------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("ext", ["obj", "ply", "gltf"])
@@ -605,56 +569,3 @@ def test_failed_mesh_write_leaves_existing_files_untouched(ext, tmp_path, monkey
     with pytest.raises(KpdError, match=rf"cannot write .*({reason})"):
         write_mesh(tmp_path / f"chair.{ext}", mesh.with_vertices(mesh.vertices + 1))
     assert {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path)} == before
-
-
-# --- keypoints -------------------------------------------------------------------------------------------------------
-
-
-def test_keypoints_json_round_trip_with_metadata(tmp_path):
-    k = np.random.default_rng(2).normal(size=(10, 3))
-    path = tmp_path / "k.json"
-    write_keypoints(path, k, category="chair", k=np.int64(10), scale=np.float32(0.5), frame=np.eye(3))
-    np.testing.assert_array_equal(read_keypoints(path), k)
-    data = json.loads(path.read_text())
-    assert data["category"] == "chair" and data["k"] == 10 and data["frame"][0] == [1, 0, 0]
-
-
-def test_keypoints_txt_in_the_authors_format(tmp_path):
-    k = np.array([[0.125, -1.5, 2.0], [1e-8, 3.0, -0.0]])
-    write_keypoints(tmp_path / "k.txt", k)
-    lines = (tmp_path / "k.txt").read_text().splitlines()
-    assert re.fullmatch(r"000 0\.125 -1\.5 2\.0", lines[0]) and lines[1].startswith("001 ")
-    np.testing.assert_array_equal(read_keypoints(tmp_path / "k.txt"), k)
-    authors = write_text(tmp_path / "source_keypoints.txt", "000 0.100000 0.200000 0.300000\n001 1 2 3\n")
-    np.testing.assert_array_equal(read_keypoints(authors), [[0.1, 0.2, 0.3], [1, 2, 3]])
-    plain = write_text(tmp_path / "plain.txt", "0.1 0.2 0.3\n")
-    np.testing.assert_array_equal(read_keypoints(plain), [[0.1, 0.2, 0.3]])
-
-
-@settings(max_examples=30, deadline=None)
-@given(k=st.integers(1, 20).flatmap(lambda n: arrays(np.float64, (n, 3), elements=finite)),
-       ext=st.sampled_from(["json", "txt"]))
-def test_any_keypoints_round_trip_exactly(k, ext, tmp_path_factory):
-    path = tmp_path_factory.mktemp("kp") / f"k.{ext}"
-    write_keypoints(path, k)
-    np.testing.assert_array_equal(read_keypoints(path), k)
-
-
-def test_keypoint_errors(tmp_path):
-    bare = write_text(tmp_path / "bare.json", "[[1, 2, 3], [4, 5, 6]]")
-    assert read_keypoints(bare).shape == (2, 3)
-    with pytest.raises(InputError, match=r"other\.json: expected the key 'keypoints'; found \['points'\]"):
-        read_keypoints(write_text(tmp_path / "other.json", '{"points": []}'))
-    with pytest.raises(InputError, match=r"flat\.json: keypoints must have shape \(N, 3\); got \(3,\)"):
-        read_keypoints(write_text(tmp_path / "flat.json", '{"keypoints": [1, 2, 3]}'))
-    with pytest.raises(InputError, match=r"broken\.json: not valid JSON"):
-        read_keypoints(write_text(tmp_path / "broken.json", '{"keypoints": ['))
-    with pytest.raises(InputError, match=r"must count 0, 1, 2"):
-        read_keypoints(write_text(tmp_path / "idx.txt", "000 0 0 0\n005 1 1 1\n"))
-    with pytest.raises(InputError, match="cannot hold metadata"):
-        write_keypoints(tmp_path / "m.txt", np.zeros((2, 3)), category="chair")
-    with pytest.raises(InputError, match="not JSON-serialisable"):
-        write_keypoints(tmp_path / "m.json", np.zeros((2, 3)), thing=object())
-    with pytest.raises(InputError, match=r"1 keypoint has NaN"):
-        write_keypoints(tmp_path / "n.json", [[0, 0, np.nan]])
-    assert sorted(os.listdir(tmp_path)) == ["bare.json", "broken.json", "flat.json", "idx.txt", "other.json"]
