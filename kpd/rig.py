@@ -108,7 +108,7 @@ class Rig:
                     raise InputError(f"basis correction must be (V, K) = ({v}, {k}) finite numbers; got "
                                      f"{correction.shape}")
             basis = weights @ influence.T  # (V, K)
-            basis = np.ascontiguousarray(basis if correction is None else basis + correction)
+            basis = basis if correction is None else basis + correction
         else:
             if correction is not None:
                 raise InputError("a basis correction goes with MVC weights; an edit basis already holds it")
@@ -117,7 +117,6 @@ class Rig:
                 basis = basis.astype(np.float64)
             if basis.shape != (v, k) or not np.isfinite(basis).all():
                 raise InputError(f"edit basis must be (V, K) = ({v}, {k}) finite numbers; got {basis.shape}")
-            basis = np.ascontiguousarray(basis)
         self.mesh = mesh
         self.normalizer = normalizer
         self.cage = cage
@@ -128,7 +127,7 @@ class Rig:
         self._keypoints_model = keypoints
         self._rest_keypoints = normalizer.invert(keypoints)  # (K, 3) user units
         self._rest_vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)  # (V, 3)
-        self._basis = basis
+        self._basis_t = np.ascontiguousarray(basis.T)  # (K, V): an edit reads each keypoint's column in order
 
     @property
     def weights(self) -> np.ndarray:
@@ -152,7 +151,7 @@ class Rig:
         if self._correction is not None:
             return self._correction
         vertices = self.normalizer.apply(self.mesh.vertices)
-        return self._basis - coincident_mvc_basis(vertices, self.cage, self.influence.T)
+        return self.basis - coincident_mvc_basis(vertices, self.cage, self.influence.T)
 
     # --- construction -----------------------------------------------------------------------------------------
 
@@ -232,7 +231,7 @@ class Rig:
     def basis(self) -> np.ndarray:
         """(V, K) float32 or float64: vertex offset per unit keypoint offset (read-only view; float32 when that keeps
         edits within 1e-6 of the box diagonal, see :func:`_compact_basis`)."""
-        view = self._basis.view()
+        view = self._basis_t.T  # (V, K), Fortran-ordered
         view.flags.writeable = False
         return view
 
@@ -267,13 +266,13 @@ class Rig:
         # One pass over the basis on the calling thread, in float64: the product is memory-bound, and a
         # multi-threaded BLAS call stalls for tens of milliseconds when another process holds the other cores.
         if rows is None:
-            _edit(self._basis, offsets, self._rest_vertices, out)
+            _edit(self._basis_t, offsets, self._rest_vertices, out)
         else:
             rows = np.asarray(rows)
             if rows.ndim != 1 or rows.dtype.kind not in "iu" or (len(rows) and (
                     rows.min() < 0 or rows.max() >= len(out))):
                 raise InputError(f"rows must be (P,) vertex indices in [0, {len(out)})")
-            _edit_rows(self._basis, offsets, self._rest_vertices, rows.astype(np.int64, copy=False), out)
+            _edit_rows(self._basis_t, offsets, self._rest_vertices, rows.astype(np.int64, copy=False), out)
         return out
 
     def deform_cage(self, keypoints: Any) -> np.ndarray:
@@ -308,7 +307,7 @@ class Rig:
             "cage_vertices": self.cage.vertices,
             "cage_faces": self.cage.faces,
             "influence": self.influence,
-            "basis": self._basis,
+            "basis": self.basis,
             "straightened": np.array(self._straightened),
             "normalizer_center": self.normalizer.center_,
             "normalizer_scale": np.array(self.normalizer.scale_),
@@ -806,26 +805,44 @@ def _compact_basis(basis: np.ndarray) -> np.ndarray:
     return basis.astype(np.float32)
 
 
+_EDIT_LANES = 256  # vertices per block of an edit
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _edit(basis, offsets, rest, out):  # pragma: no cover - compiled
-    """``out = rest + basis @ offsets`` with float64 sums: (V, K) basis of float32 or float64, (K, 3) offsets."""
+def _edit(basis_t, offsets, rest, out):  # pragma: no cover - compiled
+    """``out = rest + basis_t.T @ offsets`` with float64 sums: (K, V) basis of float32 or float64, (K, 3) offsets.
+
+    Blocks of vertices, each keypoint's row of the block in order: the loops over the block are SIMD code (one pass
+    at 1.37M vertices takes about 10 ms; a vertex at a time, 12 dependent sums, took 27 ms)."""
     k = offsets.shape[0]
-    for v in range(rest.shape[0]):
-        x = rest[v, 0]
-        y = rest[v, 1]
-        z = rest[v, 2]
+    n_all = rest.shape[0]
+    x = np.empty(_EDIT_LANES)
+    y = np.empty(_EDIT_LANES)
+    z = np.empty(_EDIT_LANES)
+    for start in range(0, n_all, _EDIT_LANES):
+        n = min(_EDIT_LANES, n_all - start)
+        for i in range(n):
+            x[i] = rest[start + i, 0]
+            y[i] = rest[start + i, 1]
+            z[i] = rest[start + i, 2]
         for j in range(k):
-            b = np.float64(basis[v, j])
-            x += b * offsets[j, 0]
-            y += b * offsets[j, 1]
-            z += b * offsets[j, 2]
-        out[v, 0] = x
-        out[v, 1] = y
-        out[v, 2] = z
+            o0 = offsets[j, 0]
+            o1 = offsets[j, 1]
+            o2 = offsets[j, 2]
+            row = basis_t[j, start:start + n]
+            for i in range(n):
+                b = np.float64(row[i])
+                x[i] += b * o0
+                y[i] += b * o1
+                z[i] += b * o2
+        for i in range(n):
+            out[start + i, 0] = x[i]
+            out[start + i, 1] = y[i]
+            out[start + i, 2] = z[i]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _edit_rows(basis, offsets, rest, rows, out):  # pragma: no cover - compiled
+def _edit_rows(basis_t, offsets, rest, rows, out):  # pragma: no cover - compiled
     """:func:`_edit` for the vertices ``rows`` only."""
     k = offsets.shape[0]
     for v in rows:
@@ -833,7 +850,7 @@ def _edit_rows(basis, offsets, rest, rows, out):  # pragma: no cover - compiled
         y = rest[v, 1]
         z = rest[v, 2]
         for j in range(k):
-            b = np.float64(basis[v, j])
+            b = np.float64(basis_t[j, v])
             x += b * offsets[j, 0]
             y += b * offsets[j, 1]
             z += b * offsets[j, 2]
