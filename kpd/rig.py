@@ -592,17 +592,20 @@ class _StraightenSystem:
         self.weight = (longest[sliver] / np.maximum(height[sliver], longest[sliver] / np.sqrt(_STRAIGHTEN_CAP))) ** 2
         self.ends3 = np.stack([corner, start, end], axis=1)  # (S, 3)
         self.coef3 = np.stack([np.ones(len(s)), s - 1.0, -s], axis=1)  # (S, 3): straightness = coef3 . rows
+        del thin, apex, longest, height, sliver, start, end, edge, s  # (T,) and (S,) arrays: memory at 5M triangles
         first = np.zeros(n, dtype=np.int64)
         first[inverse[::-1]] = np.arange(len(vertices))[::-1]
         self.first = first  # one original vertex per merged point
         graph = _edge_graph(tri, n)  # upper triangle, each edge once
         row = np.repeat(np.arange(n), np.diff(graph.indptr))
         col = graph.indices
-        length = np.linalg.norm(points[row] - points[col], axis=1)
+        length = _edge_lengths(points, row, col)
         length = np.maximum(length, 1e-6 * max(float(length.max()), 1e-300))
         self.edges = np.stack([row, col], axis=1)  # (E, 2)
         self.stiffness = 1.0 / length**2
-        area = np.bincount(tri.ravel(), weights=np.repeat(twice_area / 6.0, 3), minlength=n)
+        area = np.zeros(n)
+        for i in range(3):
+            area += np.bincount(tri[:, i], weights=twice_area / 6.0, minlength=n)
         ends = np.ones(n, dtype=bool)
         ends[corner] = False  # never a sliver's third corner: a leg's foot, a panel's corner, a run's end
         self.anchor = (area / max(float(area.mean()), 1e-300) + 1e-6) * np.where(ends, _STRAIGHTEN_ENDS, 1.0) / reach**2
@@ -684,6 +687,17 @@ def _straightness_rhs(merged, ends, coef, weight, rhs):  # pragma: no cover - co
             rhs[a, j] -= ca * r[j]
             rhs[b, j] -= cb * r[j]
             rhs[c, j] -= cc * r[j]
+
+
+@numba.njit(cache=True, nogil=True)
+def _edge_lengths(points, row, col):  # pragma: no cover - compiled
+    """(E,) |points[row] - points[col]|."""
+    out = np.empty(len(row))
+    for e in range(len(row)):
+        a, b = row[e], col[e]
+        out[e] = np.sqrt((points[a, 0] - points[b, 0]) ** 2 + (points[a, 1] - points[b, 1]) ** 2
+                         + (points[a, 2] - points[b, 2]) ** 2)
+    return out
 
 
 def _edge_graph(tri: np.ndarray, n: int):
