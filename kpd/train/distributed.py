@@ -109,7 +109,7 @@ def from_environment(batch: int, device: str = "auto", environ: Mapping[str, str
     if missing:
         given = [name for name in VARIABLES if name in environ]
         raise InputError(f"incomplete torchrun environment: {', '.join(given)} set but {', '.join(missing)} missing; "
-                         "start kpd train with torchrun (README: Training on more machines) or unset them")
+                         "start kpd train with torchrun (docs/training.md: Training on more machines) or unset them")
     rank, local_rank = _integer(environ, "RANK"), _integer(environ, "LOCAL_RANK")
     size, local_size = _integer(environ, "WORLD_SIZE"), _integer(environ, "LOCAL_WORLD_SIZE")
     port = _integer(environ, "MASTER_PORT")
