@@ -1,4 +1,5 @@
-"""Make the pictures of the README and the docs pages (``docs/*.png``) again, from the shipped models and the data in ``../shared/data``.
+"""Make the pictures of the README and the docs pages (``docs/*.png``) again, from the shipped models and the data
+in ``../shared/data``.
 
 Every picture comes from a kpd command, as a user would run it (the editor in a real window on a private Xvfb,
 driven with xdotool and read off the X server's screen):
