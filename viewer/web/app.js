@@ -22,7 +22,8 @@ const noMorphs = params.get('morph') === 'none'; // the rest mesh only, the same
 const PICK_PIXELS = 14; // a press this close to a keypoint's marker grabs it
 
 // stats.firstPicture: ms from the page's start to its first finished frame; with ?timing, stats.steps: per drag or
-// slider step, {latency: ms from the input event to its finished frame, work: ms of the page's own work for it}
+// slider step, {latency: ms from the input event to its finished frame, work: ms of the page's own work for it,
+// at: when that frame was finished}
 const kpd = { ready: false, error: null, stats: { firstPicture: null, loaded: null, steps: [] } };
 window.kpd = kpd;
 
@@ -132,7 +133,7 @@ function draw() {
     renderer.getContext().finish();
     const now = performance.now();
     if (kpd.stats.firstPicture === null) kpd.stats.firstPicture = now;
-    if (pending !== null) kpd.stats.steps.push({ latency: now - pending.start, work: pending.work + now - start });
+    if (pending !== null) kpd.stats.steps.push({ latency: now - pending.start, work: pending.work + now - start, at: now });
   }
   pending = null;
 }
