@@ -1,4 +1,4 @@
-"""Import a checkpoint written by the authors' trainer (``net_final.pth``, REFERENCE §16).
+"""Import a checkpoint written by the authors' trainer (``net_final.pth``, docs/method.md §16).
 
 Their checkpoint is ``{"states": state_dict}`` with the module names of their ``CageSkinning`` network. This project's
 :class:`kpd.train.nets.KeypointDeformer` uses the same names and weight shapes (1x1 convolutions keep their
@@ -37,7 +37,7 @@ class AuthorsModel(NamedTuple):
 
 
 def expected_shapes(k: int, c: int, f: int) -> dict[str, tuple[int, ...]]:
-    """Every key of REFERENCE §16 and its shape for K keypoints, a C-vertex cage with F faces."""
+    """Every key of docs/method.md §16 and its shape for K keypoints, a C-vertex cage with F faces."""
     kc = k * c
     shapes: dict[str, tuple[int, ...]] = {
         "influence_param": (k, c),
@@ -95,12 +95,12 @@ def load_authors_checkpoint(path: str | os.PathLike) -> AuthorsModel:
 
 
 def model_from_authors_state(states: Mapping[str, torch.Tensor]) -> AuthorsModel:
-    """A :class:`KeypointDeformer` holding the weights of an authors' state dict (REFERENCE §16)."""
+    """A :class:`KeypointDeformer` holding the weights of an authors' state dict (docs/method.md §16)."""
     from kpd.cage import default_m
 
     for key in ("influence_param", "template_faces"):
         if key not in states:
-            raise InputError(f"checkpoint lacks {key!r} (REFERENCE §16 layout)")
+            raise InputError(f"checkpoint lacks {key!r} (docs/method.md §16 layout)")
     influence = states["influence_param"]
     faces = states["template_faces"]
     if not isinstance(influence, torch.Tensor) or influence.ndim != 2:
@@ -112,7 +112,7 @@ def model_from_authors_state(states: Mapping[str, torch.Tensor]) -> AuthorsModel
     wanted = expected_shapes(k, c, f)
     missing = [key for key in wanted if key not in states]
     if missing:
-        raise InputError(f"checkpoint lacks {len(missing)} key(s) of the REFERENCE §16 layout, first "
+        raise InputError(f"checkpoint lacks {len(missing)} key(s) of the docs/method.md §16 layout, first "
                          f"{missing[0]!r} (expected shape {wanted[missing[0]]})")
     for key, shape in wanted.items():
         value = states[key]
@@ -125,7 +125,8 @@ def model_from_authors_state(states: Mapping[str, torch.Tensor]) -> AuthorsModel
     model = KeypointDeformer(config, template, faces[0].long())
     own = model.state_dict()
     if set(own) != set(wanted):  # the two layouts are one by construction; say so loudly if that ever changes
-        raise InputError(f"internal: network keys differ from REFERENCE §16: {sorted(set(own) ^ set(wanted))[:4]}")
+        raise InputError("internal: network keys differ from docs/method.md §16: "
+                         f"{sorted(set(own) ^ set(wanted))[:4]}")
     model.load_state_dict({key: states[key].to(own[key].dtype) for key in wanted}, strict=True)
     ignored = sorted(str(key) for key in states if key not in wanted)
     if ignored:

@@ -365,7 +365,7 @@ def export_authors(
     force: bool = False,
     progress: bool = True,
 ) -> ExportResult:
-    """Export a checkpoint of the authors' trainer (REFERENCE §16) into a bundle.
+    """Export a checkpoint of the authors' trainer (docs/method.md §16) into a bundle.
 
     With ``data`` (a folder :func:`kpd.data.discover` understands) the prior and template cloud are fitted on its
     training split, in this project's normalisation. Without it the bundle has neither, and the parity check runs on

@@ -356,7 +356,7 @@ def build_manifest(
                   "clamp": bool(clamp)},
         "input": {"points": int(point_count), "normalization": contract.NORMALIZATION,
                   "normalization_note": "per shape: bounding-box centre to the origin, largest absolute coordinate "
-                                        "to 1 (REFERENCE §7); mesh vertices and points share one normaliser",
+                                        "to 1 (docs/method.md §7); mesh vertices and points share one normaliser",
                   "up": up},
         "graphs": {
             spec.key: {"file": spec.file, "input": contract.INPUT_NAME, "output": spec.output,

@@ -1,4 +1,4 @@
-"""Cages: the icosphere template, the authors' cage fit (REFERENCE §4), inside/outside tests, the influence mask.
+"""Cages: the icosphere template, the authors' cage fit (docs/method.md §4), inside/outside tests, the influence mask.
 
 A cage is a closed triangle mesh with outward-oriented faces around a shape in the [-1, 1] box. The authors start from
 a radius-1.4 icosphere and shrink each vertex along its ray toward the origin until it is within 0.4 of the shape, so
@@ -92,7 +92,7 @@ def edge_table(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarr
 
 
 def icosphere(level: int = 1, radius: float = 1.4) -> Cage:
-    """The authors' cage template: a subdivided icosahedron on a sphere (REFERENCE §4).
+    """The authors' cage template: a subdivided icosahedron on a sphere (docs/method.md §4).
 
     Level 0 is the icosahedron (12 vertices, 20 faces); each level splits every face in four (level 1: 42 / 80,
     level 2: 162 / 320). Vertices and faces are numbered as ``pytorch3d.utils.ico_sphere(level)``, faces point
@@ -161,7 +161,8 @@ def fit_cage(
     step: float = 0.01,
     enclose: bool = False,
 ) -> Cage:
-    """Shrink a template cage onto a shape, as the authors do (REFERENCE §4); optionally make it enclose the shape.
+    """Shrink a template cage onto a shape, as the authors do (docs/method.md §4); optionally make it enclose the
+    shape.
 
     At each of ``iterations`` rounds every cage vertex farther than ``distance`` from its nearest input point moves
     toward the origin by ``step`` of its position (``c <- c - step * c``); the others stay. The points are expected in
@@ -358,7 +359,7 @@ def points_outside(points: Any, vertices: Any, faces: Any) -> np.ndarray:
 # --- demo import -------------------------------------------------------------------------------------------------
 
 def cage_faces_from_vertices(vertices: Any) -> np.ndarray:
-    """The triangles of a cage star-shaped about the origin, recovered from its vertices alone (REFERENCE §17).
+    """The triangles of a cage star-shaped about the origin, recovered from its vertices alone (docs/method.md §17).
 
     The authors' demo files store a cage's vertices but not its faces. Such a cage is an icosphere whose vertices
     were moved along their rays, so its triangles are those of the convex hull of the directions ``v / |v|``.
@@ -400,7 +401,7 @@ def cage_faces_from_vertices(vertices: Any) -> np.ndarray:
 # --- influence mask ----------------------------------------------------------------------------------------------
 
 def influence_mask(keypoints: Any, cage_vertices: Any, m: int) -> np.ndarray:
-    """Which cage vertices each keypoint may move: its ``m`` nearest, ties kept (REFERENCE §3).
+    """Which cage vertices each keypoint may move: its ``m`` nearest, ties kept (docs/method.md §3).
 
     Parameters
     ----------

@@ -16,12 +16,12 @@ or text lines ``name split``. Shapes are named by model id (ShapeNet) or file st
 is carved from train with a seed (``val_fraction``); a layout with no split at all also has its test split carved.
 
 The sample cache (``ingest``): every mesh is read once, normalised to the [-1, 1] box by a
-:class:`kpd.geometry.Normalizer` fitted on its **mesh vertices** (those referenced by triangles; REFERENCE §7), and
+:class:`kpd.geometry.Normalizer` fitted on its **mesh vertices** (those referenced by triangles; docs/method.md §7), and
 sampled ``samples`` times independently (``points`` surface points with normals, area-weighted). For each sample the
 cache also holds what needs no gradient and costs time to compute: the cage fitted to the sample's points (authors'
-rule, REFERENCE §4) and the MVC weights of the sample's points with respect to that cage (float32). Files are ``.npz``
-(no pickle) named ``<sha256 of the file>_<settings key>.npz`` under ``CACHE/samples``; the cache folder defaults to
-``$KPD_CACHE`` or ``~/.cache/kpd``. Meshes that cannot be read are listed with the reason and skipped.
+rule, docs/method.md §4) and the MVC weights of the sample's points with respect to that cage (float32). Files are
+``.npz`` (no pickle) named ``<sha256 of the file>_<settings key>.npz`` under ``CACHE/samples``; the cache folder
+defaults to ``$KPD_CACHE`` or ``~/.cache/kpd``. Meshes that cannot be read are listed with the reason and skipped.
 """
 
 from __future__ import annotations
@@ -283,7 +283,7 @@ class SampleSettings:
     - points : N, surface points per sample.
     - samples : independent samples per mesh.
     - cage_level / cage_radius : the icosphere template (level 1 = 42 vertices).
-    - cage_distance / cage_iterations / cage_step / enclose : :func:`kpd.cage.fit_cage` settings (REFERENCE §4).
+    - cage_distance / cage_iterations / cage_step / enclose : :func:`kpd.cage.fit_cage` settings (docs/method.md §4).
     - weights : also store the MVC weights of the sample points (else training computes them once with torch).
     - outer : sample the outer surface only (:func:`kpd.geometry.sample_surface` with ``outer=True``): drop points on
       faces inside the shape, where overlapping or touching pieces meet (convex decompositions, CAD parts).

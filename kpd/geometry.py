@@ -67,7 +67,7 @@ def as_rng(seed: None | int | np.random.Generator = None) -> np.random.Generator
 
 
 class Normalizer:
-    """Maps shapes into the [-1, 1] box and back (REFERENCE §7).
+    """Maps shapes into the [-1, 1] box and back (docs/method.md §7).
 
     The bounding-box centre goes to the origin and the largest absolute coordinate over all axes becomes 1, so the
     longest axis spans [-1, 1] and the aspect ratio is kept.
@@ -406,7 +406,7 @@ def farthest_point_sampling_naive(
 
 
 def chamfer(a: Any, b: Any) -> float:
-    """Chamfer distance as the authors' training loss (REFERENCE §6).
+    """Chamfer distance as the authors' training loss (docs/method.md §6).
 
     ``mean_i min_j |a_i - b_j|^2 + mean_j min_i |a_i - b_j|^2``: squared distances, a mean per cloud, both directions
     summed. Dense for small clouds, KD-trees for large ones.

@@ -1,4 +1,4 @@
-"""Mean value coordinates of points with respect to a closed triangle cage (REFERENCE §5).
+"""Mean value coordinates of points with respect to a closed triangle cage (docs/method.md §5).
 
 Ju, Schaefer & Warren (2005), "Mean value coordinates for closed triangular meshes". For a point x and a face with
 corners p_0, p_1, p_2, write G_k = (p_{k+1} - x) × (p_{k+2} - x) (the normal of the plane through x and the edge

@@ -14,7 +14,7 @@ A bundle (directory ``name.kpd/`` or a zip of the same files) holds:
 ``template.npy``   (optional) (P, 3) float32 surface points of a representative training shape, model frame
 ================== ==========================================================================================
 
-Points are in the model's [-1, 1] frame (``kpd.geometry.Normalizer``, REFERENCE §7). ``B`` and ``N`` are dynamic
+Points are in the model's [-1, 1] frame (``kpd.geometry.Normalizer``, docs/method.md §7). ``B`` and ``N`` are dynamic
 axes named :data:`BATCH_AXIS` and :data:`POINTS_AXIS`.
 """
 

@@ -1,4 +1,4 @@
-"""The category prior: PCA over the keypoints a model predicts on its training set (paper §3.4, REFERENCE §10).
+"""The category prior: PCA over the keypoints a model predicts on its training set (paper §3.4, docs/method.md §10).
 
 The paper keeps 8 principal components of the 3K-dimensional keypoint vectors and uses them for two things the
 authors never released:

@@ -179,7 +179,7 @@ class Rig:
         influence : (K, C) float64, the unmasked influence W = W_C + W_I; ``None`` gives ones, so each keypoint
             drags its ``m`` nearest cage vertices rigidly (a rig from hand-picked keypoints).
         normalizer : user frame -> model frame; fitted on the mesh vertices when ``None``.
-        cage : cage in the model frame; fitted when ``None`` (REFERENCE §4 on ``points``).
+        cage : cage in the model frame; fitted when ``None`` (docs/method.md §4 on ``points``).
         points : (N, 3) float64, model-frame surface points to fit the cage on; a seeded sample when ``None``.
         m : cage vertices per keypoint in the locality mask; ``default_m(C, K)`` when ``None``.
         enclose : grow the fitted cage until every mesh vertex is inside it (beyond the authors' rule, which leaves
@@ -366,7 +366,7 @@ class Rig:
 
     @classmethod
     def from_demo(cls, directory: str | os.PathLike) -> "Rig":
-        """Import a rig in the authors' project-page demo format (REFERENCE §17).
+        """Import a rig in the authors' project-page demo format (docs/method.md §17).
 
         Reads ``source_vertices.txt`` (V × 3), ``source_faces.txt`` (T × 3), ``source_keypoints.txt`` (K lines
         ``%03d x y z``), ``cage.txt`` (C × 3), ``influence.txt`` (K × C, masked) and, when present, ``weights.txt``

@@ -1,5 +1,5 @@
 """Export (torch): ONNX vs torch parity through the runtime, the bundle's contents, refusal of a failing bundle, and
-the import of the authors' checkpoints (REFERENCE §16)."""
+the import of the authors' checkpoints (docs/method.md §16)."""
 
 from __future__ import annotations
 
@@ -179,7 +179,7 @@ def test_failing_bundle_is_not_left_behind(run_dir, tmp_path, monkeypatch, reuse
 # --- the authors' checkpoints ----------------------------------------------------------------------------------------
 
 def authors_state(k: int, c: int = 42, seed: int = 0) -> dict:
-    """A state dict laid out exactly as REFERENCE §16, built by hand (not from kpd's networks)."""
+    """A state dict laid out exactly as docs/method.md §16, built by hand (not from kpd's networks)."""
     from kpd.cage import icosphere
 
     g = torch.Generator().manual_seed(seed)
@@ -258,7 +258,7 @@ def test_authors_checkpoint_import(tmp_path, data_dir):
     "edit, message",
     [
         (lambda s: s.pop("influence_predictor.1.1.linear.bias"),
-         r"lacks 1 key\(s\) of the REFERENCE §16 layout, first 'influence_predictor.1.1.linear.bias' "
+         r"lacks 1 key\(s\) of the docs/method.md §16 layout, first 'influence_predictor.1.1.linear.bias' "
          r"\(expected shape \(336,\)\)"),
         (lambda s: s.update({"keypoint_predictor.1.layers.2.linear.weight": torch.zeros(30, 256)}),
          r"key 'keypoint_predictor.1.layers.2.linear.weight' has shape \(30, 256\); expected \(24, 256\) for K=8"),

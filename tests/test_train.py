@@ -1,4 +1,5 @@
-"""kpd.train: networks (REFERENCE §2-3, §16), torch kernels vs numpy, gradients, training, resume, checkpoints."""
+"""kpd.train: networks (docs/method.md §2-3, §16), torch kernels vs numpy, gradients, training, resume,
+checkpoints."""
 
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
 """The keypoint editor: a 3D view in which keypoints are picked and dragged and the mesh deforms live, and a panel.
 
-:class:`EditorApp` owns its windows (STYLE.md, "the editor is an app class"): the 3D view is an Open3D legacy OpenGL
-window (:class:`kpd.viewer.gl.GLView`, fast with software rendering), the panel a Tk window beside it (checkboxes,
-buttons, the PCA sliders). Callbacks are ``_on_<event>`` methods, the UI state is one
+:class:`EditorApp` owns its windows (docs/architecture.md, "The editor is an app class"): the 3D view is an Open3D
+legacy OpenGL window (:class:`kpd.viewer.gl.GLView`, fast with software rendering), the panel a Tk window beside it
+(checkboxes, buttons, the PCA sliders). Callbacks are ``_on_<event>`` methods, the UI state is one
 :class:`~kpd.viewer.render.ViewSettings` applied in :meth:`EditorApp._apply_settings`. Deformation stays in
 :class:`kpd.rig.Rig` and the edit history in :class:`~kpd.viewer.session.EditSession`.
 

@@ -12,13 +12,16 @@ from scipy.spatial import cKDTree
 from kpd.errors import InputError
 from kpd.geometry import as_points
 
-__all__ = ["KEYPOINTNET_TO_REFERENCE", "MODELNET_TO_REFERENCE", "FIT_CANDIDATES", "Similarity", "FrameFit", "fit_annotation_frame"]
+__all__ = [
+    "KEYPOINTNET_TO_REFERENCE", "MODELNET_TO_REFERENCE", "FIT_CANDIDATES", "Similarity", "FrameFit",
+    "fit_annotation_frame",
+]
 
 log = logging.getLogger("kpd.annotations")
 
 
 # Row-vector convention everywhere: x_new = x @ M.T.
-# The authors' axis fix of KeypointNet coordinates, (x, y, z) -> (-z, y, x) (REFERENCE §8): a rotation about y.
+# The authors' axis fix of KeypointNet coordinates, (x, y, z) -> (-z, y, x) (docs/method.md §8): a rotation about y.
 KEYPOINTNET_TO_REFERENCE = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
 
 

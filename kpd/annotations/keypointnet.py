@@ -146,7 +146,7 @@ class KeypointNet:
         return [m.model_id for m in self.models if m.split == split]
 
     def common_semantic_ids(self, min_fraction: float = 0.8, min_count: int = 7) -> np.ndarray:
-        """The semantic ids the paper evaluates: "keypoints contained in at least 80% of models" (REFERENCE §8).
+        """The semantic ids the paper evaluates: "keypoints contained in at least 80% of models" (docs/method.md §8).
 
         The authors' rule: for n from the number of semantic ids down to ``min_count``, take the n most frequent ids
         (ties by smaller id) and keep the first n for which the models holding all of them are more than

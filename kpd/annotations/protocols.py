@@ -20,7 +20,9 @@ from kpd.annotations.shapes import (
 from kpd.annotations.sources import _predict
 from kpd.errors import DataError, InputError
 
-__all__ = ["pck_protocol", "parts_protocol", "das_protocol", "coverage_protocol", "alignment_pairs", "chamfer_protocol"]
+__all__ = [
+    "pck_protocol", "parts_protocol", "das_protocol", "coverage_protocol", "alignment_pairs", "chamfer_protocol",
+]
 
 log = logging.getLogger("kpd.annotations")
 
@@ -288,7 +290,7 @@ def chamfer_protocol(model: Any, root: str | os.PathLike, category: str | None =
     (:func:`alignment_pairs`) of distinct test shapes. For each shape the model sees its seeded point sample in its
     own [-1, 1] frame (:meth:`kpd.runtime.Model.predict`); the source's sample points are deformed through the
     source's rig (cage, masked influence W, MVC: ``x* = MVC(x; c) (c + W^T (p_target - p_source))``) and compared with
-    the target's sample by :func:`kpd.metrics.alignment_chamfer` (REFERENCE §6), x1e3, next to no deformation.
+    the target's sample by :func:`kpd.metrics.alignment_chamfer` (docs/method.md §6), x1e3, next to no deformation.
     """
     from kpd.data import discover
     from kpd.io import read_mesh
@@ -330,7 +332,7 @@ def chamfer_protocol(model: Any, root: str | os.PathLike, category: str | None =
         "notes": notes,
         "definition": "Fig. 7: seeded pairs of distinct test shapes; the model's point sample of the source deformed "
                       "by the bundle's rig to the target's keypoints; chamfer (squared, mean, both directions, "
-                      "REFERENCE §6) to the target's sample in the [-1, 1] frame, x1e3",
+                      "docs/method.md §6) to the target's sample in the [-1, 1] frame, x1e3",
         "data": {"root": str(root), "layout": data.layout, "category": data.category, "split_source": data.split_source,
                  "test_shapes": len(test), "test_names": [f.name for f in test]},
         "keypoints": {"source": "model", "bundle": str(model.bundle.path), "category": model.category,

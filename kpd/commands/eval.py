@@ -19,8 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     a = sub.add_parser("alignment", help="deform test sources onto test targets; chamfer x1e3 vs baselines",
                        description="The paper's Fig. 7 protocol: seeded pairs of distinct test shapes; chamfer "
-                                   "(REFERENCE §6, [-1, 1] frame, x1e3) of the deformed source to the target, next "
-                                   "to no deformation and an optional baseline run.",
+                                   "(docs/method.md §6, [-1, 1] frame, x1e3) of the deformed source to the target, "
+                                   "next to no deformation and an optional baseline run.",
                        epilog="example:\n  kpd eval alignment runs/chair --baseline runs/chair-fps --pairs 200 "
                               "--out chair_alignment.json --gallery chair_alignment.png",
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -191,7 +191,7 @@ def _add_protocol_parsers(sub) -> None:
     p = sub.add_parser(
         "chamfer", help="alignment chamfer of a bundle (paper Fig. 7), like 'kpd eval alignment' for a run",
         description="Seeded pairs of distinct test meshes; the source's point sample deformed by the bundle's rig to "
-                    "the target's keypoints; chamfer (REFERENCE §6) to the target's sample in the [-1, 1] frame, "
+                    "the target's keypoints; chamfer (docs/method.md §6) to the target's sample in the [-1, 1] frame, "
                     "x1e3, next to no deformation.",
         epilog="example:\n  kpd eval chamfer ../shared/data/modelnet10 --category chair --model chair "
                "--out chair_chamfer.json",

@@ -16,7 +16,7 @@ EXAMPLE = ("kpd train data/modelnet10 --category chair --keypoints 12 --out runs
            "  torchrun --nproc_per_node 2 -m kpd.cli train data/modelnet10 --category chair --out runs/chair  "
            "# 2 ranks, 8 pairs each")
 
-# The paper's values where the authors' code differs (REFERENCE §11).
+# The paper's values where the authors' code differs (docs/method.md §11).
 PAPER = {"alpha_kpt": 1.0, "inf_reg": "paper", "alpha_inf": 1e-6, "warmup": 0, "wc_lr": None, "clamp": False,
          "paper_m": True}
 
@@ -52,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--outer-surface", action="store_true",
                    help="sample the outer surface only: drop points inside the shape where overlapping or touching "
                         "pieces meet (convex decompositions such as ../shared/data/gso_shoes, CAD parts)")
-    g = parser.add_argument_group("recipe (defaults: the authors' code; REFERENCE §11)")
+    g = parser.add_argument_group("recipe (defaults: the authors' code; docs/method.md §11)")
     g.add_argument("--keypoint-source", choices=("learned", "fps"), default="learned",
                    help="fps: farthest-point keypoints of each shape, only the deformer is trained (baseline)")
     g.add_argument("--lr", type=number(positive=True), default=1e-3, help="Adam learning rate of Φ and Γ (default 1e-3)")

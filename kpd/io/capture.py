@@ -21,7 +21,8 @@ from typing import Callable, Iterator
 from kpd.errors import WriteError
 from kpd.io.atomic import disk_full
 
-__all__ = ["open3d_module", "open3d_log", "failures", "c_stderr", "native_output", "Captured", "open3d_write", "FAILURE"]
+__all__ = ["open3d_module", "open3d_log", "failures", "c_stderr", "native_output", "Captured", "open3d_write",
+           "FAILURE"]
 
 log = logging.getLogger("kpd.io")
 

@@ -2,8 +2,8 @@
 inclusivity.
 
 Every function works in whatever frame it is given; :mod:`kpd.annotations` puts keypoints, annotations and points into
-the evaluation frame (the [-1, 1] box of REFERENCE §7/§8) before calling them, so thresholds such as 0.05 are in those
-units.
+the evaluation frame (the [-1, 1] box of docs/method.md §7/§8) before calling them, so thresholds such as 0.05 are
+in those units.
 """
 
 from __future__ import annotations
@@ -17,7 +17,11 @@ from scipy.spatial import cKDTree
 from kpd.errors import InputError
 from kpd.geometry import as_points
 from kpd.metrics.labelfree import _keypoint_sets
-__all__ = ["KeypointRegressor", "fit_keypoint_regressor", "pck", "RegressionPCK", "regression_pck", "part_association", "PartCorrespondence", "part_correspondence", "DualAlignment", "dual_alignment_score", "keypoint_coverage", "keypoint_inclusivity"]
+__all__ = [
+    "KeypointRegressor", "fit_keypoint_regressor", "pck", "RegressionPCK", "regression_pck", "part_association",
+    "PartCorrespondence", "part_correspondence", "DualAlignment", "dual_alignment_score", "keypoint_coverage",
+    "keypoint_inclusivity",
+]
 
 class KeypointRegressor(NamedTuple):
     """Affine map from one shape's K flattened keypoints to its J annotated keypoints.

@@ -15,7 +15,11 @@ from kpd.geometry import as_points
 from kpd.triangles import areas as triangle_areas
 from kpd.triangles import cross as triangle_cross
 from kpd.metrics.labelfree import _closest_on_triangles, _keypoint_sets
-__all__ = ["vertex_areas", "far_side_leakage", "folded_share", "folded_area_share", "EditDistortion", "edit_distortion", "keypoint_roles", "semantic_edits", "PriorResponse", "prior_response", "triangle_distance", "new_self_intersections", "keypoint_set_distance"]
+__all__ = [
+    "vertex_areas", "far_side_leakage", "folded_share", "folded_area_share", "EditDistortion", "edit_distortion",
+    "keypoint_roles", "semantic_edits", "PriorResponse", "prior_response", "triangle_distance",
+    "new_self_intersections", "keypoint_set_distance",
+]
 
 def _mesh_pair(rest: Any, deformed: Any, triangles: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     v0 = as_points(rest, "rest vertices")

@@ -1,5 +1,5 @@
 """Label-free keypoint quality: stability over independent point samples, distance to the surface, mirror
-consistency; and the alignment chamfer of the paper's Fig. 7 (REFERENCE §6, on [-1, 1]-normalised shapes)."""
+consistency; and the alignment chamfer of the paper's Fig. 7 (docs/method.md §6, on [-1, 1]-normalised shapes)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,10 @@ from scipy.optimize import linear_sum_assignment
 
 from kpd.errors import InputError
 from kpd.geometry import as_points, chamfer
-__all__ = ["keypoint_stability", "surface_distance", "point_triangle_distance", "fit_mirror_permutation", "mirror_consistency", "alignment_chamfer"]
+__all__ = [
+    "keypoint_stability", "surface_distance", "point_triangle_distance", "fit_mirror_permutation",
+    "mirror_consistency", "alignment_chamfer",
+]
 
 def _keypoint_sets(x: Any, name: str) -> np.ndarray:
     array = np.asarray(x, dtype=np.float64)
@@ -151,5 +154,5 @@ def mirror_consistency(keypoints: Any, mirrored_keypoints: Any, permutation: Any
 
 
 def alignment_chamfer(deformed: Any, target: Any) -> float:
-    """Chamfer distance between a deformed source and its target (REFERENCE §6; = kpd.geometry.chamfer)."""
+    """Chamfer distance between a deformed source and its target (docs/method.md §6; = kpd.geometry.chamfer)."""
     return chamfer(deformed, target)

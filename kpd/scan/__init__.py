@@ -13,7 +13,7 @@ unit, with noise, stray points, a ground plane and holes. This module
    under its lowest points, e.g. between the leg tips) turned onto the reference's, and only its turn about the up
    axis is refined; the best, the runner-up (a rotation more than ``distinct_angle`` degrees away) and the margin
    between them are reported, and a small margin is flagged as ambiguous rather than silently chosen;
-3. normalises the rotated scan with :class:`kpd.geometry.Normalizer` (REFERENCE §7) and keeps the full similarity
+3. normalises the rotated scan with :class:`kpd.geometry.Normalizer` (docs/method.md §7) and keeps the full similarity
    transform and its inverse (:func:`preprocess`, :class:`ScanResult`), so that results map back onto the scan.
 
 Everything is numpy (float64) plus Open3D; no torch.

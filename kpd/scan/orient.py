@@ -14,7 +14,15 @@ from scipy.spatial import cKDTree
 from kpd.errors import InputError, NotFittedError
 from kpd.geometry import Normalizer, as_rng
 from kpd.scan.clean import _pcd
-from kpd.scan.rotations import _about, _principal_frame, _rotation_between, icosahedral_rotations, parse_axis, proper_signed_permutations, rotation_angle
+from kpd.scan.rotations import (
+    _about,
+    _principal_frame,
+    _rotation_between,
+    icosahedral_rotations,
+    parse_axis,
+    proper_signed_permutations,
+    rotation_angle,
+)
 from kpd.scan.shapes import _shape_points
 from kpd.scan.support import _dense_subset, support_plane
 

@@ -30,7 +30,7 @@ class NormalizeResult(NamedTuple):
 
 
 def normalize(points: Any) -> NormalizeResult:
-    """``points`` (N, 3) into the [-1, 1] box (REFERENCE §7) with the fitted :class:`~kpd.geometry.Normalizer`."""
+    """``points`` (N, 3) into the [-1, 1] box (docs/method.md §7) with the fitted :class:`~kpd.geometry.Normalizer`."""
     normalizer = Normalizer().fit(points)
     return NormalizeResult(normalizer.apply(points), normalizer)
 

@@ -15,7 +15,7 @@ __all__ = ["TrainConfig", "resolve_device"]
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """The training recipe. Defaults are the authors' code (REFERENCE §11 lists the paper's values).
+    """The training recipe. Defaults are the authors' code (docs/method.md §11 lists the paper's values).
 
     - keypoints : K.
     - iterations : optimisation steps.

@@ -89,8 +89,8 @@ def evaluate_alignment(run: str | os.PathLike, baseline: str | os.PathLike | Non
     """Pairwise alignment on the test split (the paper's Fig. 7 protocol).
 
     ``pairs`` seeded source/target pairs of distinct test shapes (cached sample 0 of each); the source is deformed
-    by the model and compared with the target by the chamfer distance of REFERENCE §6 in the [-1, 1] frame, reported
-    ×10³, next to no deformation and, when given, a baseline run (e.g. ``--keypoint-source fps``).
+    by the model and compared with the target by the chamfer distance of docs/method.md §6 in the [-1, 1] frame,
+    reported ×10³, next to no deformation and, when given, a baseline run (e.g. ``--keypoint-source fps``).
 
     ``gallery``, when given, is called once with the first ``gallery_pairs`` pairs (:class:`GalleryPairs`) to draw
     them (``kpd eval alignment --gallery`` passes :func:`kpd.viewer.figures.alignment_gallery`).

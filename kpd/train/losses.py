@@ -1,4 +1,4 @@
-"""The three loss terms of KeypointDeformer (REFERENCE §6). Each returns a scalar tensor (batch mean)."""
+"""The three loss terms of KeypointDeformer (docs/method.md §6). Each returns a scalar tensor (batch mean)."""
 
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
-"""The two networks of KeypointDeformer and the module that holds them (REFERENCE §2, §3, §16).
+"""The two networks of KeypointDeformer and the module that holds them (docs/method.md §2, §3, §16).
 
 Φ (``keypoint_predictor``) maps a point cloud to K keypoints; Γ (``influence_predictor``) maps the source cloud to the
 instance-specific influence offset W_I; ``influence_param`` is the category-shared W_C. Module names mirror the
-authors' checkpoints, so ``KeypointDeformer.state_dict()`` has the keys of REFERENCE §16::
+authors' checkpoints, so ``KeypointDeformer.state_dict()`` has the keys of docs/method.md §16::
 
     influence_param                                    (K, C)      W_C, zero-initialised
     template_vertices                                  (1, 3, C)   the cage template, channel-first (buffer)
@@ -212,7 +212,7 @@ class KeypointDeformer(nn.Module):
 
     def deform(self, source: torch.Tensor, cage: torch.Tensor, weights: torch.Tensor, source_keypoints: torch.Tensor,
                target_keypoints: torch.Tensor) -> "Deformation":
-        """Move the source's cage with the keypoint offsets and carry its points along (REFERENCE §1 steps 5-8).
+        """Move the source's cage with the keypoint offsets and carry its points along (docs/method.md §1 steps 5-8).
 
         Parameters
         ----------

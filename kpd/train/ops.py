@@ -80,7 +80,7 @@ def gather_points(points: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
 
 
 def chamfer(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Chamfer distance per pair, as pytorch3d's with squared distances and mean reduction (REFERENCE §6).
+    """Chamfer distance per pair, as pytorch3d's with squared distances and mean reduction (docs/method.md §6).
 
     ``mean_i min_j |a_i - b_j|^2 + mean_j min_i |a_i - b_j|^2``. Nearest neighbours are found without gradient; the
     distances to them are then recomputed exactly, which gives the same gradient as differentiating the minimum.
@@ -138,7 +138,7 @@ def fps_keypoints(points: torch.Tensor, k: int) -> torch.Tensor:
 
 
 def influence_mask(keypoints: torch.Tensor, cage: torch.Tensor, m: int) -> torch.Tensor:
-    """True where a cage vertex is among the ``m`` nearest to a keypoint, ties kept (REFERENCE §3).
+    """True where a cage vertex is among the ``m`` nearest to a keypoint, ties kept (docs/method.md §3).
 
     Parameters
     ----------
@@ -163,7 +163,8 @@ def deform_cage(cage: torch.Tensor, influence: torch.Tensor, offsets: torch.Tens
 
 def mvc_weights(points: torch.Tensor, cage: torch.Tensor, faces: torch.Tensor, *, chunk: int = 4096,
                 eps: float = 1e-10) -> torch.Tensor:
-    """Mean value coordinates of points w.r.t. closed triangle cages (Ju et al. 2005; REFERENCE §5), without gradient.
+    """Mean value coordinates of points w.r.t. closed triangle cages (Ju et al. 2005; docs/method.md §5), without
+    gradient.
 
     Computed in float64 and returned in the dtype of ``points``. Used when a sample cache holds no weights.
 
@@ -173,7 +174,7 @@ def mvc_weights(points: torch.Tensor, cage: torch.Tensor, faces: torch.Tensor, *
     cage : (B, C, 3)
     faces : (F, 3) int64, outward-oriented.
     chunk : points per block, to bound memory (B * chunk * F * 9 doubles).
-    eps : the clamps of REFERENCE §5. The authors use 1e-5 in float32, which costs ~5e-5 of linear precision; in
+    eps : the clamps of docs/method.md §5. The authors use 1e-5 in float32, which costs ~5e-5 of linear precision; in
         float64 1e-10 keeps it at ~1e-13 and agrees with kpd.mvc.
 
     Returns

@@ -93,7 +93,7 @@ class CheckpointPredictor:
             return (self.model.influence_param + self.model.influence_offset(x)).cpu().numpy()
 
     def align(self, source, target, cage, weights) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Deform sources toward targets by their keypoints (REFERENCE §1).
+        """Deform sources toward targets by their keypoints (docs/method.md §1).
 
         Parameters
         ----------

@@ -1,10 +1,10 @@
-"""The training loop (REFERENCE §1, §6, §7) with exact resumption.
+"""The training loop (docs/method.md §1, §6, §7) with exact resumption.
 
 The recipe is :mod:`kpd.train.config`, the checkpoint files :mod:`kpd.train.checkpoint`, one iteration's losses
 :mod:`kpd.train.objective`; their names stay importable from here.
 
-Defaults are the authors' code; every paper value of REFERENCE §11 is a :class:`TrainConfig` option. Each iteration's
-randomness (source order, targets, which cached sample, FPS starts) is drawn from ``numpy.random.default_rng`` seeded
+Defaults are the authors' code; every paper value of docs/method.md §11 is a :class:`TrainConfig` option. Each
+iteration's randomness (source order, targets, which cached sample, FPS starts) is drawn from ``numpy.random.default_rng`` seeded
 by ``(seed, iteration)``, so a run resumed from a checkpoint continues with exactly the numbers an uninterrupted run
 would have used; the checkpoint holds the weights, both optimisers' states and the loss history.
 
@@ -19,7 +19,7 @@ Output folder::
     checkpoint.pt   the latest checkpoint (atomic; torch.load(..., weights_only=True)):
                     {"format": "kpd-checkpoint", "version": 1, "iteration": int (iterations done),
                      "model_config": {...}, "train_config": {...}, "sample_settings": {...},
-                     "states": KeypointDeformer.state_dict() (keys of REFERENCE §16),
+                     "states": KeypointDeformer.state_dict() (keys of docs/method.md §16),
                      "optimizers": {"keypoint": Adam state | None, "deformer": Adam state},
                      "history": {"train": (T, 5) float64 [iteration, loss, sim, kpt, inf],
                                  "val": (V, 3) float64 [iteration, val chamfer, val chamfer undeformed]},
