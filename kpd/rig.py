@@ -30,6 +30,7 @@ import numpy as np
 from kpd.cage import Cage, cage_faces_from_vertices, default_m, fit_cage, influence_mask
 from kpd.errors import InputError
 from kpd.geometry import Normalizer, as_points, sample_surface
+from kpd.grouping import merge_coincident
 from kpd.io import Mesh, atomic_output
 from kpd.io.integrity import HASH_KEY, check_hash, content_hash, load_numpy
 from kpd.mvc import mvc_weights
@@ -992,14 +993,9 @@ def distinct_points(vertices: Any) -> np.ndarray:
 
 
 def _merge_coincident(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distinct positions (n, 3) and, per vertex, the index of its position (V,): coincident corners merged."""
-    order = np.lexsort(vertices.T[::-1])
-    ordered = vertices[order]
-    new = np.ones(len(vertices), dtype=bool)
-    new[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
-    inverse = np.empty(len(vertices), dtype=np.int64)
-    inverse[order] = np.cumsum(new) - 1
-    return ordered[new], inverse
+    """Distinct positions (n, 3) and, per vertex, the index of its position (V,): coincident corners merged
+    (:func:`kpd.grouping.merge_coincident`, the one grouping by position kpd has)."""
+    return merge_coincident(vertices)
 
 
 def _read_table(path: Path, columns: int | None) -> np.ndarray:
