@@ -888,17 +888,19 @@ def _edit_rows(basis_t, offsets, rest, rows, out):  # pragma: no cover - compile
         out[v, 2] = z
 
 
-# Bytes per mesh vertex and per triangle that binding holds at its peak (measured at 1.37M vertices, docs/scale.md):
-# the mesh, its model-frame copy, the distinct positions and their order, the basis and its straightening.
-_BIND_BYTES_PER_VERTEX = 400
-_BIND_BYTES_PER_TRIANGLE = 120
+# What binding holds at its peak, fitted on the 1.37M-vertex, 5.5M-triangle chair of docs/scale.md (3.2 GB resident
+# with the model; 1.2 GB at 344k) and rounded up: the mesh and its copies, the surface sample, the basis, and the
+# straightening's system and factorisations (CAD meshes, full of slivers, are the worst case).
+_BIND_BYTES = 200 * 2**20
+_BIND_BYTES_PER_VERTEX = 700
+_BIND_BYTES_PER_TRIANGLE = 400
 _BIND_BYTES_PER_KEYPOINT_VERTEX = 24  # the (V, K) basis in float64 and its corrected copy
 
 
 def bind_memory(vertices: int, triangles: int, keypoints: int) -> int:
     """Bytes that binding a mesh of ``vertices`` and ``triangles`` to ``keypoints`` holds at its peak (an estimate
     from measurements, docs/scale.md)."""
-    return int(vertices * (_BIND_BYTES_PER_VERTEX + keypoints * _BIND_BYTES_PER_KEYPOINT_VERTEX)
+    return int(_BIND_BYTES + vertices * (_BIND_BYTES_PER_VERTEX + keypoints * _BIND_BYTES_PER_KEYPOINT_VERTEX)
                + triangles * _BIND_BYTES_PER_TRIANGLE)
 
 
