@@ -60,7 +60,11 @@ def test_compiled_weights_equal_the_numpy_kernel_on_and_near_the_cage(distance):
 @given(arrays(np.float64, 42, elements=st.floats(0.3, 1.6)), arrays(np.float64, (40, 3), elements=st.floats(-2, 2)))
 def test_compiled_weights_equal_the_numpy_kernel_in_random_star_cages(radii, points):
     v, f = star_cage(radii)
-    np.testing.assert_allclose(mvc_weights_compiled(points, v, f), mvc_weights(points, v, f), rtol=0, atol=1e-10)
+    # both kernels round differently, and outside the cage their rounding grows like (distance / cage size)^2
+    scale = np.linalg.norm(v - v.mean(axis=0), axis=1).max()
+    tolerance = 2e-11 * (1.0 + (np.linalg.norm(points - v.mean(axis=0), axis=1) / scale) ** 2)  # (N,)
+    difference = np.abs(mvc_weights_compiled(points, v, f) - mvc_weights(points, v, f)).max(axis=1)
+    assert (difference <= tolerance).all(), (difference / tolerance).max()
 
 
 def test_compiled_weights_match_the_reference_inside_and_outside():
