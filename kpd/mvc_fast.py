@@ -26,7 +26,7 @@ import numpy as np
 from kpd.errors import InputError
 from kpd.mvc import _careful_row, _prepare
 
-__all__ = ["mvc_project", "mvc_weights_compiled", "atan2_nonnegative"]
+__all__ = ["mvc_project", "mvc_weights_compiled", "theta_over"]
 
 _LANES = 16  # points per block: the vector lanes of every inner loop
 _MAX_THREADS = 2
@@ -42,29 +42,12 @@ _MOREBITS = 6.123233995736765886130e-17
 
 
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _atan2(y: float, x: float) -> float:
-    """atan2(y, x) for y >= 0, without branches: the ratio of the smaller to the larger of y and |x| is reduced to
-    |u| <= 0.66 (u = (t - 1) / (t + 1) above 0.66) and the quadrant is restored by selects."""
-    ax = abs(x)
-    swap = y > ax
-    big = y if swap else ax
-    small = ax if swap else y
-    high = 1.0 * (small > 0.66 * big)
-    u = (small - high * big) / (big + high * small)
-    z = u * u
-    p = (((_P0 * z + _P1) * z + _P2) * z + _P3) * z + _P4
-    q = ((((z + _Q0) * z + _Q1) * z + _Q2) * z + _Q3) * z + _Q4
-    r = u + u * (z * p / q) + high * (_PIO4 + 0.5 * _MOREBITS)
-    turn = 1.0 * swap
-    r = turn * _PIO2 + (1.0 - 2.0 * turn) * r
-    back = 1.0 * (x < 0.0)
-    return back * _PI + (1.0 - 2.0 * back) * r
-
-
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _theta_over(y: float, x: float) -> float:
-    """atan2(y, x) / y for y >= 0 (the angle over |G|), with two divisions: :func:`_atan2` with its two divisions
-    and the final one folded into one."""
+    """atan2(y, x) / y for y > 0 (the angle an edge subtends over |G|), without branches and with two divisions.
+
+    The smaller of y and |x| over the larger, t, is reduced to |u| <= 0.66 (u = (t - 1) / (t + 1) above 0.66),
+    Cephes' atan(u) = u + u z P(z) / Q(z) gives the angle, and selects restore the octant:
+    θ = base + sign (u + u z P / Q), written over the one denominator Q y."""
     ax = abs(x)
     swap = y > ax
     big = y if swap else ax
@@ -84,11 +67,11 @@ def _theta_over(y: float, x: float) -> float:
 
 
 @numba.njit(cache=True, nogil=True)
-def atan2_nonnegative(y: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """The kernel's arctangent on arrays (for tests): ``arctan2(y, x)`` for ``y >= 0``, ``(N,)`` float64."""
+def theta_over(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The kernel's ``arctan2(y, x) / y`` for ``y > 0`` on arrays (for tests): ``(N,)`` float64."""
     out = np.empty(len(y))
     for i in range(len(y)):
-        out[i] = _atan2(y[i], x[i])
+        out[i] = _theta_over(y[i], x[i])
     return out
 
 

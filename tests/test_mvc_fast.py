@@ -7,7 +7,7 @@ from hypothesis.extra.numpy import arrays
 from kpd.cage import icosphere
 from kpd.errors import InputError
 from kpd.mvc import mvc_weights, mvc_weights_reference
-from kpd.mvc_fast import atan2_nonnegative, mvc_project, mvc_weights_compiled
+from kpd.mvc_fast import mvc_project, mvc_weights_compiled, theta_over
 
 TEMPLATE = icosphere(1)
 
@@ -36,14 +36,13 @@ def awkward_points(v, f, rng, distance):
     ])
 
 
-def test_the_kernels_arctangent_is_atan2_to_rounding():
+def test_the_kernels_angle_over_length_is_atan2_over_y_to_rounding():
     rng = np.random.default_rng(0)
-    y = np.abs(rng.normal(size=20_000)) * 10.0 ** rng.uniform(-12, 12, 20_000)
+    y = np.abs(rng.normal(size=20_000)) * 10.0 ** rng.uniform(-12, 12, 20_000) + 1e-300
     x = rng.normal(size=20_000) * 10.0 ** rng.uniform(-12, 12, 20_000)
-    y = np.concatenate([y, [0.0, 0.0, 1.0, 1.0, 1.0, 2.0]])
-    x = np.concatenate([x, [1.0, -1.0, 0.0, 1.0, -1.0, 2.0 * 0.66]])
-    expected = np.arctan2(y, x)
-    np.testing.assert_allclose(atan2_nonnegative(y, x), expected, rtol=4.5e-16, atol=0)
+    y = np.concatenate([y, [1.0, 1.0, 1.0, 1.0, 1.0, 1e-9, 1e-9]])
+    x = np.concatenate([x, [0.0, 1.0, -1.0, 1.0 / 0.66, -1.0 / 0.66, 1.0, -1.0]])  # the octants' and reduction's edges
+    np.testing.assert_allclose(theta_over(y, x), np.arctan2(y, x) / y, rtol=1e-15, atol=0)
 
 
 @pytest.mark.parametrize("distance", [0.0, 1e-13, 1e-10, 1e-7, 1e-4, 1e-2])
