@@ -166,7 +166,7 @@ def test_help_lists_every_shipped_model(capsys):
     from kpd.bundle import shipped_bundles
 
     assert "shoe" in shipped_bundles()
-    for command in ("deform", "view", "render"):
+    for command in ("deform", "view", "render", "keypoints", "align", "sample"):
         assert kpd(command, "--help") == 0
         out = " ".join(capsys.readouterr().out.split())
         assert ", ".join(shipped_bundles()) in out, command

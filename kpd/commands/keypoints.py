@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from kpd.commands import add_check, integer
+from kpd.commands import add_check, integer, shipped_names
 
 HELP = "predict the keypoints of a mesh or point cloud (written in the input's own frame and units)"
 EXAMPLE = "kpd keypoints chair my_chair.obj --out my_chair_keypoints.json"
@@ -14,7 +14,8 @@ EXAMPLE = "kpd keypoints chair my_chair.obj --out my_chair_keypoints.json"
 
 def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     """MODEL, the seed and the onnxruntime threads (shared by the commands that run a model)."""
-    parser.add_argument("model", metavar="MODEL", help="a bundle (.kpd folder or .zip) or a shipped name: chair, table")
+    parser.add_argument("model", metavar="MODEL",
+                        help=f"a bundle (.kpd folder or .zip) or a shipped name: {shipped_names()}")
     parser.add_argument("--seed", type=integer(0), default=0,
                         help="surface-sampling seed (default 0: same result every run)")
     parser.add_argument("--threads", type=integer(1), default=None, help="onnxruntime intra-op threads (default: its own)")
@@ -96,7 +97,9 @@ def run(args: argparse.Namespace) -> int:
         meta = {"model": str(args.model), "category": model.category, "shape": str(args.shape), "frame": "input",
                 "seed": args.seed}
         if args.scan:
-            scan = ScanFrame(model, shape, args.up, seed=args.seed)
+            from kpd.io import file_up
+
+            scan = ScanFrame(model, shape, args.up or file_up(args.shape), seed=args.seed)  # glTF: y up
             print_scan_messages(scan)
             keypoints = scan.to_original(model.keypoints(scan.result.shape, seed=args.seed))
             meta["scan"] = scan.report()
