@@ -76,7 +76,9 @@ def load_authors_checkpoint(path: str | os.PathLike) -> AuthorsModel:
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several kinds (pickle, zip, runtime) for damaged or foreign files
-        raise InputError(f"{path}: not a torch checkpoint loadable with weights_only=True ({exc})") from exc
+        from kpd.io.integrity import checkpoint_failure
+
+        raise InputError(f"{path}: cannot load the authors' checkpoint: {checkpoint_failure(path, exc)}") from exc
     if not isinstance(data, Mapping):
         raise InputError(f"{path}: expected a dict {{'states': state_dict}}; got {type(data).__name__}")
     if "states" in data:

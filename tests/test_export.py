@@ -282,8 +282,11 @@ def test_authors_checkpoint_not_a_checkpoint(tmp_path):
     from kpd.export.authors import load_authors_checkpoint
 
     (tmp_path / "junk.pth").write_bytes(b"not a checkpoint")
-    with pytest.raises(InputError, match="not a torch checkpoint"):
+    with pytest.raises(InputError, match=r"cannot load the authors' checkpoint: a text file, not a PyTorch checkpoint"):
         load_authors_checkpoint(tmp_path / "junk.pth")
+    (tmp_path / "empty.pth").write_bytes(b"")
+    with pytest.raises(InputError, match=r"the file is empty \(0 bytes\)$"):
+        load_authors_checkpoint(tmp_path / "empty.pth")
     torch.save({"model": {}}, tmp_path / "other.pth")
     with pytest.raises(InputError, match=r"expected the authors' layout \{'states': state_dict\}"):
         load_authors_checkpoint(tmp_path / "other.pth")
