@@ -173,20 +173,21 @@ def checkpoint_failure(path: str | os.PathLike, exc: BaseException) -> str:
         return error.strerror or str(error)
     if size == 0:
         return "the file is empty (0 bytes)"
-    text = str(exc)
-    if "Weights only load failed" in text:
-        return ("it holds pickled Python objects, which kpd never loads (they can run code); only tensors and "
-                "plain data are read: save the state dicts alone with torch.save")
+    pickled = "Weights only load failed" in str(exc)
+    objects = ("it holds pickled Python objects, which kpd never loads (they can run code); only tensors and "
+               "plain data are read: save the state dicts alone with torch.save")
     if head.startswith(b"PK\x03\x04"):
         try:
             with zipfile.ZipFile(p) as archive:
                 archive.namelist()
         except (zipfile.BadZipFile, OSError, ValueError):
             return f"the file is truncated or damaged ({size} bytes; its zip directory cannot be read)"
-        return f"a damaged PyTorch archive ({type(exc).__name__})"
+        return objects if pickled else f"a damaged PyTorch archive ({type(exc).__name__})"
     if head[:1] == b"\x80":
-        return f"the file is truncated or damaged ({size} bytes of an old-style PyTorch pickle)"
-    if _is_text(p):
+        return objects if pickled else f"the file is truncated or damaged ({size} bytes of an old-style PyTorch pickle)"
+    if _is_text(p):  # before torch's verdict: it reads the first byte of a text file as a pickle opcode
         first = head.split(b"\n", 1)[0].decode("utf-8", "replace").strip()
         return f"a text file, not a PyTorch checkpoint (it starts with {first[:40]!r})"
+    if pickled:
+        return objects
     return "not a PyTorch checkpoint (neither a zip archive nor a pickle)"
