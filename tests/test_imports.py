@@ -123,3 +123,15 @@ def test_cli_help_exits_zero():
     out = subprocess.run([sys.executable, "-m", "kpd.cli", "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "usage: kpd" in out.stdout
     assert all(name in out.stdout for name in COMMANDS)
+
+
+@pytest.mark.parametrize("module, name", [("kpd.scan", "alignment_picture"), ("kpd.collection", "contact_sheet"),
+                                          ("kpd.train.evaluate", "alignment_gallery")])
+def test_moved_drawing_functions_say_where_they_went(module, name):
+    import importlib
+
+    with pytest.raises(AttributeError, match=f"moved to kpd.viewer.figures.{name}"):
+        getattr(importlib.import_module(module), name)
+    from kpd.viewer import figures
+
+    assert callable(getattr(figures, name))

@@ -41,3 +41,9 @@ __all__ = [
     "descriptor_medoid", "chamfer_medoid", "floor_up", "stand_collection", "align_collection",
     "pairwise_rotation_errors", "rms_unit",
 ]
+
+
+def __getattr__(attr: str):
+    if attr == "contact_sheet":  # drawing is the viewer's: the core never imports it
+        raise AttributeError(f"{__name__}.contact_sheet moved to kpd.viewer.figures.contact_sheet")
+    raise AttributeError(f"module {__name__!r} has no attribute {attr!r}")

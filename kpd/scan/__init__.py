@@ -39,3 +39,9 @@ __all__ = [
     "icosahedral_rotations", "Support", "support_plane", "hull_faces", "candidate_rotations", "reorient",
     "DEFAULT_AMBIGUITY_MARGIN", "MESH_ORIENT_SAMPLES", "similarity_matrices",
 ]
+
+
+def __getattr__(attr: str):
+    if attr == "alignment_picture":  # drawing is the viewer's: the core never imports it
+        raise AttributeError(f"{__name__}.alignment_picture moved to kpd.viewer.figures.alignment_picture")
+    raise AttributeError(f"module {__name__!r} has no attribute {attr!r}")

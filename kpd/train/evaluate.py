@@ -258,3 +258,9 @@ def evaluate_keypoints(run: str | os.PathLike, *, samples: int = 5, seed: int = 
             "self_symmetric_keypoints": int(np.sum(permutation == np.arange(predictor.K))),
         }
     return result
+
+
+def __getattr__(attr: str):
+    if attr == "alignment_gallery":  # drawing is the viewer's: the core never imports it
+        raise AttributeError(f"{__name__}.alignment_gallery moved to kpd.viewer.figures.alignment_gallery")
+    raise AttributeError(f"module {__name__!r} has no attribute {attr!r}")
