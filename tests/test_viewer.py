@@ -417,6 +417,29 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
         np.testing.assert_allclose(read_mesh(out).vertices, rig.mesh.vertices, atol=1e-5 * scale)
 
 
+def _drags_with_nudges(win, keypoints: np.ndarray, index: int, count: int, *, timeout: float) -> np.ndarray:
+    """``count`` drags of keypoint ``index`` towards the middle of the view (so it stays in sight), each followed by
+    an arrow-key nudge (undone by the next one); returns the keypoints the window reports after the last nudge."""
+    events, xdo = win.events, win.xdo
+    vx, vy, w, h = win.ready["viewport"]
+    centre = np.array([win.origin[0] + vx + w / 2, win.origin[1] + vy + h / 2])
+    towards = np.sign(centre - _screen_pixels(win, keypoints)[index])
+    for drag in range(count):
+        x, y = np.rint(_screen_pixels(win, keypoints)[index]).astype(int)
+        xdo("mousemove", x, y)
+        xdo("mousedown", 1)
+        for step in range(1, 6):
+            xdo("mousemove", x + int(towards[0] * 2 * step), y + int(towards[1] * 3 * step))
+        xdo("mouseup", 1)
+        released = wait_for(lambda: [e for e in read_events(events) if e["event"] == "release"][drag:], timeout,
+                            f"the end of drag {drag + 1}")[0]
+        assert released["moved"] and released["selection"] == [index]
+        xdo("key", "Left" if drag % 2 else "Right")
+        nudges = wait_for(lambda: [e for e in read_events(events) if e["event"] == "nudge"][drag:], timeout, "a nudge")
+        keypoints = np.array(nudges[0]["keypoints"])
+    return keypoints
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
 def test_editor_scripted_session_of_many_drags_and_keys(chair_rig, tmp_path):
@@ -434,23 +457,7 @@ def test_editor_scripted_session_of_many_drags_and_keys(chair_rig, tmp_path):
         first = wait_for(lambda: _last(events, "screenshot"), 60, "the first screenshot")
         index = _clear_keypoint(win, rig.keypoints)
         keypoints = rig.keypoints
-        vx, vy, w, h = win.ready["viewport"]
-        centre = np.array([win.origin[0] + vx + w / 2, win.origin[1] + vy + h / 2])
-        start = _screen_pixels(win, keypoints)[index]
-        towards = np.sign(centre - start)  # drag towards the middle of the view so the keypoint stays in sight
-        for drag in range(8):
-            x, y = np.rint(_screen_pixels(win, keypoints)[index]).astype(int)
-            xdo("mousemove", x, y)
-            xdo("mousedown", 1)
-            for step in range(1, 6):
-                xdo("mousemove", x + int(towards[0] * 2 * step), y + int(towards[1] * 3 * step))
-            xdo("mouseup", 1)
-            released = wait_for(lambda: [e for e in read_events(events) if e["event"] == "release"][drag:], 60,
-                             f"the end of drag {drag + 1}")[0]
-            assert released["moved"] and released["selection"] == [index]
-            xdo("key", "Left" if drag % 2 else "Right")  # a nudge, undone by the next one
-            nudges = wait_for(lambda: [e for e in read_events(events) if e["event"] == "nudge"][drag:], 60, "the nudge")
-            keypoints = np.array(nudges[0]["keypoints"])
+        keypoints = _drags_with_nudges(win, keypoints, index, 8, timeout=60)
         xdo("key", "u")
         wait_for(lambda: _last(events, "undo"), 60, "undo")
         xdo("key", "y")

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from test_viewer import HAS_XVFB, _clear_keypoint, _editor_window, _last, _screen_pixels
+from test_viewer import HAS_XVFB, _clear_keypoint, _drags_with_nudges, _editor_window, _last
 
 from kpd.viewer.app import read_events, wait_for
 
@@ -24,22 +24,7 @@ def test_editor_session_of_many_drags_on_a_million_vertex_mesh_loses_nothing(tmp
         keypoints = np.array(win.ready["keypoints"])
         rest = keypoints.copy()
         index = _clear_keypoint(win, keypoints)
-        vx, vy, w, h = win.ready["viewport"]
-        centre = np.array([win.origin[0] + vx + w / 2, win.origin[1] + vy + h / 2])
-        towards = np.sign(centre - _screen_pixels(win, keypoints)[index])
-        for drag in range(5):
-            x, y = np.rint(_screen_pixels(win, keypoints)[index]).astype(int)
-            xdo("mousemove", x, y)
-            xdo("mousedown", 1)
-            for step in range(1, 6):
-                xdo("mousemove", x + int(towards[0] * 2 * step), y + int(towards[1] * 3 * step))
-            xdo("mouseup", 1)
-            released = wait_for(lambda: [e for e in read_events(events) if e["event"] == "release"][drag:], 120,
-                                f"the end of drag {drag + 1}")[0]
-            assert released["moved"] and released["selection"] == [index]
-            xdo("key", "Left" if drag % 2 else "Right")
-            nudges = wait_for(lambda: [e for e in read_events(events) if e["event"] == "nudge"][drag:], 120, "a nudge")
-            keypoints = np.array(nudges[0]["keypoints"])
+        keypoints = _drags_with_nudges(win, keypoints, index, 5, timeout=120)
         xdo("key", "u")
         wait_for(lambda: _last(events, "undo"), 120, "undo")
         xdo("key", "y")
