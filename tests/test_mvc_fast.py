@@ -3,6 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from test_mvc import points_near_the_cage
 
 from kpd.cage import icosphere
 from kpd.errors import InputError
@@ -18,22 +19,8 @@ def star_cage(radii):
 
 
 def awkward_points(v, f, rng, distance):
-    """Points at ``distance`` from the cage's vertices, edges and faces, on both sides of faces and near the planes
-    of faces beyond them, plus points exactly on vertices, edges and faces."""
-    n = 60
-    faces = rng.integers(0, len(f), n)
-    p0, p1, p2 = (v[f[faces, k]] for k in range(3))
-    normal = np.cross(p1 - p0, p2 - p0)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    direction = rng.normal(size=(n, 3))
-    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    t = rng.uniform(0, 1, (n, 1))
-    on_face = np.einsum("nk,nki->ni", rng.dirichlet([1, 1, 1], n), np.stack([p0, p1, p2], axis=1))
-    return np.concatenate([
-        p0 + distance * direction, t * p0 + (1 - t) * p1 + distance * direction,
-        on_face + distance * normal, on_face - distance * normal, 1.3 * p0 - 0.15 * p1 - 0.15 * p2 + distance * normal,
-        p0[:5], (t * p0 + (1 - t) * p2)[:5], on_face[:5],
-    ])
+    """Points at ``distance`` from the cage's vertices, edges and faces, and exactly on them."""
+    return points_near_the_cage(v, f, rng, distance, 60, exact=True)
 
 
 def test_the_kernels_angle_over_length_is_atan2_over_y_to_rounding():
