@@ -139,11 +139,7 @@ def _read_open3d_mesh(p: Path, ext: str) -> "open3d.geometry.TriangleMesh":
         ply.check_complete(p)
     elif ext == ".off":
         off.check_complete(p)
-    with open3d_log() as messages:
-        m = o3d.io.read_triangle_mesh(str(p))
-    failed = failures(messages)
-    if failed:
-        raise InputError(f"{p}: could not be read as a mesh (Open3D: {'; '.join(failed)})")
+    m = _open3d_read(lambda: o3d.io.read_triangle_mesh(str(p)), p, "a mesh")
     if len(m.vertices) == 0:
         raise InputError(f"{p}: no vertices (empty geometry)")
     if ext == ".stl":
@@ -151,16 +147,22 @@ def _read_open3d_mesh(p: Path, ext: str) -> "open3d.geometry.TriangleMesh":
     return m
 
 
+def _open3d_read(read, p: Path, what: str):
+    """``read()`` with Open3D's log captured; a failure it reports there is an :class:`InputError` naming ``p``."""
+    with open3d_log() as messages:
+        geometry = read()
+    failed = failures(messages)
+    if failed:
+        raise InputError(f"{p}: could not be read as {what} (Open3D: {'; '.join(failed)})")
+    return geometry
+
+
 def _read_point_arrays(p: Path, ext: str) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Raw (unchecked) points, normals, colours of a point file."""
     if ext in (".ply", ".pcd"):
         o3d = open3d_module()
         (ply.check_complete if ext == ".ply" else pcd.check_complete)(p)
-        with open3d_log() as messages:
-            pc = o3d.io.read_point_cloud(str(p))
-        failed = failures(messages)
-        if failed:
-            raise InputError(f"{p}: could not be read as a point cloud (Open3D: {'; '.join(failed)})")
+        pc = _open3d_read(lambda: o3d.io.read_point_cloud(str(p)), p, "a point cloud")
         if len(pc.points) == 0:
             raise InputError(f"{p}: no points (empty geometry)")
         return (
