@@ -123,6 +123,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         world = distributed.from_environment(config.batch, args.device)  # None unless started by torchrun
         if world is None:
+            from kpd.train.config import resolve_device
+
+            resolve_device(args.device)  # a device this machine lacks is refused before any sampling or folder
             check_run_folder(args, out)
             return _train(args, config, out, None, started)
         distributed.init(world)
