@@ -46,6 +46,7 @@ import numpy as np
 
 from kpd.errors import InputError
 from kpd.io import Mesh, atomic_files, atomic_output
+from kpd.io.gltf import GlbBuffer, primitive_groups, read_accessor, read_buffers, read_gltf_json, write_glb
 from kpd.io.images import encode_png
 
 __all__ = ["MorphRig", "GltfRig", "write_gltf", "gltf_bytes", "read_gltf", "GLTF_FORMATS", "up_rotation"]
@@ -53,7 +54,6 @@ __all__ = ["MorphRig", "GltfRig", "write_gltf", "gltf_bytes", "read_gltf", "GLTF
 log = logging.getLogger(__name__)
 
 GLTF_FORMATS = (".glb", ".gltf")
-_GLB_MAGIC, _GLB_JSON, _GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
 _FLOAT, _UINT, _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 5126, 5125, 34962, 34963
 _AXES = {"x": 0, "y": 1, "z": 2}
 _BLOCK = 4096  # mesh vertices per product: small enough that BLAS runs each on the calling thread (as Rig.deform)
@@ -233,78 +233,8 @@ def up_rotation(up: str) -> list[float] | None:
     return [*(axis * np.sqrt(0.5)).tolist(), float(np.sqrt(0.5))]  # a quarter turn
 
 
-class _Builder:
-    """Binary pieces (numpy arrays or bytes, each 4-byte aligned) with their buffer views and accessors."""
-
-    def __init__(self) -> None:
-        self.pieces: list[Any] = []
-        self.length = 0
-        self.views: list[dict] = []
-        self.accessors: list[dict] = []
-
-    def view(self, data: Any, target: int | None = None) -> int:
-        nbytes = data.nbytes if isinstance(data, np.ndarray) else len(data)
-        view = {"buffer": 0, "byteOffset": self.length, "byteLength": int(nbytes)}
-        if target is not None:
-            view["target"] = target
-        self.pieces.append(data)
-        self.length += nbytes
-        pad = -nbytes % 4
-        if pad:
-            self.pieces.append(b"\0" * pad)
-            self.length += pad
-        self.views.append(view)
-        return len(self.views) - 1
-
-    def accessor(self, array: np.ndarray, kind: str, component: int, target: int | None,
-                 bounds: bool | tuple = False) -> int:
-        """An accessor of ``array``; ``bounds``: write its min and max (True: computed here, or given as a pair)."""
-        array = np.ascontiguousarray(array)
-        entry = {"bufferView": self.view(array, target), "componentType": component, "count": len(array),
-                 "type": kind}
-        if bounds is True:
-            bounds = (array.min(axis=0), array.max(axis=0))
-        if bounds is not False:
-            entry["min"], entry["max"] = [float(x) for x in bounds[0]], [float(x) for x in bounds[1]]
-        self.accessors.append(entry)
-        return len(self.accessors) - 1
-
-    def write(self, fh) -> None:
-        for piece in self.pieces:
-            fh.write(memoryview(piece).cast("B") if isinstance(piece, np.ndarray) else piece)
-
-
-def _primitive_groups(mesh: Mesh) -> list[tuple[int | None, np.ndarray, np.ndarray, np.ndarray | None]]:
-    """Per primitive: material (or None), source vertex of each written vertex (n,), triangles (t, 3) into the
-    written vertices, UVs (n, 2) of the written vertices (or None)."""
-    textured = bool(mesh.textures) and mesh.triangle_uvs is not None
-    ids = mesh.triangle_material_ids
-    if textured and ids is None:
-        ids = np.zeros(len(mesh.triangles), dtype=np.int64)
-    groups = [(int(u), np.flatnonzero(ids == u)) for u in np.unique(ids)] if textured else [(None, None)]
-    result = []
-    for material, rows in groups:
-        tri = mesh.triangles if rows is None else mesh.triangles[rows]  # (t, 3)
-        corner = tri.reshape(-1)  # (3t,)
-        if mesh.triangle_uvs is not None:
-            uv = mesh.triangle_uvs.reshape(-1, 3, 2)
-            corner_uv = np.ascontiguousarray((uv if rows is None else uv[rows]).reshape(-1, 2))  # (3t, 2)
-            keys = np.empty(len(corner), dtype=[("v", "<i8"), ("u", "<f8"), ("w", "<f8")])
-            keys["v"], keys["u"], keys["w"] = corner, corner_uv[:, 0], corner_uv[:, 1]
-        else:
-            corner_uv, keys = None, corner
-        _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-        order = np.argsort(first, kind="stable")  # written vertices in order of first use
-        rank = np.empty_like(order)
-        rank[order] = np.arange(len(order))
-        first = first[order]
-        result.append((material, corner[first], rank[inverse.reshape(-1)].reshape(-1, 3),
-                       None if corner_uv is None else corner_uv[first]))
-    return result
-
-
 def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
-              targets: Sequence[str] | None = None) -> tuple[dict, _Builder]:
+              targets: Sequence[str] | None = None) -> tuple[dict, GlbBuffer]:
     mesh = morph.mesh
     chosen = list(range(len(morph.names))) if targets is None else [morph.names.index(t) for t in targets]
     rotation = up_rotation(up)
@@ -313,10 +243,10 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
     if not len(used):
         raise InputError("a glTF rig needs a mesh with vertices")
     center = (vertices[used].min(axis=0) + vertices[used].max(axis=0)) / 2.0  # (3,)
-    builder = _Builder()
+    builder = GlbBuffer()
     stacked = np.ascontiguousarray(morph.offsets[chosen].transpose(1, 0, 2).reshape(len(morph.keypoints), -1))
     primitives = []
-    for material, source, triangles, uv in _primitive_groups(mesh):
+    for material, source, triangles, uv in primitive_groups(mesh):
         attributes = {"POSITION": builder.accessor((vertices[source] - center).astype(np.float32), "VEC3", _FLOAT,
                                                    _ARRAY_BUFFER, bounds=True)}
         if mesh.vertex_colors is not None:
@@ -396,15 +326,6 @@ def _version() -> str:
     return __version__
 
 
-def _write_glb(fh, doc: dict, builder: _Builder) -> None:
-    text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
-    text += b" " * (-len(text) % 4)
-    fh.write(struct.pack("<III", _GLB_MAGIC, 2, 12 + 8 + len(text) + 8 + builder.length))
-    fh.write(struct.pack("<II", len(text), _GLB_JSON) + text)
-    fh.write(struct.pack("<II", builder.length, _GLB_BIN))
-    builder.write(fh)
-
-
 def gltf_bytes(morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z", targets: Sequence[str] | None = None) -> bytes:
     """The GLB file of a rig (what :func:`write_gltf` writes to a ``.glb``), in memory.
 
@@ -413,7 +334,7 @@ def gltf_bytes(morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z", target
     """
     doc, builder = _document(morph, name=name, up=up, bin_uri=None, targets=targets)
     out = io.BytesIO()
-    _write_glb(out, doc, builder)
+    write_glb(out, doc, builder)
     return out.getvalue()
 
 
@@ -444,7 +365,7 @@ def write_gltf(path: str | os.PathLike, morph: MorphRig, *, name: str | None = N
         doc, builder = _document(morph, name=name, up=up, bin_uri=None, targets=targets)
         with atomic_output(p) as tmp:
             with open(tmp, "wb") as fh:
-                _write_glb(fh, doc, builder)
+                write_glb(fh, doc, builder)
         return p
     bin_name = p.stem + ".bin"
     doc, builder = _document(morph, name=name, up=up, bin_uri=_uri(bin_name), targets=targets)
@@ -496,40 +417,13 @@ def read_gltf(path: str | os.PathLike) -> GltfRig:
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{p}: no such glTF file")
-    raw = p.read_bytes()
-    chunk = None
     try:
-        if raw[:4] == b"glTF":
-            _, _, total = struct.unpack_from("<III", raw, 0)
-            length, kind = struct.unpack_from("<II", raw, 12)
-            if kind != _GLB_JSON:
-                raise ValueError(f"the first chunk of a GLB is JSON; got chunk type {kind:#x}")
-            doc = json.loads(raw[20:20 + length])
-            offset = 20 + length
-            if offset + 8 <= total:
-                blength, bkind = struct.unpack_from("<II", raw, offset)
-                chunk = raw[offset + 8: offset + 8 + blength] if bkind == _GLB_BIN else None
-        else:
-            doc = json.loads(raw.decode("utf-8"))
-        buffers = []
-        for buffer in doc["buffers"]:
-            if "uri" in buffer:
-                import urllib.parse
-
-                buffers.append((p.parent / urllib.parse.unquote(buffer["uri"])).read_bytes())
-            else:
-                buffers.append(chunk)
+        doc, chunk = read_gltf_json(p)
+        buffers = read_buffers(p, doc, chunk)
 
         def accessor(index: int) -> np.ndarray:
-            acc = doc["accessors"][index]
-            view = doc["bufferViews"][acc["bufferView"]]
-            dtype = {_FLOAT: np.float32, _UINT: np.uint32, 5123: np.uint16}[acc["componentType"]]
-            width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}[acc["type"]]
-            if view.get("byteStride", width * np.dtype(dtype).itemsize) != width * np.dtype(dtype).itemsize:
-                raise InputError(f"{p}: interleaved accessors are not read here")
-            start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
-            data = np.frombuffer(buffers[view["buffer"]], dtype=dtype, count=acc["count"] * width, offset=start)
-            return data.reshape(acc["count"], width) if width > 1 else data
+            a = read_accessor(p, doc, buffers, index)  # (count, width) float64 or int64
+            return a[:, 0] if a.shape[1] == 1 else a
 
         gltf_mesh = doc["meshes"][0]
         names = list(gltf_mesh.get("extras", {}).get("targetNames", []))
@@ -538,10 +432,10 @@ def read_gltf(path: str | os.PathLike) -> GltfRig:
         translation = np.asarray(mesh_node.get("translation", [0.0, 0.0, 0.0]), dtype=np.float64)
         positions, targets, indices = [], [], []
         for primitive in gltf_mesh["primitives"]:
-            positions.append(accessor(primitive["attributes"]["POSITION"]).astype(np.float64) + translation)
-            targets.append(np.stack([accessor(t["POSITION"]).astype(np.float64) for t in primitive.get("targets", [])])
+            positions.append(accessor(primitive["attributes"]["POSITION"]) + translation)
+            targets.append(np.stack([accessor(t["POSITION"]) for t in primitive.get("targets", [])])
                            if primitive.get("targets") else np.zeros((0, len(positions[-1]), 3)))
-            indices.append(accessor(primitive["indices"]).astype(np.int64).reshape(-1, 3))
+            indices.append(accessor(primitive["indices"]).reshape(-1, 3))
         points = {n["name"]: n.get("translation", [0.0, 0.0, 0.0]) for n in nodes if n.get("name", "").startswith(
             "keypoint_")}
         keypoints = np.array([points[f"keypoint_{i}"] for i in range(len(points))], dtype=np.float64).reshape(-1, 3)

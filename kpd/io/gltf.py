@@ -18,12 +18,13 @@ writes ``.glb`` files without their binary chunk; its reader, Assimp, merges pri
 from __future__ import annotations
 
 import base64
+import io
 import json
 import logging
 import struct
 import urllib.parse
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -34,7 +35,8 @@ from kpd.io.images import encode_png
 from kpd.errors import InputError
 from kpd.mesh import Mesh, PointSet
 
-__all__ = ["read", "write", "companions", "read_gltf_json", "GltfSource", "GLB_MAGIC"]
+__all__ = ["read", "write", "companions", "read_gltf_json", "read_buffers", "read_accessor", "GltfSource",
+           "GLB_MAGIC", "GlbBuffer", "write_glb", "Primitive", "primitive_groups"]
 
 log = logging.getLogger(__name__)
 
@@ -96,30 +98,19 @@ def _original_jpeg(mesh: Mesh, i: int) -> bytes | None:
     return Path(f).read_bytes()
 
 
-def _write_gltf(target: Path, mesh: Mesh, *, binary: bool) -> None:
-    """Write glTF 2.0: one primitive per material, vertices split where UVs differ, PNG textures (embedded in .glb,
-    beside a .gltf)."""
-    blob = bytearray()
-    views: list[dict] = []
-    accessors: list[dict] = []
+class Primitive(NamedTuple):
+    """One primitive of a written mesh: triangles of one material, all with UVs or all without."""
 
-    def add_view(data: bytes, target_kind: int | None = None) -> int:
-        blob.extend(b"\0" * (-len(blob) % 4))
-        view = {"buffer": 0, "byteOffset": len(blob), "byteLength": len(data)}
-        if target_kind:
-            view["target"] = target_kind
-        blob.extend(data)
-        views.append(view)
-        return len(views) - 1
+    material: int | None  # index into the mesh's textures, or None
+    source: np.ndarray  # (n,) int64, the mesh vertex of each written vertex
+    triangles: np.ndarray  # (t, 3) int64, into the written vertices
+    uvs: np.ndarray | None  # (n, 2) float64 of the written vertices, OBJ convention (origin bottom left)
 
-    def add_accessor(a: np.ndarray, kind: str, component: int, target_kind: int, bounds: bool = False) -> int:
-        acc = {"bufferView": add_view(a.tobytes(), target_kind), "componentType": component, "count": len(a)}
-        acc["type"] = kind
-        if bounds:
-            acc["min"], acc["max"] = a.min(axis=0).tolist(), a.max(axis=0).tolist()
-        accessors.append(acc)
-        return len(accessors) - 1
 
+def primitive_groups(mesh: Mesh) -> list[Primitive]:
+    """The primitives glTF needs for ``mesh``: one per material, split where some faces have UVs and others have
+    none (``Mesh.triangle_uv_mask``), with a vertex written once per distinct (vertex, UV) pair in order of first
+    use."""
     textured = bool(mesh.textures) and mesh.triangle_uvs is not None
     ids = mesh.triangle_material_ids
     if textured and ids is None:
@@ -133,7 +124,7 @@ def _write_gltf(target: Path, mesh: Mesh, *, binary: bool) -> None:
                   if sel.any()]
     else:
         groups = [(m, r, True) for m, r in groups]
-    primitives = []
+    out = []
     for material, rows, has_uv in groups:
         tri = mesh.triangles if rows is None else mesh.triangles[rows]  # (t, 3)
         corner_vertex = tri.reshape(-1)  # (3t,)
@@ -141,21 +132,98 @@ def _write_gltf(target: Path, mesh: Mesh, *, binary: bool) -> None:
             uv = mesh.triangle_uvs.reshape(-1, 3, 2)
             corner_uv = (uv if rows is None else uv[rows]).reshape(-1, 2)  # (3t, 2)
             first, index = first_occurrence_groups(np.hstack([corner_vertex[:, None], corner_uv]))
+            uvs = corner_uv[first]
         else:
-            corner_uv = None
             first, index = first_occurrence_groups(corner_vertex[:, None])
-        source = corner_vertex[first]  # (n,) vertex of each written vertex
+            uvs = None
+        out.append(Primitive(material, corner_vertex[first], index.reshape(-1, 3), uvs))
+    return out
+
+
+class GlbBuffer:
+    """A glTF binary buffer built piece by piece (numpy arrays or bytes, each 4-byte aligned, not copied) with its
+    buffer views and accessors."""
+
+    def __init__(self) -> None:
+        self.pieces: list[Any] = []
+        self.length = 0
+        self.views: list[dict] = []
+        self.accessors: list[dict] = []
+
+    def view(self, data: Any, target: int | None = None) -> int:
+        """A buffer view of ``data``; returns its index."""
+        nbytes = data.nbytes if isinstance(data, np.ndarray) else len(data)
+        view = {"buffer": 0, "byteOffset": self.length, "byteLength": int(nbytes)}
+        if target is not None:
+            view["target"] = target
+        self.pieces.append(data)
+        self.length += nbytes
+        pad = -nbytes % 4
+        if pad:
+            self.pieces.append(b"\0" * pad)
+            self.length += pad
+        self.views.append(view)
+        return len(self.views) - 1
+
+    def accessor(self, array: np.ndarray, kind: str, component: int, target: int | None,
+                 bounds: bool | tuple = False) -> int:
+        """An accessor of ``array``; ``bounds``: write its min and max (True: computed here, or given as a pair)."""
+        array = np.ascontiguousarray(array)
+        entry = {"bufferView": self.view(array, target), "componentType": component, "count": len(array),
+                 "type": kind}
+        if bounds is True:
+            bounds = (array.min(axis=0), array.max(axis=0))
+        if bounds is not False:
+            entry["min"], entry["max"] = [float(x) for x in bounds[0]], [float(x) for x in bounds[1]]
+        self.accessors.append(entry)
+        return len(self.accessors) - 1
+
+    def write(self, fh) -> None:
+        for piece in self.pieces:
+            fh.write(memoryview(piece).cast("B") if isinstance(piece, np.ndarray) else piece)
+
+    def to_bytes(self) -> bytes:
+        out = io.BytesIO()
+        self.write(out)
+        return out.getvalue()
+
+
+def write_glb(fh, doc: dict, buffer: GlbBuffer | bytes) -> None:
+    """A binary glTF file: the header, the JSON chunk (``doc``) and the binary chunk (``buffer``, 4-byte aligned;
+    left out when empty)."""
+    text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    length = buffer.length if isinstance(buffer, GlbBuffer) else len(buffer)
+    fh.write(struct.pack("<III", _GLB_MAGIC, 2, 12 + 8 + len(text) + (8 + length if length else 0)))
+    fh.write(struct.pack("<II", len(text), _GLB_JSON) + text)
+    if length:
+        fh.write(struct.pack("<II", length, _GLB_BIN))
+        if isinstance(buffer, GlbBuffer):
+            buffer.write(fh)
+        else:
+            fh.write(buffer)
+
+
+def _write_gltf(target: Path, mesh: Mesh, *, binary: bool) -> None:
+    """Write glTF 2.0: one primitive per material, vertices split where UVs differ, PNG textures (embedded in .glb,
+    beside a .gltf)."""
+    buffer = GlbBuffer()
+    textured = bool(mesh.textures) and mesh.triangle_uvs is not None
+    primitives = []
+    for material, source, triangles, uvs in primitive_groups(mesh):
         attributes = {
-            "POSITION": add_accessor(mesh.vertices[source].astype(np.float32), "VEC3", _FLOAT, 34962, bounds=True)
+            "POSITION": buffer.accessor(mesh.vertices[source].astype(np.float32), "VEC3", _FLOAT, 34962, bounds=True)
         }
         if mesh.vertex_normals is not None:
-            attributes["NORMAL"] = add_accessor(mesh.vertex_normals[source].astype(np.float32), "VEC3", _FLOAT, 34962)
+            attributes["NORMAL"] = buffer.accessor(mesh.vertex_normals[source].astype(np.float32), "VEC3", _FLOAT,
+                                                   34962)
         if mesh.vertex_colors is not None:
-            attributes["COLOR_0"] = add_accessor(mesh.vertex_colors[source].astype(np.float32), "VEC3", _FLOAT, 34962)
-        if corner_uv is not None:
-            st = corner_uv[first] * [1.0, -1.0] + [0.0, 1.0]  # glTF puts the UV origin at the top left
-            attributes["TEXCOORD_0"] = add_accessor(st.astype(np.float32), "VEC2", _FLOAT, 34962)
-        indices = add_accessor(index.astype(np.uint32), "SCALAR", _UINT, 34963)
+            attributes["COLOR_0"] = buffer.accessor(mesh.vertex_colors[source].astype(np.float32), "VEC3", _FLOAT,
+                                                    34962)
+        if uvs is not None:
+            st = uvs * [1.0, -1.0] + [0.0, 1.0]  # glTF puts the UV origin at the top left
+            attributes["TEXCOORD_0"] = buffer.accessor(st.astype(np.float32), "VEC2", _FLOAT, 34962)
+        indices = buffer.accessor(triangles.reshape(-1).astype(np.uint32), "SCALAR", _UINT, 34963)
         primitive = {"attributes": attributes, "indices": indices, "mode": 4}  # mode 4: triangles
         if material is not None:
             primitive["material"] = material
@@ -182,7 +250,7 @@ def _write_gltf(target: Path, mesh: Mesh, *, binary: bool) -> None:
             jpeg = _original_jpeg(mesh, i)
             data, mime = (jpeg, "image/jpeg") if jpeg is not None else (encode_png(texture), "image/png")
             if binary:
-                images.append({"bufferView": add_view(data), "mimeType": mime})
+                images.append({"bufferView": buffer.view(data), "mimeType": mime})
             else:
                 name = f"{target.stem}_{i}{'.jpg' if jpeg is not None else '.png'}"
                 (target.parent / name).write_bytes(data)
@@ -192,22 +260,16 @@ def _write_gltf(target: Path, mesh: Mesh, *, binary: bool) -> None:
             doc["images"] = images
             doc["textures"] = [{"source": i} for i in range(len(images))]
         doc["materials"] = materials
-    blob.extend(b"\0" * (-len(blob) % 4))
-    doc["bufferViews"] = views
-    doc["accessors"] = accessors
-    buffer: dict[str, Any] = {"byteLength": len(blob)}
+    doc["bufferViews"] = buffer.views
+    doc["accessors"] = buffer.accessors
     if binary:
-        doc["buffers"] = [buffer]
-        text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
-        text += b" " * (-len(text) % 4)
-        out = struct.pack("<III", _GLB_MAGIC, 2, 12 + 8 + len(text) + 8 + len(blob))
-        out += struct.pack("<II", len(text), _GLB_JSON) + text + struct.pack("<II", len(blob), _GLB_BIN) + bytes(blob)
-        target.write_bytes(out)
+        doc["buffers"] = [{"byteLength": buffer.length}]
+        with open(target, "wb") as fh:
+            write_glb(fh, doc, buffer)
     else:
-        buffer["uri"] = "data:application/octet-stream;base64," + base64.b64encode(bytes(blob)).decode("ascii")
-        doc["buffers"] = [buffer]
+        doc["buffers"] = [{"byteLength": buffer.length, "uri": "data:application/octet-stream;base64,"
+                           + base64.b64encode(buffer.to_bytes()).decode("ascii")}]
         target.write_text(json.dumps(doc, indent=1), encoding="utf-8")
-
 
 
 def read_gltf_json(p: Path) -> tuple[dict, bytes | None]:
@@ -261,7 +323,7 @@ class GltfSource:
         self.vertices, self.triangles, self.normals = vertices, triangles, normals
 
 
-def _buffers(p: Path, doc: dict, chunk: bytes | None) -> list:
+def read_buffers(p: Path, doc: dict, chunk: bytes | None) -> list:
     out = []
     for i, buffer in enumerate(doc.get("buffers", [])):
         if "uri" in buffer:
@@ -278,7 +340,7 @@ def _buffers(p: Path, doc: dict, chunk: bytes | None) -> list:
     return out
 
 
-def _accessor(p: Path, doc: dict, buffers: list, index: int) -> np.ndarray:
+def read_accessor(p: Path, doc: dict, buffers: list, index: int) -> np.ndarray:
     """(count, width) array of an accessor (float64 for floats and normalized integers)."""
     acc = doc["accessors"][index]
     dtype = np.dtype(_COMPONENTS[acc["componentType"]]).newbyteorder("<")
@@ -355,7 +417,7 @@ def _mesh_nodes(doc: dict) -> list[tuple[int, np.ndarray]]:
 
 def _primitive_triangles(p: Path, doc: dict, buffers: list, prim: dict, n: int) -> np.ndarray | None:
     mode = prim.get("mode", 4)
-    index = (_accessor(p, doc, buffers, prim["indices"]).reshape(-1) if "indices" in prim
+    index = (read_accessor(p, doc, buffers, prim["indices"]).reshape(-1) if "indices" in prim
              else np.arange(n, dtype=np.int64))
     if mode == 4:
         tri = index[: len(index) // 3 * 3].reshape(-1, 3)
@@ -400,7 +462,7 @@ def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | P
 
 
 def _read(p, doc, chunk, name, points, read_image_bytes, PointSet):
-    buffers = _buffers(p, doc, chunk)
+    buffers = read_buffers(p, doc, chunk)
     blocks, vertices, normals, colors, tris, corner_uvs, has_uv, materials = [], [], [], [], [], [], [], []
     offset = 0
     skipped = 0
@@ -413,18 +475,18 @@ def _read(p, doc, chunk, name, points, read_image_bytes, PointSet):
             attributes = prim["attributes"]
             position = attributes["POSITION"]
             if position not in placed:
-                local = _accessor(p, doc, buffers, position)[:, :3]
+                local = read_accessor(p, doc, buffers, position)[:, :3]
                 placed[position] = offset
                 vertices.append(local @ world[:3, :3].T + world[:3, 3])
                 normal = attributes.get("NORMAL")
                 if normal is not None:
-                    n = _accessor(p, doc, buffers, normal)[:, :3] @ normal_matrix.T
+                    n = read_accessor(p, doc, buffers, normal)[:, :3] @ normal_matrix.T
                     length = np.linalg.norm(n, axis=1, keepdims=True)
                     normals.append(np.divide(n, length, out=np.zeros_like(n), where=length > 0))
                 else:
                     normals.append(None)
                 color = attributes.get("COLOR_0")
-                colors.append(None if color is None else np.clip(_accessor(p, doc, buffers, color)[:, :3], 0, 1))
+                colors.append(None if color is None else np.clip(read_accessor(p, doc, buffers, color)[:, :3], 0, 1))
                 blocks.append({"node": node, "world": world, "position": position, "normal": normal,
                                "start": offset, "count": len(local)})
                 offset += len(local)
@@ -439,7 +501,7 @@ def _read(p, doc, chunk, name, points, read_image_bytes, PointSet):
             tris.append(tri + start)
             uv = attributes.get("TEXCOORD_0")
             if uv is not None:
-                st = _accessor(p, doc, buffers, uv)[:, :2]
+                st = read_accessor(p, doc, buffers, uv)[:, :2]
                 corner_uvs.append((st * [1.0, -1.0] + [0.0, 1.0])[tri].reshape(-1, 2))
                 has_uv.append(np.ones(len(tri), dtype=bool))
             else:
@@ -591,13 +653,8 @@ def write_from_source(target: Path, mesh: Mesh, source: GltfSource) -> None:
         blob += b"\0" * (-len(blob) % 4)
         if blob:
             doc["buffers"][0]["byteLength"] = len(blob)
-        text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
-        text += b" " * (-len(text) % 4)
-        out = struct.pack("<III", _GLB_MAGIC, 2, 12 + 8 + len(text) + (8 + len(blob) if blob else 0))
-        out += struct.pack("<II", len(text), _GLB_JSON) + text
-        if blob:
-            out += struct.pack("<II", len(blob), _GLB_BIN) + blob
-        target.write_bytes(out)
+        with open(target, "wb") as fh:
+            write_glb(fh, doc, blob)
     else:
         target.write_text(json.dumps(doc, indent=1), encoding="utf-8")
 
