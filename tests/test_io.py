@@ -569,3 +569,11 @@ def test_failed_mesh_write_leaves_existing_files_untouched(ext, tmp_path, monkey
     with pytest.raises(KpdError, match=rf"cannot write .*({reason})"):
         write_mesh(tmp_path / f"chair.{ext}", mesh.with_vertices(mesh.vertices + 1))
     assert {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path)} == before
+
+
+def test_glb_materials_are_named_after_the_users_file(tmp_path):
+    from kpd.io.gltf import read_gltf_json
+
+    write_mesh(tmp_path / "chair.glb", sphere_mesh(uvs=True, textures=2))
+    doc, _ = read_gltf_json(tmp_path / "chair.glb")
+    assert [m["name"] for m in doc["materials"]] == ["chair_0", "chair_1"]  # not the temporary file's name

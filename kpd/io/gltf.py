@@ -65,13 +65,13 @@ def write(p: Path, mesh: Mesh) -> None:
         return
     if not binary and mesh.textures:
         with atomic_files(p) as target:
-            _write_gltf(target, mesh, binary=False)
+            _write_gltf(target, mesh, binary=False, name=p.stem)
             for companion in target.parent.iterdir():
                 if companion != target:
                     verify_companion(p.parent / companion.name, companion)
     else:
         with atomic_output(p) as target:
-            _write_gltf(target, mesh, binary=binary)
+            _write_gltf(target, mesh, binary=binary, name=p.stem)
 
 
 def companions(p: Path, mesh: Mesh) -> list[str]:
@@ -204,9 +204,10 @@ def write_glb(fh, doc: dict, buffer: GlbBuffer | bytes) -> None:
             fh.write(buffer)
 
 
-def _write_gltf(target: Path, mesh: Mesh, *, binary: bool) -> None:
+def _write_gltf(target: Path, mesh: Mesh, *, binary: bool, name: str) -> None:
     """Write glTF 2.0: one primitive per material, vertices split where UVs differ, PNG textures (embedded in .glb,
-    beside a .gltf)."""
+    beside a .gltf). ``name``, the stem of the user's path, names the materials (``target`` may be a temporary
+    file)."""
     buffer = GlbBuffer()
     textured = bool(mesh.textures) and mesh.triangle_uvs is not None
     primitives = []
@@ -239,7 +240,7 @@ def _write_gltf(target: Path, mesh: Mesh, *, binary: bool) -> None:
     if textured:
         images, materials = [], []
         for i, texture in enumerate(mesh.textures):
-            material: dict[str, Any] = {"name": f"{target.stem}_{i}",
+            material: dict[str, Any] = {"name": f"{name}_{i}",
                                         "pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 1.0}}
             materials.append(material)
             if texture.shape[0] * texture.shape[1] == 1:  # a plain colour (sRGB in the image, linear in glTF)
