@@ -97,8 +97,7 @@ def run(args: argparse.Namespace) -> int:
 def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray], check=None):
     """The deformed mesh of ``kpd deform MODEL SHAPE``: rig the mesh, move keypoints (through the prior if asked).
     ``check(mesh)`` runs on the input mesh before the work (the output's companion files)."""
-    from kpd.commands.keypoints import load_model, print_scan_messages, warn_frame
-    from kpd.frame import ScanFrame
+    from kpd.commands.keypoints import load_model, scan_frame, warn_frame
     from kpd.io import read_mesh
 
     model = load_model(args)
@@ -114,10 +113,7 @@ def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray], ch
     scan = None
     if args.scan:
         # orient with the scan pipeline, but rig the whole input mesh (topology kept) in the model's orientation
-        from kpd.io import file_up
-
-        scan = ScanFrame(model, mesh, args.up or file_up(args.shape))
-        print_scan_messages(scan)
+        scan = scan_frame(args, model, mesh)
         moves = {i: scan.vector_to_aligned(d) for i, d in moves.items()}
         work = mesh.with_vertices(scan.to_aligned(mesh.vertices))
     else:

@@ -61,12 +61,18 @@ def warn_frame(model, shape, seed: int, name: str) -> None:
         print(f"warning: {line}", file=sys.stderr)
 
 
-def print_scan_messages(scan) -> None:
-    """What a :class:`kpd.frame.ScanFrame` decided, for the user (stderr)."""
+def scan_frame(args: argparse.Namespace, model, shape, **kwargs):
+    """``--scan``: the shape oriented into the model's frame (:class:`kpd.frame.ScanFrame`), searched with ``--up``
+    or, for glTF, the file's y up; what it decided is printed (stderr)."""
+    from kpd.frame import ScanFrame
+    from kpd.io import file_up
+
+    scan = ScanFrame(model, shape, args.up or file_up(args.shape), **kwargs)
     for line in scan.warnings:
         print(f"warning: {line}", file=sys.stderr)
     for line in scan.notes:
         print(f"note: {line}", file=sys.stderr)
+    return scan
 
 
 def load_model(args: argparse.Namespace):
@@ -85,7 +91,6 @@ def check_suffix(path: str, formats: tuple, what: str, option: str = "--out") ->
 
 
 def run(args: argparse.Namespace) -> int:
-    from kpd.frame import ScanFrame
     from kpd.io import KEYPOINT_FORMATS, Outputs, read_shape, write_keypoints
 
     with Outputs(force=args.force, inputs=(args.shape,)) as outputs:
@@ -97,10 +102,7 @@ def run(args: argparse.Namespace) -> int:
         meta = {"model": str(args.model), "category": model.category, "shape": str(args.shape), "frame": "input",
                 "seed": args.seed}
         if args.scan:
-            from kpd.io import file_up
-
-            scan = ScanFrame(model, shape, args.up or file_up(args.shape), seed=args.seed)  # glTF: y up
-            print_scan_messages(scan)
+            scan = scan_frame(args, model, shape, seed=args.seed)
             keypoints = scan.to_original(model.keypoints(scan.result.shape, seed=args.seed))
             meta["scan"] = scan.report()
         else:

@@ -45,7 +45,7 @@ def morph_rig(rig: Any, prior: Any, meta: dict):
 
 
 def run(args: argparse.Namespace) -> int:
-    from kpd.commands.keypoints import ScanFrame, load_model, warn_frame
+    from kpd.commands.keypoints import load_model, scan_frame, warn_frame
     from kpd.io import Outputs, read_mesh
     from kpd.morph import MorphRig, up_rotation, write_gltf
 
@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         frame = None
         if args.scan:
             # orient with the scan pipeline, rig the whole mesh there, write the targets in the scan's own frame
-            scan = ScanFrame(model, mesh, args.up)
+            scan = scan_frame(args, model, mesh)
             rig = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
             frame = scan.result.transform
         else:

@@ -93,8 +93,8 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False) -> Source
     """Resolve ``MODEL SHAPE`` (with ``--scan``) or ``--rig`` (with ``--model``) into a rig and an optional prior,
     as ``kpd deform`` does. Bad combinations and a model of another keypoint count end in :class:`InputError`."""
     from kpd.commands.deform import load_rig
-    from kpd.commands.keypoints import print_scan_messages
-    from kpd.frame import ScanFrame, ScanRig
+    from kpd.commands.keypoints import scan_frame
+    from kpd.frame import ScanRig
     from kpd.io import read_mesh
     from kpd.runtime import Model
 
@@ -134,8 +134,7 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False) -> Source
 
     mesh = read_mesh(args.shape)
     if args.scan:
-        scan = ScanFrame(model, mesh, args.up or file_up(args.shape))
-        print_scan_messages(scan)
+        scan = scan_frame(args, model, mesh)
         aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
         rig = ScanRig(aligned, mesh, scan)
         return Source(rig, model.prior, Path(args.shape).name, scan_up(scan, model.up) or args.up)
