@@ -19,7 +19,6 @@ from PIL import Image
 
 from kpd.io import Mesh, read_mesh, write_mesh
 from kpd.io.gltf import read_gltf_json
-from kpd.io.obj import turned_normals
 
 SHAPENET = "shapenetcore_obj"
 
@@ -207,15 +206,6 @@ def test_obj_normals_turn_with_the_surface(tmp_path):
     write_mesh(tmp_path / "turned.obj", mesh.with_vertices(mesh.vertices @ rotation.T))
     before, after = parse_numbers(obj_lines(path), "vn"), parse_numbers(obj_lines(tmp_path / "turned.obj"), "vn")
     np.testing.assert_allclose(after, before @ rotation.T, atol=1e-5)  # the file's normals have 6 decimals
-
-
-def test_turned_normals_keep_an_artists_offset_from_the_surface():
-    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
-    triangles = np.array([[0, 1, 2]])
-    tilted = np.array([[0.0, np.sin(0.3), np.cos(0.3)]])  # 0.3 rad off the face normal (+z)
-    new = vertices[:, [2, 1, 0]] * [1, 1, -1]  # the face turned to face +x
-    turned = turned_normals(vertices, new, triangles, np.zeros((1, 3), np.int64), tilted)
-    np.testing.assert_allclose(turned[0] @ [1.0, 0, 0], np.cos(0.3), atol=1e-12)  # still 0.3 rad off the face
 
 
 def test_obj_vertex_colours_round_trip_in_order(tmp_path):

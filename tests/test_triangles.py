@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from kpd.triangles import areas, cross, unit_normals, vertex_normals
+from kpd.triangles import areas, cross, turned_normals, unit_normals, vertex_normals
 
 # a unit right triangle in the xy plane and a degenerate one (all corners on a line)
 V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0], [3, 0, 0]])
@@ -33,3 +33,12 @@ def test_vertex_normals_area_weighted_and_grouped():
     assert np.isclose(np.linalg.norm(g, axis=1), 1).all()
     # an unused vertex has no normal
     assert not vertex_normals(np.vstack([v, [[9, 9, 9]]]), t)[-1].any()
+
+
+def test_turned_normals_keep_an_artists_offset_from_the_surface():
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    triangles = np.array([[0, 1, 2]])
+    tilted = np.array([[0.0, np.sin(0.3), np.cos(0.3)]])  # 0.3 rad off the face normal (+z)
+    new = vertices[:, [2, 1, 0]] * [1, 1, -1]  # the face turned to face +x
+    turned = turned_normals(vertices, new, triangles, np.zeros((1, 3), np.int64), tilted)
+    np.testing.assert_allclose(turned[0] @ [1.0, 0, 0], np.cos(0.3), atol=1e-12)  # still 0.3 rad off the face

@@ -28,11 +28,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from kpd.errors import InputError
 from kpd.grouping import first_occurrence_groups
 from kpd.io.atomic import atomic_files, atomic_output
 from kpd.io.common import verify_companion
 from kpd.io.images import encode_png
-from kpd.errors import InputError
 from kpd.mesh import Mesh, PointSet
 
 __all__ = ["read", "write", "companions", "read_gltf_json", "read_buffers", "read_accessor", "GltfSource",
@@ -616,7 +616,7 @@ def write_from_source(target: Path, mesh: Mesh, source: GltfSource) -> None:
     primitive, material, image and extension as it was."""
     import copy
 
-    from kpd.io.obj import turned_normals
+    from kpd.triangles import turned_normals
 
     doc = copy.deepcopy(source.doc)
     buffers = [bytearray(b) for b in source.buffers]

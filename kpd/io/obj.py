@@ -33,8 +33,9 @@ from kpd.io.atomic import atomic_files
 from kpd.io.common import incomplete, verify_companion
 from kpd.io.images import read_image
 from kpd.mesh import Mesh, PointSet, count_phrase
+from kpd.triangles import turned_normals
 
-__all__ = ["read", "write", "companions", "ObjSource", "turned_normals"]
+__all__ = ["read", "write", "companions", "ObjSource"]
 
 log = logging.getLogger("kpd.io.obj")
 
@@ -548,45 +549,6 @@ def _map_statements(data: bytes) -> list[tuple[int, bytes]]:
         if key.lower() in _MAP_KEYS and rest.strip():
             out.append((i, _strip_comment(rest).strip()))
     return out
-
-
-def turned_normals(old_vertices: np.ndarray, new_vertices: np.ndarray, triangles: np.ndarray,
-                   corner_normals: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(N, 3) the file's normals turned with the surface around them, each keeping its length.
-
-    Each normal ``n`` is turned by the smallest rotation that takes the area-weighted normal of the faces whose
-    corners use it, before the edit, to the same after the edit: a normal that was the faces' own (flat or smooth)
-    becomes the new faces' own, and an artist's normal keeps its offset from the surface.
-    """
-    from kpd.triangles import cross
-
-    used = corner_normals >= 0
-    index = corner_normals[used]
-    n = len(normals)
-
-    def around(vertices: np.ndarray) -> np.ndarray:
-        face = cross(vertices, triangles)  # (T, 3)
-        per_corner = np.repeat(face[:, None, :], 3, axis=1)[used]  # (c, 3)
-        out = np.stack([np.bincount(index, weights=per_corner[:, k], minlength=n) for k in range(3)],
-                       axis=1).astype(np.float64)  # (n, 3); bincount of nothing is integer
-        length = np.linalg.norm(out, axis=1, keepdims=True)
-        return np.divide(out, length, out=np.zeros_like(out), where=length > 0)
-
-    a, b = around(old_vertices), around(new_vertices)
-    valid = (np.linalg.norm(a, axis=1) > 0) & (np.linalg.norm(b, axis=1) > 0)
-    out = normals.copy()
-    # Rodrigues with axis a x b: R v = v cos + (k x v) sin + k (k . v)(1 - cos), written without dividing by sin
-    k = np.cross(a, b)  # |k| = sin
-    c = np.einsum("ij,ij->i", a, b)
-    v = normals
-    kv = np.cross(k, v)
-    kdotv = np.einsum("ij,ij->i", k, v)
-    factor = np.divide(1.0, 1.0 + c, out=np.zeros_like(c), where=(1.0 + c) > 1e-12)
-    turned = v * c[:, None] + kv + k * (kdotv * factor)[:, None]
-    opposite = valid & ((1.0 + c) <= 1e-12)
-    turned[opposite] = -v[opposite]
-    out[valid] = turned[valid]
-    return out  # a rotation: each normal keeps its length (some files store them scaled)
 
 
 def _write_from_source(target: Path, mesh: Mesh, source: ObjSource) -> None:
