@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 from typing import Any, NamedTuple
 
+import numba
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
@@ -204,7 +205,7 @@ def fit_cage(
         raise InputError(f"iterations must be an integer >= 0; got {iterations!r}")
 
     vertices = vertices.copy()
-    tree = cKDTree(points)
+    tree = cKDTree(points) if iterations else None
     for _ in range(int(iterations)):
         nearest, _ = tree.query(vertices, k=1)
         move = nearest > distance  # (C,)
@@ -237,7 +238,43 @@ def _star_cones(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def _enclose(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Scale cage vertices outward along their rays until every point is inside with the margin."""
+    """Scale cage vertices outward along their rays until every point is inside with the margin.
+
+    A compiled pass finds each point's cone by walking across the cage's faces and keeps only the points that are
+    over the margin for the cage as it is; radii only grow, so no other point can ever need raising, and the
+    rounds run on those alone (:func:`_enclose_reference` is the whole computation in numpy)."""
+    inv = _star_cones(vertices, faces)
+    radii = np.linalg.norm(vertices, axis=1)
+    units = vertices / radii[:, None]
+    limit = 1.0 - _ENCLOSE_MARGIN
+    face_of = np.empty(len(points), dtype=np.int64)
+    # a little below the limit, so that the rounds below decide, as numpy rounds the fractions, every point near it
+    near = np.empty(len(points), dtype=np.bool_)
+    _locate_cones(points, inv, _face_neighbours(faces), faces, radii, limit * (1.0 - 1e-9), face_of, near)
+    candidates = np.flatnonzero(near)
+    face_of = face_of[candidates]
+    coords = np.empty((len(candidates), 3))
+    _cone_coords(points[candidates], inv, face_of, coords)
+    corner = faces[face_of]  # (n, 3)
+    active = np.arange(len(candidates))  # the points still over the margin, first ones first
+    count = len(active)
+    for _ in range(_ENCLOSE_ROUNDS):
+        lifted = np.zeros(len(radii))
+        count = _lift_round(coords, corner, radii, limit, active, count, lifted)
+        if not count:
+            break
+        log.debug("enclose: %d point(s) outside or too close; raising %d vertices", count, (lifted > radii).sum())
+        radii = np.maximum(radii, lifted)
+    else:
+        raise KpdError(f"enclose did not converge in {_ENCLOSE_ROUNDS} rounds")
+    out = vertices.copy()
+    moved = radii > np.linalg.norm(vertices, axis=1)
+    out[moved] = units[moved] * radii[moved, None]
+    return out
+
+
+def _enclose_reference(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """:func:`_enclose` in numpy over every point and face (the slow twin tests compare with)."""
     inv = _star_cones(vertices, faces)
     radii = np.linalg.norm(vertices, axis=1)
     units = vertices / radii[:, None]
@@ -255,28 +292,173 @@ def _enclose(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.
         coords[start : start + chunk] = lam[np.arange(len(p)), best]
     # Rounding at cone borders: drop coordinates that are noise next to the others (the margin dwarfs them).
     coords[coords < 1e-12 * np.abs(coords).sum(axis=1, keepdims=True)] = 0.0
-    corner = faces[face_of]  # (N, 3)
-    limit = 1.0 - _ENCLOSE_MARGIN
+    radii = _raise_radii(coords, faces[face_of], radii, 1.0 - _ENCLOSE_MARGIN)
+    out = vertices.copy()
+    moved = radii > np.linalg.norm(vertices, axis=1)
+    out[moved] = units[moved] * radii[moved, None]
+    return out
+
+
+def _raise_radii(coords: np.ndarray, corner: np.ndarray, radii: np.ndarray, limit: float) -> np.ndarray:
+    """The cage's vertex radii after raising, round by round, the faces of the points over the margin.
+
+    Parameters
+    ----------
+    coords : (N, 3) the points' coordinates in their faces' unit vertex directions (>= 0).
+    corner : (N, 3) int64, the vertices of each point's face.
+    radii : (C,) the vertex radii before.
+    limit : the largest radial fraction allowed.
+
+    Returns
+    -------
+    radii : (C,) float64, each at least as before.
+    """
     for _ in range(_ENCLOSE_ROUNDS):
         # A point at coordinates lam (in unit directions) lies at the fraction s = sum(lam_i / r_i) of the cage's
         # radial distance in its direction: inside iff s < 1.
         frac = np.sum(coords / radii[corner], axis=1)  # (N,)
         over = np.flatnonzero(frac > limit)
         if not len(over):
-            break
+            return radii
         level = _raise_level(coords[over], radii[corner[over]], limit)  # (n,)
         # Raise the vertices that carry each such point (coordinate > 0) to its level, if they are below it.
         carry = coords[over] > 0  # (n, 3)
-        lifted = np.zeros(len(vertices))
+        lifted = np.zeros(len(radii))
         np.maximum.at(lifted, corner[over][carry], np.broadcast_to(level[:, None], carry.shape)[carry])
         log.debug("enclose: %d point(s) outside or too close; raising %d vertices", len(over), (lifted > radii).sum())
         radii = np.maximum(radii, lifted)
-    else:
-        raise KpdError(f"enclose did not converge in {_ENCLOSE_ROUNDS} rounds")
-    out = vertices.copy()
-    moved = radii > np.linalg.norm(vertices, axis=1)
-    out[moved] = units[moved] * radii[moved, None]
-    return out
+    raise KpdError(f"enclose did not converge in {_ENCLOSE_ROUNDS} rounds")
+
+
+def _face_neighbours(faces: np.ndarray) -> np.ndarray:
+    """(F, 3) int64: the face across the edge opposite each corner (-1 where the edge has no other face)."""
+    f = len(faces)
+    start = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])  # (3F,) edge opposite corner k: k+1 -> k+2
+    end = np.concatenate([faces[:, 2], faces[:, 0], faces[:, 1]])
+    n = int(faces.max()) + 1
+    key = start * n + end
+    order = np.argsort(key)
+    # the same edge walked the other way round by its other face
+    at = np.searchsorted(key[order], end * n + start)
+    found = order[np.minimum(at, 3 * f - 1)]
+    neighbour = np.where(key[found] == end * n + start, found % f, -1)
+    return np.ascontiguousarray(neighbour.reshape(3, f).T)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _lam(inv, f, x, y, z):  # pragma: no cover - compiled
+    """The coordinates of (x, y, z) in face f's unit directions, as ``inv[f] @ p``."""
+    return (inv[f, 0, 0] * x + inv[f, 0, 1] * y + inv[f, 0, 2] * z,
+            inv[f, 1, 0] * x + inv[f, 1, 1] * y + inv[f, 1, 2] * z,
+            inv[f, 2, 0] * x + inv[f, 2, 1] * y + inv[f, 2, 2] * z)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _clean(l0, l1, l2):  # pragma: no cover - compiled
+    """Coordinates below 1e-12 of their absolute sum set to zero (rounding at cone borders), as the numpy twin."""
+    small = 1e-12 * (abs(l0) + abs(l1) + abs(l2))
+    return (l0 if l0 >= small else 0.0), (l1 if l1 >= small else 0.0), (l2 if l2 >= small else 0.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _locate_cones(points, inv, neighbours, faces, radii, threshold, face_of, near):  # pragma: no cover - compiled
+    """Each point's cone and whether its radial fraction for the cage as it is exceeds ``threshold``.
+
+    From the cone of the point before, walk to the face across the edge opposite the most negative coordinate until
+    all three are clearly positive (above 1e-9 of their sum: a cone's interior, where no other face can hold the
+    point); a point within that of a border, or whose walk goes round, takes the face whose smallest coordinate is
+    largest over all faces, as the numpy twin does for every point.
+    """
+    n_faces = len(inv)
+    f = 0
+    for p in range(len(points)):
+        x, y, z = points[p, 0], points[p, 1], points[p, 2]
+        found = False
+        for _ in range(n_faces):
+            l0, l1, l2 = _lam(inv, f, x, y, z)
+            least = min(l0, l1, l2)
+            size = 1e-9 * (abs(l0) + abs(l1) + abs(l2))
+            if least > size:
+                found = True
+                break
+            if least >= -size:  # on or near a border (or at the origin): decided over all faces
+                break
+            k = 0 if l0 == least else (1 if l1 == least else 2)
+            step = neighbours[f, k]
+            if step < 0:
+                break
+            f = step
+        if not found:
+            best, best_least = 0, -np.inf
+            for g in range(n_faces):
+                l0, l1, l2 = _lam(inv, g, x, y, z)
+                least = min(l0, l1, l2)
+                if least > best_least:
+                    best, best_least = g, least
+            f = best
+            l0, l1, l2 = _lam(inv, f, x, y, z)
+        face_of[p] = f
+        l0, l1, l2 = _clean(l0, l1, l2)
+        near[p] = l0 / radii[faces[f, 0]] + l1 / radii[faces[f, 1]] + l2 / radii[faces[f, 2]] > threshold
+
+
+@numba.njit(cache=True, nogil=True)
+def _lift_round(coords, corner, radii, limit, active, count, lifted):  # pragma: no cover - compiled
+    """One round of :func:`_raise_radii` over ``active[:count]``: the points over the margin are moved to the front
+    of ``active`` (a point under it now stays under, the radii only grow) and each raises ``lifted`` at the
+    vertices that carry it to its level (:func:`_raise_level`, here a point at a time). Returns how many are over.
+    """
+    over = 0
+    r = np.empty(3)
+    lam = np.empty(3)
+    for a in range(count):
+        p = active[a]
+        c0, c1, c2 = coords[p, 0], coords[p, 1], coords[p, 2]
+        k0, k1, k2 = corner[p, 0], corner[p, 1], corner[p, 2]
+        if (c0 / radii[k0] + c1 / radii[k1]) + c2 / radii[k2] <= limit:
+            continue
+        active[over] = p
+        over += 1
+        # the carrying vertices' radii in ascending order (a vertex that does not carry the point last), stably
+        for i in range(3):
+            lam[i] = coords[p, i]
+            r[i] = radii[corner[p, i]] if lam[i] > 0 else np.inf
+        for i in range(1, 3):
+            j = i
+            while j > 0 and r[j - 1] > r[j]:
+                r[j - 1], r[j] = r[j], r[j - 1]
+                lam[j - 1], lam[j] = lam[j], lam[j - 1]
+                j -= 1
+        level = np.nan
+        for j in range(1, 4):
+            rest = 0.0
+            if j == 1:
+                rest = (lam[1] / r[1] if lam[1] > 0 else 0.0) + (lam[2] / r[2] if lam[2] > 0 else 0.0)
+            elif j == 2:
+                rest = lam[2] / r[2] if lam[2] > 0 else 0.0
+            rest = limit - rest
+            held = lam[0] if j == 1 else (lam[0] + lam[1] if j == 2 else (lam[0] + lam[1]) + lam[2])
+            upper = r[j] if j < 3 else np.inf
+            if rest > 0:
+                cand = held / rest
+                if cand <= upper and cand >= r[j - 1]:
+                    level = cand
+                    break
+        if level != level:  # a rounding miss at a breakpoint: the uniform level, which always works
+            level = ((lam[0] + lam[1]) + lam[2]) / limit
+        level *= 1.0 + 1e-12
+        for i in range(3):
+            if coords[p, i] > 0 and level > lifted[corner[p, i]]:
+                lifted[corner[p, i]] = level
+    return over
+
+
+@numba.njit(cache=True, nogil=True)
+def _cone_coords(points, inv, face_of, out):  # pragma: no cover - compiled
+    """(n, 3) the points' cleaned coordinates in their faces' unit directions."""
+    for p in range(len(points)):
+        l0, l1, l2 = _lam(inv, face_of[p], points[p, 0], points[p, 1], points[p, 2])
+        out[p, 0], out[p, 1], out[p, 2] = _clean(l0, l1, l2)
 
 
 def _raise_level(coords: np.ndarray, radii: np.ndarray, limit: float) -> np.ndarray:

@@ -28,8 +28,7 @@ from kpd.errors import BundleError, InputError
 from kpd.geometry import Normalizer, as_points, as_rng, sample_surface
 from kpd.io import Mesh, PointSet
 from kpd.prior import KeypointPrior
-from kpd.rig import (TRANSFER_RIDGE, TRANSFER_SIGMA, TRANSFER_SUPPORT, Rig, check_bind_memory, distinct_points,
-                     transfer_influence)
+from kpd.rig import TRANSFER_RIDGE, TRANSFER_SIGMA, TRANSFER_SUPPORT, Rig, check_bind_memory, transfer_influence
 
 __all__ = ["Model", "Prediction", "Shape"]
 
@@ -307,7 +306,8 @@ class Model:
         prediction = prediction if prediction is not None else self.predict(mesh, seed=seed)
         # the authors' rule on the sampled points, as in training; then, beyond it, push faces out until every mesh
         # vertex is inside (only the vertices are deformed through MVC)
-        vertices = distinct_points(prediction.normalizer.apply(mesh.vertices))  # the cage encloses positions
+        # every vertex as it is: a position stored several times is enclosed alike (and merging them costs a sort)
+        vertices = prediction.normalizer.apply(mesh.vertices)
         cage = fit_cage(prediction.points, template=self._cage, **self._cage_fit)
         if enclose:
             cage = fit_cage(vertices, template=cage, iterations=0, enclose=True)

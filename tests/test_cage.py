@@ -170,6 +170,61 @@ def test_enclose_puts_every_point_inside_any_star_cage(points, radii):
     assert not points_outside(points, *cage).any()
 
 
+def border_points(template, rng, count):
+    """Points on a star cage's cone borders: along vertex rays, on the planes of edges, at the origin."""
+    units = template.vertices / np.linalg.norm(template.vertices, axis=1, keepdims=True)
+    vertex = units[rng.integers(0, len(units), count)]
+    edge = template.faces[rng.integers(0, len(template.faces), count)][:, :2]
+    s = rng.uniform(0, 1, (count, 1))
+    on_edge = s * units[edge[:, 0]] + (1 - s) * units[edge[:, 1]]
+    return np.concatenate([vertex, on_edge, np.zeros((1, 3))]) * rng.uniform(0.2, 1.8, (2 * count + 1, 1))
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2), st.integers(0, 2**31))
+def test_enclose_matches_its_numpy_twin(level, seed):
+    # the compiled cone walk over the points near the cage gives the cage of the numpy pass over every point and
+    # face, also for points on cone borders, at the origin and in any order
+    from kpd.cage import _enclose, _enclose_reference
+
+    rng = np.random.default_rng(seed)
+    template = icosphere(level)
+    vertices = template.vertices * rng.uniform(0.3, 1.2, (len(template.vertices), 1))
+    points = np.concatenate([rng.normal(size=(300, 3)) * rng.uniform(0.05, 0.6), border_points(template, rng, 40)])
+    points = points[rng.permutation(len(points))]
+    fast = _enclose(points, vertices, template.faces)
+    np.testing.assert_allclose(fast, _enclose_reference(points, vertices, template.faces), rtol=0, atol=1e-12)
+    assert not points_outside(points, fast, template.faces).any()
+
+
+def test_enclose_raises_the_same_cage_for_a_chair_in_any_order():
+    from kpd.cage import _enclose_reference
+
+    points = chair_points(20000, seed=4)
+    cage = fit_cage(points, distance=0.1)
+    enclosed = fit_cage(points, template=cage, iterations=0, enclose=True)
+    assert (enclosed.vertices != cage.vertices).any()  # something to raise
+    np.testing.assert_allclose(enclosed.vertices, _enclose_reference(points, *cage), rtol=0, atol=1e-12)
+    shuffled = points[np.random.default_rng(0).permutation(len(points))]
+    np.testing.assert_allclose(fit_cage(shuffled, template=cage, iterations=0, enclose=True).vertices,
+                               enclosed.vertices, rtol=0, atol=1e-12)
+
+
+def test_face_neighbours_share_the_edge_opposite_each_corner():
+    from kpd.cage import _face_neighbours
+
+    faces = icosphere(2).faces
+    neighbours = _face_neighbours(faces)
+    assert (neighbours >= 0).all()
+    for f in range(len(faces)):
+        for k in range(3):
+            edge = {faces[f, (k + 1) % 3], faces[f, (k + 2) % 3]}
+            g = neighbours[f, k]
+            assert g != f and edge <= set(faces[g].tolist())
+    open_faces = _face_neighbours(faces[:-1])  # the last face removed: its three neighbours lose one each
+    assert (open_faces == -1).sum() == 3
+
+
 def test_enclose_rejects_a_cage_that_is_not_star_shaped():
     v, f = icosphere(1)
     with pytest.raises(InputError, match="star-shaped"):

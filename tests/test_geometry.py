@@ -113,6 +113,45 @@ def test_sample_surface_is_seeded():
     assert not np.array_equal(a.points, sample_surface(v, t, 100, seed=4).points)
 
 
+def full_array_sample(vertices, triangles, n, seed):
+    """sample_surface as it was written first: every triangle's corners and cross product, then the draw."""
+    rng = np.random.default_rng(seed)
+    a, b, c = (vertices[triangles[:, i]] for i in range(3))  # (T, 3) each
+    cross = np.cross(b - a, c - a)
+    area2 = np.linalg.norm(cross, axis=1)
+    faces = rng.choice(len(triangles), size=n, p=area2 / area2.sum())
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    u, v = 1.0 - s, s * (1.0 - r2)
+    points = u[:, None] * a[faces] + v[:, None] * b[faces] + (1.0 - u - v)[:, None] * c[faces]
+    return points, cross[faces] / area2[faces, None], faces
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(3, 60), st.integers(1, 200), st.integers(-6, 6), st.integers(0, 2**31))
+def test_sample_surface_draws_what_the_full_arrays_drew(count, triangles, exponent, seed):
+    # the same points, normals and faces to the bit, though only the drawn triangles' corners are gathered now
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(count, 3)) * 10.0**exponent + rng.normal(size=3)
+    t = rng.integers(0, count, (triangles, 3))
+    t[0] = [0, 1, 2]  # some area
+    sample = sample_surface(v, t, 64, seed=seed)
+    for got, want in zip(sample, full_array_sample(v, t, 64, seed)):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_double_areas_are_the_norms_of_the_cross_products_to_the_bit():
+    from kpd.geometry import _double_areas
+    from kpd.triangles import cross
+
+    rng = np.random.default_rng(5)
+    v = rng.normal(size=(3000, 3)) * np.exp(rng.normal(size=(3000, 1)) * 3)
+    t = rng.integers(0, 3000, (20000, 3))
+    t[:5] = [[0, 0, 1], [2, 2, 2], [0, 1, 2], [3, 4, 3], [5, 6, 7]]  # degenerate ones too
+    np.testing.assert_array_equal(_double_areas(v, t), np.linalg.norm(cross(v, t), axis=1))
+    assert _double_areas(v, t[:0]).shape == (0,)
+
+
 def test_sample_surface_errors():
     v, t = unit_cube()
     with pytest.raises(InputError, match="indices"):
