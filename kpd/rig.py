@@ -532,7 +532,7 @@ def straighten_basis(
     (V, K) float64, the corrected basis (``basis`` itself, not a copy, when the mesh has no sliver).
     """
     basis, vertices, triangles = _check_straighten(basis, vertices, triangles, thinness, reach)
-    if not len(triangles) or not _thin_triangles(vertices, triangles, thinness)[0].any():
+    if not len(triangles) or not _has_sliver(np.ascontiguousarray(vertices), triangles, float(thinness)):
         return basis  # no sliver (the cheap test first: merging below does not make new ones)
     system = _StraightenSystem(vertices, triangles, thinness, reach)
     if system.slivers == 0:
@@ -544,7 +544,7 @@ def straighten_basis(
 def _check_straighten(basis: Any, vertices: Any, triangles: Any, thinness: float, reach: float) -> tuple:
     basis = np.asarray(basis, dtype=np.float64)
     vertices = as_points(vertices, "vertices")
-    triangles = np.asarray(triangles, dtype=np.int64)
+    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
     if basis.ndim != 2 or len(basis) != len(vertices):
         raise InputError(f"basis must be (V, K) for {len(vertices)} vertices; got {basis.shape}")
     if triangles.ndim != 2 or triangles.shape[1] != 3 or (len(triangles) and (triangles.min() < 0 or
@@ -562,57 +562,39 @@ _MAX_SOLVE_THREADS = 2
 class _StraightenSystem:
     """The straightening's sparse system (:func:`straighten_basis`) on the merged points, split by connected piece.
 
-    The system couples points only through the mesh's edges and slivers, so it is block diagonal over the mesh's
-    connected pieces (a chair's legs, seat and back are often separate pieces), and a piece without a sliver gets
-    no correction at all. Each piece that has one is factorised on its own (small pieces a few at a time), in
-    symmetric mode with a minimum-degree ordering of AᵀA + A: the memory of the factor is that of the largest
-    piece, not of the mesh.
+    The system's pattern is the mesh's edge graph with its diagonal (a sliver's three corners are a triangle, so its
+    straightness couples only neighbours); compiled kernels find the edges and add every term into that pattern in
+    one pass over the triangles, keeping the slivers' part ``SᵀWS`` apart for the right-hand side ``-SᵀWS B``. The
+    system is block diagonal over the mesh's connected pieces (a chair's legs, seat and back are often separate
+    pieces), and a piece without a sliver gets no correction at all. Each piece that has one is factorised on its
+    own (small pieces a few at a time), in SuperLU's symmetric mode with a minimum-degree ordering of AᵀA + A: the
+    memory of the factor is that of the largest piece, not of the mesh.
     """
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray, thinness: float, reach: float) -> None:
+        import scipy.sparse as sparse
         from scipy.sparse.csgraph import connected_components
 
         points, inverse = _merge_coincident(vertices)
-        tri = inverse[triangles]
-        tri = tri[(tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 2] != tri[:, 0])]
         self.inverse = inverse
         n = self.n = len(points)
-        self.slivers = 0
-        if not len(tri):
+        tri = np.ascontiguousarray(inverse[triangles], dtype=np.int64)
+        indptr, indices = _graph_pattern(tri, n)  # (n + 1,), (n + 2E,): each row's neighbours and itself, sorted
+        values, sliver_values = np.zeros(len(indices)), np.zeros(len(indices))
+        corner_of = np.zeros(n, dtype=np.bool_)
+        self.slivers = _system_values(points, tri, indptr, indices, float(thinness), 1.0 / reach**2, _STRAIGHTEN_ENDS,
+                                      _STRAIGHTEN_CAP, values, sliver_values, corner_of)
+        del tri
+        if self.slivers == 0:
             return
-        thin, apex, longest, height, twice_area = _thin_triangles(points, tri, thinness)
-        sliver = np.flatnonzero(thin)
-        self.slivers = len(sliver)
-        if not len(sliver):
-            return
-        corner = tri[sliver, apex[sliver]]
-        start, end = tri[sliver, (apex[sliver] + 1) % 3], tri[sliver, (apex[sliver] + 2) % 3]
-        edge = points[end] - points[start]
-        s = np.clip(np.einsum("ij,ij->i", points[corner] - points[start], edge) / np.einsum("ij,ij->i", edge, edge),
-                    0, 1)
-        self.weight = (longest[sliver] / np.maximum(height[sliver], longest[sliver] / np.sqrt(_STRAIGHTEN_CAP))) ** 2
-        self.ends3 = np.stack([corner, start, end], axis=1)  # (S, 3)
-        self.coef3 = np.stack([np.ones(len(s)), s - 1.0, -s], axis=1)  # (S, 3): straightness = coef3 . rows
-        del thin, apex, longest, height, sliver, start, end, edge, s  # (T,) and (S,) arrays: memory at 5M triangles
+        self.matrix = sparse.csr_matrix((values, indices, indptr), shape=(n, n))
+        self.sliver_part = sparse.csr_matrix((sliver_values, indices, indptr), shape=(n, n))
         first = np.zeros(n, dtype=np.int64)
         first[inverse[::-1]] = np.arange(len(vertices))[::-1]
         self.first = first  # one original vertex per merged point
-        graph = _edge_graph(tri, n)  # upper triangle, each edge once
-        row = np.repeat(np.arange(n), np.diff(graph.indptr))
-        col = graph.indices
-        length = _edge_lengths(points, row, col)
-        length = np.maximum(length, 1e-6 * max(float(length.max()), 1e-300))
-        self.edges = np.stack([row, col], axis=1)  # (E, 2)
-        self.stiffness = 1.0 / length**2
-        area = np.zeros(n)
-        for i in range(3):
-            area += np.bincount(tri[:, i], weights=twice_area / 6.0, minlength=n)
-        ends = np.ones(n, dtype=bool)
-        ends[corner] = False  # never a sliver's third corner: a leg's foot, a panel's corner, a run's end
-        self.anchor = (area / max(float(area.mean()), 1e-300) + 1e-6) * np.where(ends, _STRAIGHTEN_ENDS, 1.0) / reach**2
-        pieces, label = connected_components(graph, directed=False)
+        pieces, label = connected_components(self.matrix, directed=False)
         active = np.zeros(pieces, dtype=bool)
-        active[label[corner]] = True
+        active[label[corner_of]] = True
         # pieces with slivers, packed into batches of up to _SOLVE_BATCH points (a larger piece is a batch alone)
         sizes = np.bincount(label, minlength=pieces)
         batch_of_piece = np.full(pieces, -1)
@@ -624,8 +606,6 @@ class _StraightenSystem:
             filled += sizes[piece]
         self.batches = count + 1
         self.point_batch = batch_of_piece[label]  # (n,) -1 where nothing moves
-        self.edge_batch = self.point_batch[row]
-        self.sliver_batch = self.point_batch[corner]
 
     def solve(self, basis: np.ndarray) -> np.ndarray:
         """(n, K) float64: the correction of each merged point, 0 in pieces without slivers."""
@@ -633,111 +613,195 @@ class _StraightenSystem:
         from scipy.sparse.linalg import splu
 
         merged = np.ascontiguousarray(basis[self.first])  # (n, K): coincident vertices have the same basis rows
+        rhs_all = -(self.sliver_part @ merged)  # -Sᵀ W S B
         correction = np.zeros_like(merged)
-        rhs_all = np.zeros_like(merged)  # -Sᵀ W S B, sliver by sliver (no (S, K) arrays: S is 3.5M at 1.37M vertices)
-        _straightness_rhs(merged, self.ends3, self.coef3, self.weight, rhs_all)
-        order_points = np.argsort(self.point_batch, kind="stable")  # each batch's points in ascending order
-        order_edges = np.argsort(self.edge_batch, kind="stable")
-        order_slivers = np.argsort(self.sliver_batch, kind="stable")
-
-        def part(order: np.ndarray, labels: np.ndarray, b: int) -> np.ndarray:
-            ordered = labels[order]
-            return order[np.searchsorted(ordered, b):np.searchsorted(ordered, b, side="right")]
+        order = np.argsort(self.point_batch, kind="stable")  # each batch's points in ascending order
+        bounds = np.searchsorted(self.point_batch[order], np.arange(self.batches + 1))
+        local = np.full(self.n, -1, dtype=np.int64)
+        matrix = self.matrix
 
         def solve_batch(b: int) -> None:
-            members = part(order_points, self.point_batch, b)  # sorted: a point's local index is a search
-            edges, slivers = part(order_edges, self.edge_batch, b), part(order_slivers, self.sliver_batch, b)
-            m = len(members)
-            i, j = np.searchsorted(members, self.edges[edges, 0]), np.searchsorted(members, self.edges[edges, 1])
-            c = self.stiffness[edges]
-            q = np.searchsorted(members, self.ends3[slivers])  # (S', 3)
-            coef, w = self.coef3[slivers], self.weight[slivers]
-            block = w[:, None, None] * coef[:, :, None] * coef[:, None, :]  # (S', 3, 3)
-            rows = np.concatenate([np.arange(m), i, j, i, j, np.repeat(q, 3, axis=1).ravel()])
-            cols = np.concatenate([np.arange(m), i, j, j, i, np.tile(q, (1, 3)).ravel()])
-            vals = np.concatenate([self.anchor[members], c, c, -c, -c, block.ravel()])
-            system = sparse.csc_matrix((vals, (rows, cols)), shape=(m, m))
-            factor = splu(system, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                          options={"SymmetricMode": True})
+            members = order[bounds[b]:bounds[b + 1]]
+            local[members] = np.arange(len(members))  # batches hold whole pieces: no two write the same entry
+            ptr, idx, val = _submatrix(matrix.indptr, matrix.indices, matrix.data, members, local)
+            system = sparse.csc_matrix((val, idx, ptr), shape=(len(members),) * 2)  # symmetric: CSR rows = columns
+            factor = splu(system, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
             correction[members] = factor.solve(rhs_all[members])
 
-        # SuperLU lets go of the GIL: two batches at a time on two cores
+        # SuperLU lets go of the GIL: two batches at a time on two cores, the largest first
+        batches = sorted(range(self.batches), key=lambda b: bounds[b] - bounds[b + 1])
         threads = min(_MAX_SOLVE_THREADS, self.batches, os.cpu_count() or 1)
         if threads == 1:
-            for b in range(self.batches):
+            for b in batches:
                 solve_batch(b)
         else:
             with ThreadPoolExecutor(threads) as pool:
-                list(pool.map(solve_batch, range(self.batches)))
+                list(pool.map(solve_batch, batches))
         return correction
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _straightness_rhs(merged, ends, coef, weight, rhs):  # pragma: no cover - compiled
-    """``rhs -= Sᵀ W S merged``: per sliver, its straightness ``Σ_k coef_k merged[ends_k]`` (K,), weighted, spread
-    back onto its three points."""
-    k = merged.shape[1]
-    r = np.empty(k)
-    for s in range(ends.shape[0]):
-        a, b, c = ends[s, 0], ends[s, 1], ends[s, 2]
-        ca, cb, cc = coef[s, 0], coef[s, 1], coef[s, 2]
-        w = weight[s]
-        for j in range(k):
-            r[j] = w * (ca * merged[a, j] + cb * merged[b, j] + cc * merged[c, j])
-        for j in range(k):
-            rhs[a, j] -= ca * r[j]
-            rhs[b, j] -= cb * r[j]
-            rhs[c, j] -= cc * r[j]
-
-
 @numba.njit(cache=True, nogil=True)
-def _edge_lengths(points, row, col):  # pragma: no cover - compiled
-    """(E,) |points[row] - points[col]|."""
-    out = np.empty(len(row))
-    for e in range(len(row)):
-        a, b = row[e], col[e]
-        out[e] = np.sqrt((points[a, 0] - points[b, 0]) ** 2 + (points[a, 1] - points[b, 1]) ** 2
-                         + (points[a, 2] - points[b, 2]) ** 2)
-    return out
-
-
-def _edge_graph(tri: np.ndarray, n: int):
-    """(n, n) CSR upper-triangular adjacency of the triangles' edges (each undirected edge once)."""
-    import scipy.sparse as sparse
-
-    indptr, indices = _unique_edges(np.ascontiguousarray(tri, dtype=np.int64), n)
-    return sparse.csr_matrix((np.ones(len(indices), dtype=np.int8), indices, indptr), shape=(n, n))
-
-
-@numba.njit(cache=True, nogil=True)
-def _unique_edges(tri, n):  # pragma: no cover - compiled
-    """CSR (indptr (n + 1,), indices) of the edges (lo, hi), lo < hi, of triangles (T, 3), each once, sorted."""
-    count = np.zeros(n + 1, dtype=np.int64)
+def _graph_pattern(tri, n):  # pragma: no cover - compiled
+    """CSR (indptr (n + 1,), indices) of the symmetric pattern of the triangles' edges plus the diagonal, each
+    entry once, columns sorted; degenerate triangles (a repeated corner) add no edge."""
+    count = np.ones(n + 1, dtype=np.int64)  # the diagonal
+    count[0] = 0
     for t in range(tri.shape[0]):
-        for k in range(3):
-            a, b = tri[t, k], tri[t, (k + 1) % 3]
-            count[min(a, b) + 1] += 1
+        a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+        if a == b or b == c or c == a:
+            continue
+        count[a + 1] += 2
+        count[b + 1] += 2
+        count[c + 1] += 2
     for i in range(n):
         count[i + 1] += count[i]
     fill = count[:-1].copy()
     other = np.empty(count[n], dtype=np.int64)
+    for i in range(n):
+        other[fill[i]] = i
+        fill[i] += 1
     for t in range(tri.shape[0]):
-        for k in range(3):
-            a, b = tri[t, k], tri[t, (k + 1) % 3]
-            lo = min(a, b)
-            other[fill[lo]] = max(a, b)
-            fill[lo] += 1
+        a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+        if a == b or b == c or c == a:
+            continue
+        other[fill[a]] = b
+        other[fill[a] + 1] = c
+        fill[a] += 2
+        other[fill[b]] = c
+        other[fill[b] + 1] = a
+        fill[b] += 2
+        other[fill[c]] = a
+        other[fill[c] + 1] = b
+        fill[c] += 2
     indptr = np.zeros(n + 1, dtype=np.int64)
-    indices = np.empty(count[n], dtype=np.int64)
     size = 0
     for i in range(n):
-        row = np.sort(other[count[i]:count[i + 1]])
-        for j in range(len(row)):
-            if j == 0 or row[j] != row[j - 1]:
-                indices[size] = row[j]
+        lo, hi = count[i], count[i + 1]
+        for j in range(lo + 1, hi):  # insertion sort: rows are short
+            value = other[j]
+            k = j - 1
+            while k >= lo and other[k] > value:
+                other[k + 1] = other[k]
+                k -= 1
+            other[k + 1] = value
+        for j in range(lo, hi):
+            if j == lo or other[j] != other[j - 1]:
+                other[size] = other[j]  # size <= j: compacting in place
                 size += 1
         indptr[i + 1] = size
-    return indptr, indices[:size]
+    return indptr, other[:size].copy()
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _entry(indptr, indices, row, col):  # pragma: no cover - compiled
+    """Position of (row, col) in a CSR pattern with sorted columns (it is there)."""
+    lo, hi = indptr[row], indptr[row + 1] - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if indices[mid] < col:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _system_values(points, tri, indptr, indices, thinness, inverse_reach2, ends_weight, cap, values, sliver_values,
+                   corner_of):  # pragma: no cover - compiled
+    """Add the straightening's terms into the pattern: ``values`` gets the whole system (anchors, edge stiffness,
+    slivers), ``sliver_values`` the slivers' ``SᵀWS`` alone; ``corner_of`` marks each sliver's third corner. Returns
+    the number of slivers."""
+    n = points.shape[0]
+    area = np.zeros(n)
+    slivers = 0
+    root_cap = np.sqrt(cap)
+    for t in range(tri.shape[0]):
+        v = (tri[t, 0], tri[t, 1], tri[t, 2])
+        if v[0] == v[1] or v[1] == v[2] or v[2] == v[0]:
+            continue
+        a, b, c = v
+        l0 = np.sqrt((points[c, 0] - points[b, 0]) ** 2 + (points[c, 1] - points[b, 1]) ** 2
+                     + (points[c, 2] - points[b, 2]) ** 2)
+        l1 = np.sqrt((points[a, 0] - points[c, 0]) ** 2 + (points[a, 1] - points[c, 1]) ** 2
+                     + (points[a, 2] - points[c, 2]) ** 2)
+        l2 = np.sqrt((points[b, 0] - points[a, 0]) ** 2 + (points[b, 1] - points[a, 1]) ** 2
+                     + (points[b, 2] - points[a, 2]) ** 2)
+        k, longest = 0, l0
+        if l1 > longest:
+            k, longest = 1, l1
+        if l2 > longest:
+            k, longest = 2, l2
+        ux, uy, uz = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1], points[b, 2] - points[a, 2]
+        vx, vy, vz = points[c, 0] - points[a, 0], points[c, 1] - points[a, 1], points[c, 2] - points[a, 2]
+        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        twice_area = np.sqrt(nx * nx + ny * ny + nz * nz)
+        area[a] += twice_area / 6.0
+        area[b] += twice_area / 6.0
+        area[c] += twice_area / 6.0
+        height = twice_area / max(longest, 1e-300)
+        if not height < thinness * longest:
+            continue
+        slivers += 1
+        corner, start, end = v[k], v[(k + 1) % 3], v[(k + 2) % 3]
+        ex, ey, ez = points[end, 0] - points[start, 0], points[end, 1] - points[start, 1], points[end, 2] - points[start, 2]
+        dot = ((points[corner, 0] - points[start, 0]) * ex + (points[corner, 1] - points[start, 1]) * ey
+               + (points[corner, 2] - points[start, 2]) * ez)
+        s = min(max(dot / (ex * ex + ey * ey + ez * ez), 0.0), 1.0)
+        weight = (longest / max(height, longest / root_cap)) ** 2
+        ends = (corner, start, end)
+        coef = (1.0, s - 1.0, -s)
+        corner_of[corner] = True
+        for i in range(3):
+            for j in range(3):
+                at = _entry(indptr, indices, ends[i], ends[j])
+                term = weight * coef[i] * coef[j]
+                sliver_values[at] += term
+                values[at] += term
+    # the edges' stiffness 1 / l², lengths floored at 1e-6 of the longest
+    longest_edge = 0.0
+    for i in range(n):
+        for at in range(indptr[i], indptr[i + 1]):
+            j = indices[at]
+            if j > i:
+                length = np.sqrt((points[i, 0] - points[j, 0]) ** 2 + (points[i, 1] - points[j, 1]) ** 2
+                                 + (points[i, 2] - points[j, 2]) ** 2)
+                longest_edge = max(longest_edge, length)
+    floor = 1e-6 * max(longest_edge, 1e-300)
+    mean_area = 0.0
+    for i in range(n):
+        mean_area += area[i]
+    mean_area = max(mean_area / max(n, 1), 1e-300)
+    for i in range(n):
+        diagonal = (area[i] / mean_area + 1e-6) * (1.0 if corner_of[i] else ends_weight) * inverse_reach2
+        for at in range(indptr[i], indptr[i + 1]):
+            j = indices[at]
+            if j != i:
+                length = max(np.sqrt((points[i, 0] - points[j, 0]) ** 2 + (points[i, 1] - points[j, 1]) ** 2
+                                     + (points[i, 2] - points[j, 2]) ** 2), floor)
+                stiffness = 1.0 / (length * length)
+                values[at] -= stiffness
+                diagonal += stiffness
+        values[_entry(indptr, indices, i, i)] += diagonal
+    return slivers
+
+
+@numba.njit(cache=True, nogil=True)
+def _submatrix(indptr, indices, data, members, local):  # pragma: no cover - compiled
+    """CSR (indptr, indices, data) of the rows and columns ``members`` (sorted; closed under the pattern's
+    neighbours: whole connected pieces), renumbered by ``local``."""
+    m = len(members)
+    ptr = np.zeros(m + 1, dtype=np.int64)
+    for r in range(m):
+        ptr[r + 1] = ptr[r] + indptr[members[r] + 1] - indptr[members[r]]
+    idx = np.empty(ptr[m], dtype=np.int32)
+    val = np.empty(ptr[m])
+    for r in range(m):
+        at = ptr[r]
+        for e in range(indptr[members[r]], indptr[members[r] + 1]):
+            idx[at] = local[indices[e]]
+            val[at] = data[e]
+            at += 1
+    return ptr, idx, val
 
 
 def _straighten_basis_reference(basis: Any, vertices: Any, triangles: Any, *, thinness: float = STRAIGHTEN_THINNESS,
@@ -948,6 +1012,23 @@ def check_bind_memory(vertices: int, triangles: int, keypoints: int) -> None:
 
 def _size(count: int) -> str:
     return f"{count / 2**30:.1f} GiB" if count >= 2**30 else f"{count / 2**20:.0f} MiB"
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _has_sliver(points, tri, thinness):  # pragma: no cover - compiled
+    """Whether any triangle's height is below ``thinness`` times its longest edge (:func:`_thin_triangles`)."""
+    for t in range(tri.shape[0]):
+        a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+        l0 = (points[c, 0] - points[b, 0]) ** 2 + (points[c, 1] - points[b, 1]) ** 2 + (points[c, 2] - points[b, 2]) ** 2
+        l1 = (points[a, 0] - points[c, 0]) ** 2 + (points[a, 1] - points[c, 1]) ** 2 + (points[a, 2] - points[c, 2]) ** 2
+        l2 = (points[b, 0] - points[a, 0]) ** 2 + (points[b, 1] - points[a, 1]) ** 2 + (points[b, 2] - points[a, 2]) ** 2
+        longest = np.sqrt(max(l0, l1, l2))
+        ux, uy, uz = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1], points[b, 2] - points[a, 2]
+        vx, vy, vz = points[c, 0] - points[a, 0], points[c, 1] - points[a, 1], points[c, 2] - points[a, 2]
+        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        if np.sqrt(nx * nx + ny * ny + nz * nz) / max(longest, 1e-300) < thinness * longest:
+            return True
+    return False
 
 
 def _thin_triangles(points: np.ndarray, tri: np.ndarray, thinness: float) -> tuple[np.ndarray, ...]:
