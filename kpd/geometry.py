@@ -86,7 +86,8 @@ class Normalizer:
         points = as_points(points)
         lo, hi = points.min(axis=0), points.max(axis=0)
         center = (lo + hi) / 2.0
-        scale = float(np.abs(points - center).max())
+        # max |p - center| over the points, as rounded: p - center rounds monotonically, so the extremes decide it
+        scale = float(np.maximum(np.abs(lo - center), np.abs(hi - center)).max())
         if not scale > 0.0:
             raise InputError(f"cannot normalise a shape with zero extent (all {len(points)} points coincide)")
         self.center_ = center

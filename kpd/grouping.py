@@ -10,9 +10,12 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 __all__ = ["first_occurrence_groups", "merge_coincident", "Groups"]
+
+_KEY_LIMIT = 2**63 - 1  # the largest int64: rank keys of more distinct combinations fall back to a lexicographic sort
 
 
 class Groups(NamedTuple):
@@ -59,6 +62,10 @@ def first_occurrence_groups(keys: np.ndarray) -> Groups:
 def merge_coincident(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distinct positions in lexicographic order and, per vertex, the index of its position.
 
+    The rows are sorted by x alone; only the rows whose x another row shares (few in a scan, most in a CAD mesh)
+    are then sorted by all three coordinates, through their ranks on each axis in one integer key. The same result
+    as a lexicographic sort of every row (:func:`_merge_coincident_reference`) for a fraction of its time.
+
     Parameters
     ----------
     vertices : (V, 3) float64, finite
@@ -68,6 +75,81 @@ def merge_coincident(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     points : (n, 3) float64, the distinct positions (a zero is written as ``0.0``)
     inverse : (V,) int64, ``points[inverse]`` equals ``vertices`` as numbers
     """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    x, y, z = (vertices[:, axis] + 0.0 for axis in range(3))  # (V,) each, contiguous; -0.0 + 0.0 is 0.0
+    order = np.argsort(x)  # (V,)
+    tied = _tied(x, order)  # (P,) the places in that order whose x is not the only one
+    if len(tied):
+        rows = order[tied]
+        xs = x[rows]  # ascending
+        x_rank = np.concatenate([[0], np.cumsum(xs[1:] != xs[:-1])])
+        order[tied] = rows[_by_ranks(x_rank, y[rows], z[rows])]
+    points = np.empty((len(vertices), 3))
+    inverse = np.empty(len(vertices), dtype=np.int64)
+    groups = _group_sorted(order, x, y, z, points, inverse)
+    return (points if groups == len(points) else points[:groups].copy()), inverse
+
+
+def _by_ranks(x_rank: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """(n,) the order of rows by (x, y, z), given x's dense ranks: the ranks of y and z joined to them in one
+    integer key, sorted once."""
+    key = x_rank.astype(np.int64)  # (n,)
+    distinct = int(key[-1]) + 1 if len(key) else 1
+    rank = np.empty(len(key), dtype=np.int64)
+    for column in (y, z):
+        values = _dense_ranks(column, np.argsort(column), rank)
+        distinct *= values
+        if distinct > _KEY_LIMIT:  # more distinct values than one key holds
+            return np.lexsort((z, y, x_rank))
+        key *= values
+        key += rank
+    return np.argsort(key)
+
+
+@numba.njit(cache=True, nogil=True)
+def _tied(values, order):  # pragma: no cover - compiled
+    """(P,) int64: the places ``i`` in the sorting ``order`` whose value another place shares."""
+    out = np.empty(len(order), dtype=np.int64)
+    count = 0
+    for i in range(len(order)):
+        value = values[order[i]]
+        if (i > 0 and values[order[i - 1]] == value) or (i + 1 < len(order) and values[order[i + 1]] == value):
+            out[count] = i
+            count += 1
+    return out[:count]
+
+
+@numba.njit(cache=True, nogil=True)
+def _dense_ranks(values, order, out):  # pragma: no cover - compiled
+    """``out[i]``: the number of distinct values below ``values[i]``, given the sorting ``order``; returns how many
+    distinct values there are."""
+    rank = -1
+    last = 0.0
+    for i in range(len(order)):
+        value = values[order[i]]
+        if i == 0 or value != last:
+            rank += 1
+            last = value
+        out[order[i]] = rank
+    return rank + 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _group_sorted(order, x, y, z, points, inverse):  # pragma: no cover - compiled
+    """Rows in lexicographic ``order`` grouped by position: each group's position written to ``points``, each row's
+    group to ``inverse``; returns the number of groups."""
+    group = -1
+    for i in range(len(order)):
+        row = order[i]
+        if group < 0 or x[row] != points[group, 0] or y[row] != points[group, 1] or z[row] != points[group, 2]:
+            group += 1
+            points[group, 0], points[group, 1], points[group, 2] = x[row], y[row], z[row]
+        inverse[row] = group
+    return group + 1
+
+
+def _merge_coincident_reference(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`merge_coincident` by a lexicographic sort of the rows (the slow twin tests compare with)."""
     vertices = np.asarray(vertices, dtype=np.float64) + 0.0
     order = np.lexsort(vertices.T[::-1])
     ordered = vertices[order]

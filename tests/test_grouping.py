@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from kpd.grouping import first_occurrence_groups, merge_coincident
+from kpd.grouping import _merge_coincident_reference, first_occurrence_groups, merge_coincident
 
 small = st.sampled_from([-1.5, -0.0, 0.0, 0.25, 2.0])
 
@@ -38,6 +38,37 @@ def test_groupers_agree_and_reproduce_the_rows(rows):
     # the same partition: two rows share a group in one exactly when they do in the other
     assert np.array_equal(index[:, None] == index[None, :], inverse[:, None] == inverse[None, :])
     assert (np.diff(np.lexsort(points.T[::-1])) > 0).all()  # distinct positions in lexicographic order
+
+
+def rows_with_ties(draw_count, seed, levels):
+    """(n, 3) rows whose coordinates take ``levels`` values per axis (many ties when few), zeros of both signs."""
+    rng = np.random.default_rng(seed)
+    values = np.concatenate([[0.0, -0.0], rng.normal(size=max(levels, 1))])
+    return values[rng.integers(0, len(values), (draw_count, 3))]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 400), st.integers(0, 2**31), st.sampled_from([1, 3, 20, 1000]))
+def test_merge_coincident_matches_its_lexicographic_twin(count, seed, levels):
+    # all ties on x (a CAD mesh), a few (a scan), rows repeated, -0.0: the same points and inverse to the bit
+    rows = rows_with_ties(count, seed, levels)
+    rows = np.concatenate([rows, rows[: count // 3]])
+    points, inverse = merge_coincident(rows)
+    want_points, want_inverse = _merge_coincident_reference(rows)
+    np.testing.assert_array_equal(points, want_points)
+    np.testing.assert_array_equal(inverse, want_inverse)
+    assert not np.signbit(points[points == 0]).any() and points.flags.c_contiguous  # zeros as 0.0
+
+
+def test_merge_coincident_sorts_rows_when_ranks_do_not_fit_one_key(monkeypatch):
+    import kpd.grouping as grouping
+
+    rows = rows_with_ties(500, 1, 7)
+    monkeypatch.setattr(grouping, "_KEY_LIMIT", 10)  # as for billions of distinct coordinates
+    points, inverse = merge_coincident(rows)
+    want_points, want_inverse = _merge_coincident_reference(rows)
+    np.testing.assert_array_equal(points, want_points)
+    np.testing.assert_array_equal(inverse, want_inverse)
 
 
 def test_every_grouper_in_kpd_agrees_on_signed_zeros():
