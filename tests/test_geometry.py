@@ -61,6 +61,7 @@ def test_normalizer_round_trip_and_box(points, s, t):
     if np.ptp(points, axis=0).max() < 1e-6:
         return
     norm = Normalizer().fit(points)
+    assert norm.scale_ == np.abs(points - norm.center_).max()  # the largest offset, as rounded, to the bit
     y = norm.apply(points)
     assert np.abs(y).max() == pytest.approx(1.0)
     np.testing.assert_allclose((y.max(0) + y.min(0)) / 2, 0, atol=1e-9)
