@@ -305,25 +305,28 @@ class Model:
         check_bind_memory(len(mesh.vertices), len(mesh.triangles), self.num_keypoints)  # before any work
         prediction = prediction if prediction is not None else self.predict(mesh, seed=seed)
         # the authors' rule on the sampled points, as in training; then, beyond it, push faces out until every mesh
-        # vertex is inside (only the vertices are deformed through MVC)
-        # every vertex as it is: a position stored several times is enclosed alike (and merging them costs a sort)
-        vertices = prediction.normalizer.apply(mesh.vertices)
-        cage = fit_cage(prediction.points, template=self._cage, **self._cage_fit)
-        if enclose:
-            cage = fit_cage(vertices, template=cage, iterations=0, enclose=True)
+        # vertex is inside (only the vertices are deformed through MVC; a position stored several times is enclosed
+        # alike, so they are not merged first)
+        vertices = prediction.normalizer.apply(mesh.vertices) if enclose else None  # (V, 3)
+        cage = self._fitted_cage(prediction.points, vertices, self._cage_fit)
         influence = prediction.influence
         if self._rig_fit:  # a tighter cage for editing, with the learned motion transferred onto it
-            rig_cage = fit_cage(prediction.points, template=self._cage, **{**self._cage_fit, **self._rig_fit})
-            if enclose:
-                rig_cage = fit_cage(vertices, template=rig_cage, iterations=0, enclose=True)
+            rig_cage = self._fitted_cage(prediction.points, vertices, {**self._cage_fit, **self._rig_fit})
+            del vertices  # the binding normalises the mesh itself
             support = min(self.num_cage_vertices, int(round(self._transfer.get("support", TRANSFER_SUPPORT) * self.m)))
             influence = transfer_influence(influence, prediction.keypoints, prediction.points, cage, rig_cage,
                                            self.m, sigma=self._transfer.get("sigma", TRANSFER_SIGMA),
                                            ridge=self._transfer.get("ridge", TRANSFER_RIDGE), support=support)
             return Rig.bind(mesh, prediction.keypoints, influence, normalizer=prediction.normalizer,
                             cage=rig_cage, m=support, straighten=straighten)
+        del vertices
         return Rig.bind(mesh, prediction.keypoints, influence, normalizer=prediction.normalizer,
                         cage=cage, m=self.m, straighten=straighten)
+
+    def _fitted_cage(self, points: np.ndarray, vertices: np.ndarray | None, fit: dict) -> Cage:
+        """The template shrunk onto the sampled points (N, 3), then grown to enclose the vertices (V, 3) if given."""
+        cage = fit_cage(points, template=self._cage, **fit)
+        return cage if vertices is None else fit_cage(vertices, template=cage, iterations=0, enclose=True)
 
     @property
     def rig_settings(self) -> dict:
