@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
 def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray], check=None):
     """The deformed mesh of ``kpd deform MODEL SHAPE``: rig the mesh, move keypoints (through the prior if asked).
     ``check(mesh)`` runs on the input mesh before the work (the output's companion files)."""
-    from kpd.commands.keypoints import load_model, scan_frame, warn_frame
+    from kpd.commands.keypoints import load_model, rig_checked, scan_frame
     from kpd.io import read_mesh
 
     model = load_model(args)
@@ -116,10 +116,10 @@ def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray], ch
         scan = scan_frame(args, model, mesh)
         moves = {i: scan.vector_to_aligned(d) for i, d in moves.items()}
         work = mesh.with_vertices(scan.to_aligned(mesh.vertices))
+        rig = model.rig(work, seed=args.seed)
     else:
-        warn_frame(model, mesh, args.seed, args.shape)
         work = mesh
-    rig = model.rig(work, seed=args.seed)
+        rig = rig_checked(model, mesh, args.seed, args.shape)
     targets = rig.moved(moves)
     if args.prior and moves:
         targets = model.sync(rig, {i: targets[i] for i in moves})

@@ -52,13 +52,52 @@ def check_scan_arguments(args: argparse.Namespace) -> None:
         parse_axis(args.up, "--up")
 
 
-def warn_frame(model, shape, seed: int, name: str) -> None:
+def warn_frame(model, shape, seed: int, name: str, *, prediction=None) -> None:
     """Without --scan: one warning line if the shape sits turned in the model's frame or is probably not of the
-    category (:func:`kpd.frame.frame_warnings`)."""
+    category (:func:`kpd.frame.frame_warnings`). ``prediction``: the model's :meth:`~kpd.runtime.Model.predict` of
+    ``shape`` with ``seed``, whose surface sample the check then uses instead of drawing the same points again (a
+    scan-sized mesh takes a second or more to sample)."""
+    for line in frame_lines(model, shape, seed, name, prediction=prediction):
+        print(f"warning: {line}", file=sys.stderr)
+
+
+def frame_lines(model, shape, seed: int, name: str, *, prediction=None) -> list[str]:
+    """The lines :func:`warn_frame` prints (for a command that checks the frame while it binds, and prints after)."""
     from kpd.frame import frame_warnings
 
-    for line in frame_warnings(model, shape, seed=seed, name=name):
-        print(f"warning: {line}", file=sys.stderr)
+    return frame_warnings(model if prediction is None else _Sampled(model, prediction), shape, seed=seed, name=name)
+
+
+def rig_checked(model, mesh, seed: int, name: str):
+    """``model.rig(mesh)`` with the frame check of :func:`warn_frame`, both from one surface sample: the check runs
+    on a worker thread while the mesh is bound (it needs the networks and one core, the binding mostly the other) and
+    its warnings are printed when both are done. A mesh too large for the memory ends before any work."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from kpd.rig import check_bind_memory
+
+    check_bind_memory(len(mesh.vertices), len(mesh.triangles), model.num_keypoints)
+    prediction = model.predict(mesh, seed=seed)
+    with ThreadPoolExecutor(1, thread_name_prefix="kpd-frame-check") as pool:
+        lines = pool.submit(frame_lines, model, mesh, seed, name, prediction=prediction)
+        rig = model.rig(mesh, seed=seed, prediction=prediction)
+        for line in lines.result():
+            print(f"warning: {line}", file=sys.stderr)
+    return rig
+
+
+class _Sampled:
+    """``model`` with the surface sample of one shape already drawn: :meth:`sample` returns the normaliser and the
+    points of its prediction (what ``model.sample`` of that shape and seed returns), anything else is the model's."""
+
+    def __init__(self, model, prediction) -> None:
+        self._model, self._prediction = model, prediction
+
+    def sample(self, shape, *, seed: int = 0):
+        return self._prediction.normalizer, self._prediction.points
+
+    def __getattr__(self, name: str):
+        return getattr(self._model, name)
 
 
 def scan_frame(args: argparse.Namespace, model, shape, **kwargs):

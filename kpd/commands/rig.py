@@ -45,7 +45,7 @@ def morph_rig(rig: Any, prior: Any, meta: dict):
 
 
 def run(args: argparse.Namespace) -> int:
-    from kpd.commands.keypoints import load_model, scan_frame, warn_frame
+    from kpd.commands.keypoints import load_model, rig_checked, scan_frame
     from kpd.io import Outputs, read_mesh
     from kpd.morph import MorphRig, up_rotation, write_gltf
 
@@ -71,8 +71,7 @@ def run(args: argparse.Namespace) -> int:
             rig = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
             frame = scan.result.transform
         else:
-            warn_frame(model, mesh, args.seed, args.shape)
-            rig = model.rig(mesh, seed=args.seed)
+            rig = rig_checked(model, mesh, args.seed, args.shape)
         if ext == ".npz":
             rig.save(outputs.stage(out))
             what = f"{rig.num_keypoints} keypoints"

@@ -138,10 +138,9 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False) -> Source
         aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
         rig = ScanRig(aligned, mesh, scan)
         return Source(rig, model.prior, Path(args.shape).name, scan_up(scan, model.up) or args.up)
-    from kpd.commands.keypoints import warn_frame  # kpd view and kpd render: the frame and category check
+    from kpd.commands.keypoints import rig_checked  # kpd view and kpd render: the frame and category check
 
-    warn_frame(model, mesh, args.seed, args.shape)
-    rig = model.rig(mesh, seed=args.seed)
+    rig = rig_checked(model, mesh, args.seed, args.shape)
     return Source(rig, model.prior, Path(args.shape).name, file_up(args.shape))
 
 
