@@ -82,8 +82,11 @@ def merge_coincident(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if len(tied):
         rows = order[tied]
         xs = x[rows]  # ascending
-        x_rank = np.concatenate([[0], np.cumsum(xs[1:] != xs[:-1])])
+        x_rank = np.zeros(len(rows), dtype=np.int64)
+        np.cumsum(xs[1:] != xs[:-1], out=x_rank[1:])
+        del xs
         order[tied] = rows[_by_ranks(x_rank, y[rows], z[rows])]
+        del rows, tied
     points = np.empty((len(vertices), 3))
     inverse = np.empty(len(vertices), dtype=np.int64)
     groups = _group_sorted(order, x, y, z, points, inverse)

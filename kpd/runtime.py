@@ -228,7 +228,7 @@ class Model:
         if isinstance(shape, Mesh) and len(shape.triangles):
             used = np.zeros(len(shape.vertices), dtype=bool)
             used[shape.triangles] = True  # the vertices of some triangle (as np.unique, without sorting 3T indices)
-            normalizer = Normalizer().fit(shape.vertices[used])
+            normalizer = Normalizer().fit(shape.vertices if used.all() else shape.vertices[used])
             points = sample_surface(normalizer.apply(shape.vertices), shape.triangles, n, seed=seed,
                                     outer=self.outer_surface).points
             return normalizer, points
