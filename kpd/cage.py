@@ -206,12 +206,13 @@ def fit_cage(
 
     vertices = vertices.copy()
     tree = cKDTree(points) if iterations else None
+    moving = np.arange(len(vertices))  # a vertex that stops stays where it is, so it is not looked at again
     for _ in range(int(iterations)):
-        nearest, _ = tree.query(vertices, k=1)
-        move = nearest > distance  # (C,)
-        if not move.any():
+        nearest, _ = tree.query(vertices[moving], k=1)
+        moving = moving[nearest > distance]
+        if not len(moving):
             break
-        vertices[move] += step * -vertices[move]
+        vertices[moving] += step * -vertices[moving]
     if enclose:
         vertices = _enclose(points, vertices, faces)
     return Cage(vertices, faces.copy())
