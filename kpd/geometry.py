@@ -7,11 +7,11 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
-import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
 from kpd.errors import InputError, NotFittedError
+from kpd.grouping import compiled_on_first_call
 from kpd.triangles import cross as triangle_cross
 from kpd.triangles import unit_normals
 
@@ -178,7 +178,7 @@ def _draw(vertices: np.ndarray, triangles: np.ndarray, area2: np.ndarray, n: int
     return SurfaceSample(points, normals, faces)
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled_on_first_call
 def _double_areas_kernel(vertices, triangles, out):  # pragma: no cover - compiled
     for t in range(len(triangles)):
         i, j, k = triangles[t, 0], triangles[t, 1], triangles[t, 2]

@@ -88,3 +88,13 @@ def test_every_grouper_in_kpd_agrees_on_signed_zeros():
     mesh = Mesh(vertices=vertices, triangles=triangles, vertex_normals=np.tile([0.0, 0, 1], (6, 1)))
     moved = mesh.with_vertices(vertices * 2)
     np.testing.assert_array_equal(moved.vertex_normals[0], moved.vertex_normals[1])  # one position, one normal
+
+
+def test_importing_the_grouping_and_geometry_does_not_import_numba():
+    # every mesh reader imports these; their kernels are compiled on the first call instead
+    import subprocess
+    import sys
+
+    code = ("import sys\nimport kpd.grouping, kpd.geometry\nassert 'numba' not in sys.modules\n"
+            "import numpy as np\nkpd.grouping.merge_coincident(np.zeros((2, 3)))\nassert 'numba' in sys.modules\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
