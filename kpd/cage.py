@@ -11,12 +11,12 @@ from __future__ import annotations
 import logging
 from typing import Any, NamedTuple
 
-import numba
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from kpd.errors import InputError, KpdError
 from kpd.geometry import as_points
+from kpd.grouping import compiled_on_first_call
 
 __all__ = [
     "Cage",
@@ -248,16 +248,13 @@ def _enclose(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.
     radii = np.linalg.norm(vertices, axis=1)
     units = vertices / radii[:, None]
     limit = 1.0 - _ENCLOSE_MARGIN
-    face_of = np.empty(len(points), dtype=np.int64)
     # a little below the limit, so that the rounds below decide, as numpy rounds the fractions, every point near it
-    near = np.empty(len(points), dtype=np.bool_)
-    _locate_cones(points, inv, _face_neighbours(faces), faces, radii, limit * (1.0 - 1e-9), face_of, near)
-    candidates = np.flatnonzero(near)
-    face_of = face_of[candidates]
-    coords = np.empty((len(candidates), 3))
-    _cone_coords(points[candidates], inv, face_of, coords)
+    face_of = np.empty(len(points), dtype=np.int64)  # pages the kernel does not write are never touched
+    coords = np.empty((len(points), 3))
+    count = _near_points(points, inv, _face_neighbours(faces), faces, radii, limit * (1.0 - 1e-9), face_of, coords)
+    face_of, coords = face_of[:count].copy(), coords[:count].copy()
     corner = faces[face_of]  # (n, 3)
-    active = np.arange(len(candidates))  # the points still over the margin, first ones first
+    active = np.arange(count)  # the points still over the margin, first ones first
     count = len(active)
     for _ in range(_ENCLOSE_ROUNDS):
         lifted = np.zeros(len(radii))
@@ -346,64 +343,58 @@ def _face_neighbours(faces: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(neighbour.reshape(3, f).T)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _lam(inv, f, x, y, z):  # pragma: no cover - compiled
-    """The coordinates of (x, y, z) in face f's unit directions, as ``inv[f] @ p``."""
-    return (inv[f, 0, 0] * x + inv[f, 0, 1] * y + inv[f, 0, 2] * z,
-            inv[f, 1, 0] * x + inv[f, 1, 1] * y + inv[f, 1, 2] * z,
-            inv[f, 2, 0] * x + inv[f, 2, 1] * y + inv[f, 2, 2] * z)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _clean(l0, l1, l2):  # pragma: no cover - compiled
-    """Coordinates below 1e-12 of their absolute sum set to zero (rounding at cone borders), as the numpy twin."""
-    small = 1e-12 * (abs(l0) + abs(l1) + abs(l2))
-    return (l0 if l0 >= small else 0.0), (l1 if l1 >= small else 0.0), (l2 if l2 >= small else 0.0)
-
-
-@numba.njit(cache=True, nogil=True)
-def _locate_cones(points, inv, neighbours, faces, radii, threshold, face_of, near):  # pragma: no cover - compiled
-    """Each point's cone and whether its radial fraction for the cage as it is exceeds ``threshold``.
+@compiled_on_first_call
+def _near_points(points, inv, neighbours, faces, radii, threshold, face_of, coords):  # pragma: no cover - compiled
+    """The points whose radial fraction for the cage as it is exceeds ``threshold``: their cones written to
+    ``face_of`` and their coordinates in that cone's unit directions to ``coords``, in order; returns how many.
 
     From the cone of the point before, walk to the face across the edge opposite the most negative coordinate until
     all three are clearly positive (above 1e-9 of their sum: a cone's interior, where no other face can hold the
     point); a point within that of a border, or whose walk goes round, takes the face whose smallest coordinate is
-    largest over all faces, as the numpy twin does for every point.
+    largest over all faces, as the numpy twin does for every point. Coordinates below 1e-12 of their absolute sum
+    are then set to zero, as there.
     """
     n_faces = len(inv)
     f = 0
+    count = 0
     for p in range(len(points)):
         x, y, z = points[p, 0], points[p, 1], points[p, 2]
-        found = False
-        for _ in range(n_faces):
-            l0, l1, l2 = _lam(inv, f, x, y, z)
+        g, walking, steps = f, True, 0
+        best, best_least, b0, b1, b2 = -1, -np.inf, 0.0, 0.0, 0.0
+        while True:
+            # the coordinates of the point in face g's unit directions: inv[g] @ p
+            l0 = inv[g, 0, 0] * x + inv[g, 0, 1] * y + inv[g, 0, 2] * z
+            l1 = inv[g, 1, 0] * x + inv[g, 1, 1] * y + inv[g, 1, 2] * z
+            l2 = inv[g, 2, 0] * x + inv[g, 2, 1] * y + inv[g, 2, 2] * z
             least = min(l0, l1, l2)
-            size = 1e-9 * (abs(l0) + abs(l1) + abs(l2))
-            if least > size:
-                found = True
-                break
-            if least >= -size:  # on or near a border (or at the origin): decided over all faces
-                break
-            k = 0 if l0 == least else (1 if l1 == least else 2)
-            step = neighbours[f, k]
-            if step < 0:
-                break
-            f = step
-        if not found:
-            best, best_least = 0, -np.inf
-            for g in range(n_faces):
-                l0, l1, l2 = _lam(inv, g, x, y, z)
-                least = min(l0, l1, l2)
+            if walking:
+                size = 1e-9 * (abs(l0) + abs(l1) + abs(l2))
+                if least > size:
+                    best, b0, b1, b2 = g, l0, l1, l2
+                    break
+                step = neighbours[g, 0 if l0 == least else (1 if l1 == least else 2)]
+                steps += 1
+                if least >= -size or step < 0 or steps > n_faces:  # a border, the origin, or going round
+                    g, walking = 0, False
+                else:
+                    g = step
+            else:
                 if least > best_least:
-                    best, best_least = g, least
-            f = best
-            l0, l1, l2 = _lam(inv, f, x, y, z)
-        face_of[p] = f
-        l0, l1, l2 = _clean(l0, l1, l2)
-        near[p] = l0 / radii[faces[f, 0]] + l1 / radii[faces[f, 1]] + l2 / radii[faces[f, 2]] > threshold
+                    best, best_least, b0, b1, b2 = g, least, l0, l1, l2
+                g += 1
+                if g == n_faces:
+                    break
+        f = best
+        small = 1e-12 * (abs(b0) + abs(b1) + abs(b2))
+        b0, b1, b2 = (b0 if b0 >= small else 0.0), (b1 if b1 >= small else 0.0), (b2 if b2 >= small else 0.0)
+        if b0 / radii[faces[f, 0]] + b1 / radii[faces[f, 1]] + b2 / radii[faces[f, 2]] > threshold:
+            face_of[count] = f
+            coords[count, 0], coords[count, 1], coords[count, 2] = b0, b1, b2
+            count += 1
+    return count
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled_on_first_call
 def _lift_round(coords, corner, radii, limit, active, count, lifted):  # pragma: no cover - compiled
     """One round of :func:`_raise_radii` over ``active[:count]``: the points over the margin are moved to the front
     of ``active`` (a point under it now stays under, the radii only grow) and each raises ``lifted`` at the
@@ -452,14 +443,6 @@ def _lift_round(coords, corner, radii, limit, active, count, lifted):  # pragma:
             if coords[p, i] > 0 and level > lifted[corner[p, i]]:
                 lifted[corner[p, i]] = level
     return over
-
-
-@numba.njit(cache=True, nogil=True)
-def _cone_coords(points, inv, face_of, out):  # pragma: no cover - compiled
-    """(n, 3) the points' cleaned coordinates in their faces' unit directions."""
-    for p in range(len(points)):
-        l0, l1, l2 = _lam(inv, face_of[p], points[p, 0], points[p, 1], points[p, 2])
-        out[p, 0], out[p, 1], out[p, 2] = _clean(l0, l1, l2)
 
 
 def _raise_level(coords: np.ndarray, radii: np.ndarray, limit: float) -> np.ndarray:

@@ -90,11 +90,12 @@ def test_every_grouper_in_kpd_agrees_on_signed_zeros():
     np.testing.assert_array_equal(moved.vertex_normals[0], moved.vertex_normals[1])  # one position, one normal
 
 
-def test_importing_the_grouping_and_geometry_does_not_import_numba():
-    # every mesh reader imports these; their kernels are compiled on the first call instead
+def test_importing_modules_with_kernels_compiled_on_first_call_does_not_import_numba():
+    # every mesh reader imports kpd.grouping and kpd.geometry, every bundle kpd.cage: their kernels are compiled
+    # (or loaded from numba's cache) on the first call instead
     import subprocess
     import sys
 
-    code = ("import sys\nimport kpd.grouping, kpd.geometry\nassert 'numba' not in sys.modules\n"
+    code = ("import sys\nimport kpd.grouping, kpd.geometry, kpd.cage\nassert 'numba' not in sys.modules\n"
             "import numpy as np\nkpd.grouping.merge_coincident(np.zeros((2, 3)))\nassert 'numba' in sys.modules\n")
     subprocess.run([sys.executable, "-c", code], check=True)
