@@ -264,30 +264,58 @@ def mesh_pieces(triangles: Any) -> np.ndarray:
     -------
     labels : (T,) int64 in [0, number of pieces), pieces numbered by their first triangle.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    triangles = np.asarray(triangles, dtype=np.int64)
+    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
     if triangles.ndim != 2 or triangles.shape[1] != 3:
         raise InputError(f"triangles must have shape (T, 3); got {triangles.shape}")
     if len(triangles) == 0:
         return np.zeros(0, dtype=np.int64)
-    t = len(triangles)
-    nodes = t + int(triangles.max()) + 1  # triangles, then vertices
-    rows = np.repeat(np.arange(t), 3)
-    graph = coo_matrix((np.ones(3 * t), (rows, t + triangles.ravel())), shape=(nodes, nodes))
-    _, labels = connected_components(graph, directed=False)
-    labels = labels[:t]
-    _, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
-    order = np.argsort(np.argsort(first))  # renumber by first appearance
-    return order[inverse].astype(np.int64)
+    if triangles.min() < 0:
+        raise InputError("triangles must index vertices (>= 0)")
+    return _triangle_pieces(triangles, int(triangles.max()) + 1)
+
+
+@compiled_on_first_call
+def _triangle_pieces(triangles, count):  # pragma: no cover - compiled
+    """Union-find over the vertices that the triangles join; each triangle labelled by its piece, numbered in order
+    of the pieces' first triangles."""
+    parent = np.arange(count)
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]  # path halving
+            i = parent[i]
+        return i
+
+    for t in range(triangles.shape[0]):
+        a = root(triangles[t, 0])
+        for k in range(1, 3):
+            b = root(triangles[t, k])
+            if a != b:
+                if b < a:
+                    a, b = b, a
+                parent[b] = a
+    number = np.full(count, -1, dtype=np.int64)
+    labels = np.empty(triangles.shape[0], dtype=np.int64)
+    pieces = 0
+    for t in range(triangles.shape[0]):
+        r = root(triangles[t, 0])
+        if number[r] < 0:
+            number[r] = pieces
+            pieces += 1
+        labels[t] = number[r]
+    return labels
 
 
 def _is_closed(triangles: np.ndarray) -> bool:
     """Every edge of the piece is shared by exactly two of its triangles (a watertight, edge-manifold surface)."""
-    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
-    return bool(len(triangles) >= 4 and (counts == 2).all())
+    if len(triangles) < 4:
+        return False
+    first = triangles.ravel()
+    second = triangles[:, [1, 2, 0]].ravel()
+    count = int(max(first.max(), second.max())) + 1
+    keys = np.sort(np.minimum(first, second) * count + np.maximum(first, second))  # each edge as one integer
+    runs = np.diff(np.flatnonzero(np.diff(keys, prepend=-1, append=-1)))  # how often each edge occurs
+    return bool((runs == 2).all())
 
 
 class _InteriorTest:
@@ -309,8 +337,10 @@ class _InteriorTest:
         pieces = np.unique(self.labels)
         if len(pieces) < 2:
             return
-        for label in pieces:
-            mask = self.labels == label
+        order = np.argsort(self.labels, kind="stable")  # each piece's triangles together: no pass per piece
+        bounds = np.searchsorted(self.labels[order], np.append(pieces, pieces[-1] + 1))
+        for at, label in enumerate(pieces):
+            mask = order[bounds[at]:bounds[at + 1]]
             tri = triangles[mask]
             if not _is_closed(tri):
                 continue
