@@ -208,13 +208,19 @@ class Rig:
         m = default_m(c, k) if m is None else int(m)
         masked = influence * influence_mask(keypoints, cage.vertices, m)
         check_bind_memory(len(vertices), len(mesh.triangles), k)
-        basis = coincident_mvc_basis(vertices, cage, masked.T)  # (V, K) float64
+        points, inverse = _merge_coincident(vertices)  # the basis is computed once per distinct position
+        basis = mvc_project(points, cage.vertices, cage.faces, masked.T)  # (n, K) float64
         straightened = False
-        if straighten:
-            corrected = straighten_basis(basis, vertices, mesh.triangles)
+        triangles = np.ascontiguousarray(mesh.triangles, dtype=np.int64)
+        if straighten and len(triangles) and _has_sliver(np.ascontiguousarray(vertices), triangles,
+                                                         STRAIGHTEN_THINNESS):
+            corrected = _straighten_merged(basis, points, inverse[triangles], STRAIGHTEN_THINNESS, STRAIGHTEN_REACH,
+                                           STRAIGHTEN_TOLERANCE)
             straightened = corrected is not basis  # no sliver: nothing changed
             basis = corrected
-        rig = cls(mesh, normalizer, keypoints, cage, masked, basis=_compact_basis(basis))
+        del points
+        basis = _compact_basis(basis)[inverse]  # (V, K)
+        rig = cls(mesh, normalizer, keypoints, cage, masked, basis=basis)
         rig._straightened = straightened
         return rig
 
@@ -549,11 +555,22 @@ def straighten_basis(
         raise InputError(f"the straightening's tolerance must be a number >= 0; got {tolerance!r}")
     if not len(triangles) or not _has_sliver(np.ascontiguousarray(vertices), triangles, float(thinness)):
         return basis  # no sliver (the cheap test first: merging below does not make new ones)
-    system = _StraightenSystem(vertices, triangles, thinness, reach)
+    points, inverse = _merge_coincident(vertices)
+    first = np.zeros(len(points), dtype=np.int64)
+    first[inverse[::-1]] = np.arange(len(vertices))[::-1]  # one vertex per merged point
+    merged = np.ascontiguousarray(basis[first])  # coincident vertices have the same basis rows
+    corrected = _straighten_merged(merged, points, inverse[triangles], thinness, reach, tolerance)
+    return basis if corrected is merged else corrected[inverse]
+
+
+def _straighten_merged(basis: np.ndarray, points: np.ndarray, triangles: np.ndarray, thinness: float, reach: float,
+                       tolerance: float) -> np.ndarray:
+    """:func:`straighten_basis` of the (n, K) basis of distinct ``points`` (n, 3), ``triangles`` indexing them;
+    ``basis`` itself when there is no sliver, else a corrected copy."""
+    system = _StraightenSystem(points, triangles, thinness, reach)
     if system.slivers == 0:
         return basis
-    correction = system.solve(basis, float(tolerance))  # (n, K) on the merged points
-    return basis + correction[system.inverse]
+    return basis + system.solve(basis, float(tolerance))
 
 
 def _check_straighten(basis: Any, vertices: Any, triangles: Any, thinness: float, reach: float) -> tuple:
@@ -592,15 +609,15 @@ class _StraightenSystem:
     mostly is taken whole.
     """
 
-    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, thinness: float, reach: float) -> None:
+    def __init__(self, points: np.ndarray, tri: np.ndarray, thinness: float, reach: float) -> None:
+        """``points`` (n, 3) distinct, ``tri`` (T, 3) int64 indexing them (repeated corners allowed: skipped)."""
         import scipy.sparse as sparse
         from scipy.sparse.csgraph import connected_components
 
-        points, inverse = _merge_coincident(vertices)
-        self.inverse = inverse
+        points = np.ascontiguousarray(points, dtype=np.float64)
         self.reach = float(reach)
         n = self.n = len(points)
-        tri = np.ascontiguousarray(inverse[triangles], dtype=np.int64)
+        tri = np.ascontiguousarray(tri, dtype=np.int64)
         indptr, indices = _graph_pattern(tri, n)  # (n + 1,), (n + 2E,): each row's neighbours and itself, sorted
         values, sliver_values = np.zeros(len(indices)), np.zeros(len(indices))
         corner_of = np.zeros(n, dtype=np.bool_)
@@ -614,22 +631,18 @@ class _StraightenSystem:
         self.ends, self.along, self.height = ends[:s].copy(), along[:s].copy(), height[:s].copy()  # per sliver
         del ends, along, height
         self.matrix = sparse.csr_matrix((values, indices, indptr), shape=(n, n))
-        self.sliver_part = sparse.csr_matrix((sliver_values, indices, indptr), shape=(n, n))
-        first = np.zeros(n, dtype=np.int64)
-        first[inverse[::-1]] = np.arange(len(vertices))[::-1]
-        self.first = first  # one original vertex per merged point
+        self.sliver_values = sliver_values
         self.pieces, self.label = connected_components(self.matrix, directed=False)
 
     def solve(self, basis: np.ndarray, tolerance: float) -> np.ndarray:
         """(n, K) float64: the correction of each merged point (0 where it is below ``tolerance``; ``tolerance`` 0:
         every connected piece with a sliver, exactly)."""
-        merged = np.ascontiguousarray(basis[self.first])  # (n, K): coincident vertices have the same basis rows
-        rhs_all = -(self.sliver_part @ merged)  # -Sᵀ W S B
+        merged = np.ascontiguousarray(basis)
         if tolerance <= 0:
             inside = np.zeros(self.pieces, dtype=bool)
             inside[self.label[self.ends[:, 0]]] = True
             correction = np.zeros_like(merged)
-            self._solve_region(inside[self.label], inside[self.label], rhs_all, correction)
+            self._solve_region(inside[self.label], inside[self.label], merged, correction)
             return correction
         seeds = np.flatnonzero(_sliver_seeds(merged, self.ends, self.along, self.height, float(tolerance),
                                              _FOLD_MOVE, self.n))
@@ -645,7 +658,7 @@ class _StraightenSystem:
             added = reached & ~inside
             inside |= reached
             del reached
-            rim = self._solve_region(inside, added, rhs_all, correction)
+            rim = self._solve_region(inside, added, merged, correction)
             # cut off too soon where the points just outside would move by more than the tolerance (one Jacobi step
             # from the region's correction): grow from there
             frontier = _beyond_rim(self.matrix.indptr, self.matrix.indices, self.matrix.data, rim, inside, correction,
@@ -655,7 +668,7 @@ class _StraightenSystem:
             rings *= 2
         return correction
 
-    def _solve_region(self, inside: np.ndarray, added: np.ndarray, rhs_all: np.ndarray,
+    def _solve_region(self, inside: np.ndarray, added: np.ndarray, basis: np.ndarray,
                       correction: np.ndarray) -> np.ndarray:
         """Solve, into ``correction`` (n, K), the connected parts of the region ``inside`` (n,) bool that hold an
         ``added`` (n,) point, with no correction outside the region; the other parts keep theirs. Returns the
@@ -693,7 +706,8 @@ class _StraightenSystem:
             ptr, idx, val = _submatrix(matrix.indptr, matrix.indices, matrix.data, members, local)
             system = sparse.csc_matrix((val, idx, ptr), shape=(len(members),) * 2)  # symmetric: CSR rows = columns
             factor = splu(system, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-            correction[members] = factor.solve(rhs_all[members])
+            rhs = _rows_times(matrix.indptr, matrix.indices, self.sliver_values, members, basis)  # -Sᵀ W S B
+            correction[members] = factor.solve(rhs)
 
         # SuperLU lets go of the GIL: two batches at a time on two cores, the largest first
         largest_first = sorted(range(batches), key=lambda b: bounds[b] - bounds[b + 1])
@@ -940,28 +954,45 @@ def _rings(indptr, indices, sources, rings):  # pragma: no cover - compiled
 @numba.njit(cache=True, nogil=True)
 def _beyond_rim(indptr, indices, data, rim, inside, correction, tolerance):  # pragma: no cover - compiled
     """The points outside the region next to its ``rim`` whose correction, one Jacobi step from the region's
-    (``-Σ_i A_ji D_i / A_jj``, the matrix symmetric), exceeds ``tolerance`` in some column."""
-    n, k = correction.shape
-    estimate = np.zeros((n, k))
-    touched = np.zeros(n, dtype=np.bool_)
+    (``-Σ_i A_ji D_i / A_jj``), exceeds ``tolerance`` in some column."""
+    k = correction.shape[1]
+    seen = np.zeros(len(inside), dtype=np.bool_)
+    estimate = np.empty(k)
+    out = []
     for i in rim:
         for e in range(indptr[i], indptr[i + 1]):
             j = indices[e]
-            if not inside[j]:
-                touched[j] = True
-                for c in range(k):
-                    estimate[j, c] -= data[e] * correction[i, c]
-    count = 0
-    out = np.empty(n, dtype=np.int64)
-    for j in range(n):
-        if touched[j]:
-            diagonal = data[_entry(indptr, indices, j, j)]
+            if inside[j] or seen[j]:
+                continue
+            seen[j] = True
+            estimate[:] = 0.0
+            diagonal = 1.0
+            for f in range(indptr[j], indptr[j + 1]):
+                col = indices[f]
+                if col == j:
+                    diagonal = data[f]
+                elif inside[col]:
+                    for c in range(k):
+                        estimate[c] -= data[f] * correction[col, c]
             for c in range(k):
-                if abs(estimate[j, c]) > tolerance * diagonal:
-                    out[count] = j
-                    count += 1
+                if abs(estimate[c]) > tolerance * diagonal:
+                    out.append(j)
                     break
-    return out[:count]
+    return np.array(out, dtype=np.int64)
+
+
+@numba.njit(cache=True, nogil=True)
+def _rows_times(indptr, indices, data, rows, basis):  # pragma: no cover - compiled
+    """(len(rows), K): ``-(M @ basis)[rows]`` for the CSR matrix M (indptr, indices, data)."""
+    out = np.zeros((len(rows), basis.shape[1]))
+    for r in range(len(rows)):
+        for e in range(indptr[rows[r]], indptr[rows[r] + 1]):
+            value = data[e]
+            if value != 0.0:
+                j = indices[e]
+                for c in range(basis.shape[1]):
+                    out[r, c] -= value * basis[j, c]
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
