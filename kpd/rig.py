@@ -612,7 +612,6 @@ class _StraightenSystem:
     def __init__(self, points: np.ndarray, tri: np.ndarray, thinness: float, reach: float) -> None:
         """``points`` (n, 3) distinct, ``tri`` (T, 3) int64 indexing them (repeated corners allowed: skipped)."""
         import scipy.sparse as sparse
-        from scipy.sparse.csgraph import connected_components
 
         points = np.ascontiguousarray(points, dtype=np.float64)
         self.reach = float(reach)
@@ -632,7 +631,8 @@ class _StraightenSystem:
         del ends, along, height
         self.matrix = sparse.csr_matrix((values, indices, indptr), shape=(n, n))
         self.sliver_values = sliver_values
-        self.pieces, self.label = connected_components(self.matrix, directed=False)
+        self.label = _region_parts(indptr, indices, np.ones(n, dtype=np.bool_))[0]  # connected pieces
+        self.pieces = int(self.label.max()) + 1
 
     def solve(self, basis: np.ndarray, tolerance: float) -> np.ndarray:
         """(n, K) float64: the correction of each merged point (0 where it is below ``tolerance``; ``tolerance`` 0:
