@@ -597,8 +597,9 @@ class _StraightenSystem:
     """The straightening's sparse system (:func:`straighten_basis`) on the merged points, solved where it matters.
 
     The system's pattern is the mesh's edge graph with its diagonal (a sliver's three corners are a triangle, so its
-    straightness couples only neighbours); compiled kernels find the edges and add every term into that pattern in
-    one pass over the triangles, keeping the slivers' part ``SᵀWS`` apart for the right-hand side ``-SᵀWS B``.
+    straightness couples only neighbours); compiled kernels find the edges, add the slivers' part ``SᵀWS`` into that
+    pattern and each point's anchor in one pass over the triangles, and make the rest of a row (the edges'
+    stiffness) only when the row is solved.
 
     :meth:`solve` solves on a region (:func:`straighten_basis`): the points within two edges of the slivers that
     are bent by more than ``tolerance`` or that a large edit would turn over, with no correction beyond it; where
@@ -611,26 +612,24 @@ class _StraightenSystem:
 
     def __init__(self, points: np.ndarray, tri: np.ndarray, thinness: float, reach: float) -> None:
         """``points`` (n, 3) distinct, ``tri`` (T, 3) int64 indexing them (repeated corners allowed: skipped)."""
-        import scipy.sparse as sparse
-
         points = np.ascontiguousarray(points, dtype=np.float64)
         self.reach = float(reach)
         n = self.n = len(points)
         tri = np.ascontiguousarray(tri, dtype=np.int64)
         indptr, indices = _graph_pattern(tri, n)  # (n + 1,), (n + 2E,): each row's neighbours and itself, sorted
-        values, sliver_values = np.zeros(len(indices)), np.zeros(len(indices))
-        corner_of = np.zeros(n, dtype=np.bool_)
+        self.indptr, self.indices, self.points = indptr, indices, points
+        self.sliver_values, self.anchor = np.zeros(len(indices)), np.empty(n)  # the rest of a row: _row
         ends, along, height = np.empty((len(tri), 3), dtype=np.int32), np.empty(len(tri)), np.empty(len(tri))
-        self.slivers = _system_values(points, tri, indptr, indices, float(thinness), 1.0 / reach**2, _STRAIGHTEN_ENDS,
-                                      _STRAIGHTEN_CAP, values, sliver_values, corner_of, ends, along, height)
+        self.slivers, longest = _sliver_terms(points, tri, indptr, indices, float(thinness), 1.0 / reach**2,
+                                              _STRAIGHTEN_ENDS, _STRAIGHTEN_CAP, self.sliver_values, self.anchor, ends,
+                                              along, height)
+        self.floor = 1e-6 * max(longest, 1e-300)  # edge lengths floored at 1e-6 of the longest
         del tri
         if self.slivers == 0:
             return
         s = self.slivers
         self.ends, self.along, self.height = ends[:s].copy(), along[:s].copy(), height[:s].copy()  # per sliver
         del ends, along, height
-        self.matrix = sparse.csr_matrix((values, indices, indptr), shape=(n, n))
-        self.sliver_values = sliver_values
         self.label = _region_parts(indptr, indices, np.ones(n, dtype=np.bool_))[0]  # connected pieces
         self.pieces = int(self.label.max()) + 1
 
@@ -641,17 +640,17 @@ class _StraightenSystem:
         if tolerance <= 0:
             inside = np.zeros(self.pieces, dtype=bool)
             inside[self.label[self.ends[:, 0]]] = True
-            correction = np.zeros_like(merged)
+            correction = np.zeros(merged.shape)  # untouched pages stay unmapped
             self._solve_region(inside[self.label], inside[self.label], merged, correction)
             return correction
         seeds = np.flatnonzero(_sliver_seeds(merged, self.ends, self.along, self.height, float(tolerance),
                                              _FOLD_MOVE, self.n))
-        correction = np.zeros_like(merged)
+        correction = np.zeros(merged.shape)  # untouched pages stay unmapped
         inside = np.zeros(self.n, dtype=bool)
         piece_size = np.bincount(self.label, minlength=self.pieces)
         frontier, rings = seeds, _FIRST_RINGS
         while len(frontier):
-            reached = _rings(self.matrix.indptr, self.matrix.indices, frontier, rings)
+            reached = _rings(self.indptr, self.indices, frontier, rings)
             # a piece mostly inside is taken whole: no rim there, and no second try
             covered = np.bincount(self.label, weights=inside | reached, minlength=self.pieces)
             reached |= (covered > 0.5 * piece_size)[self.label]
@@ -661,8 +660,8 @@ class _StraightenSystem:
             rim = self._solve_region(inside, added, merged, correction)
             # cut off too soon where the points just outside would move by more than the tolerance (one Jacobi step
             # from the region's correction): grow from there
-            frontier = _beyond_rim(self.matrix.indptr, self.matrix.indices, self.matrix.data, rim, inside, correction,
-                                   float(tolerance))
+            frontier = _beyond_rim(self.indptr, self.indices, self.points, self.sliver_values, self.anchor, self.floor,
+                                   rim, inside, correction, float(tolerance))
             log.debug("straightening: %d seed points, %d rings: %d of %d points solved, %d beyond the rim above %.3g",
                       len(seeds), rings, inside.sum(), self.n, len(frontier), tolerance)
             rings *= 2
@@ -676,8 +675,7 @@ class _StraightenSystem:
         import scipy.sparse as sparse
         from scipy.sparse.linalg import splu
 
-        matrix = self.matrix
-        part, rim = _region_parts(matrix.indptr, matrix.indices, inside)  # (n,) -1 outside; (n,) bool
+        part, rim = _region_parts(self.indptr, self.indices, inside)  # (n,) -1 outside; (n,) bool
         parts = int(part.max()) + 1 if len(part) else 0
         changed = np.zeros(parts + 1, dtype=bool)
         changed[part[added]] = True
@@ -703,10 +701,11 @@ class _StraightenSystem:
 
         def solve_batch(b: int) -> None:
             members = order[bounds[b]:bounds[b + 1]]
-            ptr, idx, val = _submatrix(matrix.indptr, matrix.indices, matrix.data, members, local)
+            ptr, idx, val = _submatrix(self.indptr, self.indices, members, local, self.points, self.sliver_values,
+                                       self.anchor, self.floor)
             system = sparse.csc_matrix((val, idx, ptr), shape=(len(members),) * 2)  # symmetric: CSR rows = columns
             factor = splu(system, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-            rhs = _rows_times(matrix.indptr, matrix.indices, self.sliver_values, members, basis)  # -Sᵀ W S B
+            rhs = _rows_times(self.indptr, self.indices, self.sliver_values, members, basis)  # -Sᵀ W S B
             correction[members] = factor.solve(rhs)
 
         # SuperLU lets go of the GIL: two batches at a time on two cores, the largest first
@@ -787,15 +786,16 @@ def _entry(indptr, indices, row, col):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _system_values(points, tri, indptr, indices, thinness, inverse_reach2, ends_weight, cap, values, sliver_values,
-                   corner_of, sliver_ends, sliver_along, sliver_height):  # pragma: no cover - compiled
-    """Add the straightening's terms into the pattern: ``values`` gets the whole system (anchors, edge stiffness,
-    slivers), ``sliver_values`` the slivers' ``SᵀWS`` alone; ``corner_of`` marks
-    each sliver's third corner; per sliver, in the order found, its third corner and long edge's ends
-    (``sliver_ends``), the corner's place along that edge and its height. Returns the number of slivers."""
+def _sliver_terms(points, tri, indptr, indices, thinness, inverse_reach2, ends_weight, cap, sliver_values, anchor,
+                  sliver_ends, sliver_along, sliver_height):  # pragma: no cover - compiled
+    """One pass over the triangles: the slivers' ``SᵀWS`` into the pattern (``sliver_values``); per sliver, in the
+    order found, its third corner and long edge's ends (``sliver_ends``), the corner's place along that edge and its
+    height; each point's anchor weight (``anchor``). Returns the number of slivers and the longest edge."""
     n = points.shape[0]
     area = np.zeros(n)
+    corner_of = np.zeros(n, dtype=np.bool_)
     slivers = 0
+    longest_edge = 0.0
     root_cap = np.sqrt(cap)
     for t in range(tri.shape[0]):
         v = (tri[t, 0], tri[t, 1], tri[t, 2])
@@ -813,6 +813,7 @@ def _system_values(points, tri, indptr, indices, thinness, inverse_reach2, ends_
             k, longest = 1, l1
         if l2 > longest:
             k, longest = 2, l2
+        longest_edge = max(longest_edge, longest)
         ux, uy, uz = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1], points[b, 2] - points[a, 2]
         vx, vy, vz = points[c, 0] - points[a, 0], points[c, 1] - points[a, 1], points[c, 2] - points[a, 2]
         nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
@@ -823,7 +824,6 @@ def _system_values(points, tri, indptr, indices, thinness, inverse_reach2, ends_
         height = twice_area / max(longest, 1e-300)
         if not height < thinness * longest:
             continue
-        slivers += 1
         corner, start, end = v[k], v[(k + 1) % 3], v[(k + 2) % 3]
         ex, ey, ez = points[end, 0] - points[start, 0], points[end, 1] - points[start, 1], points[end, 2] - points[start, 2]
         dot = ((points[corner, 0] - points[start, 0]) * ex + (points[corner, 1] - points[start, 1]) * ey
@@ -833,63 +833,67 @@ def _system_values(points, tri, indptr, indices, thinness, inverse_reach2, ends_
         ends = (corner, start, end)
         coef = (1.0, s - 1.0, -s)
         corner_of[corner] = True
-        sliver_ends[slivers - 1, 0], sliver_ends[slivers - 1, 1], sliver_ends[slivers - 1, 2] = corner, start, end
-        sliver_along[slivers - 1] = s
-        sliver_height[slivers - 1] = height
+        sliver_ends[slivers, 0], sliver_ends[slivers, 1], sliver_ends[slivers, 2] = corner, start, end
+        sliver_along[slivers] = s
+        sliver_height[slivers] = height
+        slivers += 1
         for i in range(3):
             for j in range(3):
-                at = _entry(indptr, indices, ends[i], ends[j])
-                term = weight * coef[i] * coef[j]
-                sliver_values[at] += term
-                values[at] += term
-    # the edges' stiffness 1 / l², lengths floored at 1e-6 of the longest
-    longest_edge = 0.0
-    for i in range(n):
-        for at in range(indptr[i], indptr[i + 1]):
-            j = indices[at]
-            if j > i:
-                length = np.sqrt((points[i, 0] - points[j, 0]) ** 2 + (points[i, 1] - points[j, 1]) ** 2
-                                 + (points[i, 2] - points[j, 2]) ** 2)
-                longest_edge = max(longest_edge, length)
-    floor = 1e-6 * max(longest_edge, 1e-300)
+                sliver_values[_entry(indptr, indices, ends[i], ends[j])] += weight * coef[i] * coef[j]
     mean_area = 0.0
     for i in range(n):
         mean_area += area[i]
     mean_area = max(mean_area / max(n, 1), 1e-300)
     for i in range(n):
-        diagonal = (area[i] / mean_area + 1e-6) * (1.0 if corner_of[i] else ends_weight) * inverse_reach2
-        for at in range(indptr[i], indptr[i + 1]):
-            j = indices[at]
-            if j != i:
-                length = max(np.sqrt((points[i, 0] - points[j, 0]) ** 2 + (points[i, 1] - points[j, 1]) ** 2
-                                     + (points[i, 2] - points[j, 2]) ** 2), floor)
-                stiffness = 1.0 / (length * length)
-                values[at] -= stiffness
-                diagonal += stiffness
-        values[_entry(indptr, indices, i, i)] += diagonal
-    return slivers
+        anchor[i] = (area[i] / mean_area + 1e-6) * (1.0 if corner_of[i] else ends_weight) * inverse_reach2
+    return slivers, longest_edge
 
 
-@numba.njit(cache=True, nogil=True)
-def _submatrix(indptr, indices, data, members, local):  # pragma: no cover - compiled
-    """CSR (indptr, indices, data) of the rows and columns ``members`` (sorted), renumbered by ``local``; entries
-    whose column has no local number (-1: outside the region) are left out."""
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _row(i, indptr, indices, points, sliver_values, anchor, floor, out):  # pragma: no cover - compiled
+    """Row ``i`` of the system into ``out`` (its pattern entries in order): the edges' stiffness ``-1 / l²`` (lengths
+    floored at ``floor``) and on the diagonal their sum and the anchor, plus the slivers' terms."""
+    diagonal = anchor[i]
+    at_diagonal = 0
+    for e in range(indptr[i], indptr[i + 1]):
+        j = indices[e]
+        out[e - indptr[i]] = sliver_values[e]
+        if j == i:
+            at_diagonal = e - indptr[i]
+        else:
+            length = max(np.sqrt((points[i, 0] - points[j, 0]) ** 2 + (points[i, 1] - points[j, 1]) ** 2
+                                 + (points[i, 2] - points[j, 2]) ** 2), floor)
+            stiffness = 1.0 / (length * length)
+            out[e - indptr[i]] -= stiffness
+            diagonal += stiffness
+    out[at_diagonal] += diagonal
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _submatrix(indptr, indices, members, local, points, sliver_values, anchor, floor):  # pragma: no cover - compiled
+    """CSR (indptr, indices, data) of the system's rows and columns ``members`` (sorted), renumbered by ``local``;
+    entries whose column has no local number (-1: outside the region) are left out."""
     m = len(members)
     ptr = np.zeros(m + 1, dtype=np.int64)
+    widest = 0
     for r in range(m):
         kept = 0
         for e in range(indptr[members[r]], indptr[members[r] + 1]):
             if local[indices[e]] >= 0:
                 kept += 1
         ptr[r + 1] = ptr[r] + kept
+        widest = max(widest, indptr[members[r] + 1] - indptr[members[r]])
     idx = np.empty(ptr[m], dtype=np.int32)
     val = np.empty(ptr[m])
+    row = np.empty(widest)
     for r in range(m):
+        i = members[r]
+        _row(i, indptr, indices, points, sliver_values, anchor, floor, row)
         at = ptr[r]
-        for e in range(indptr[members[r]], indptr[members[r] + 1]):
+        for e in range(indptr[i], indptr[i + 1]):
             if local[indices[e]] >= 0:
                 idx[at] = local[indices[e]]
-                val[at] = data[e]
+                val[at] = row[e - indptr[i]]
                 at += 1
     return ptr, idx, val
 
@@ -903,8 +907,8 @@ def _region_parts(indptr, indices, inside):  # pragma: no cover - compiled
     rim = np.zeros(n, dtype=np.bool_)
     stack = np.empty(n, dtype=np.int64)
     parts = 0
-    for start in range(n):
-        if not inside[start] or part[start] >= 0:
+    for start in np.flatnonzero(inside):
+        if part[start] >= 0:
             continue
         part[start] = parts
         top = 1
@@ -951,13 +955,15 @@ def _rings(indptr, indices, sources, rings):  # pragma: no cover - compiled
     return depth >= 0
 
 
-@numba.njit(cache=True, nogil=True)
-def _beyond_rim(indptr, indices, data, rim, inside, correction, tolerance):  # pragma: no cover - compiled
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _beyond_rim(indptr, indices, points, sliver_values, anchor, floor, rim, inside, correction,
+                tolerance):  # pragma: no cover - compiled
     """The points outside the region next to its ``rim`` whose correction, one Jacobi step from the region's
     (``-Σ_i A_ji D_i / A_jj``), exceeds ``tolerance`` in some column."""
     k = correction.shape[1]
     seen = np.zeros(len(inside), dtype=np.bool_)
     estimate = np.empty(k)
+    row = np.empty(1)
     out = []
     for i in rim:
         for e in range(indptr[i], indptr[i + 1]):
@@ -965,15 +971,18 @@ def _beyond_rim(indptr, indices, data, rim, inside, correction, tolerance):  # p
             if inside[j] or seen[j]:
                 continue
             seen[j] = True
+            if len(row) < indptr[j + 1] - indptr[j]:
+                row = np.empty(indptr[j + 1] - indptr[j])
+            _row(j, indptr, indices, points, sliver_values, anchor, floor, row)
             estimate[:] = 0.0
             diagonal = 1.0
             for f in range(indptr[j], indptr[j + 1]):
                 col = indices[f]
                 if col == j:
-                    diagonal = data[f]
+                    diagonal = row[f - indptr[j]]
                 elif inside[col]:
                     for c in range(k):
-                        estimate[c] -= data[f] * correction[col, c]
+                        estimate[c] -= row[f - indptr[j]] * correction[col, c]
             for c in range(k):
                 if abs(estimate[c]) > tolerance * diagonal:
                     out.append(j)
