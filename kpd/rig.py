@@ -1114,9 +1114,23 @@ def _compact_basis(basis: np.ndarray) -> np.ndarray:
     """
     if basis.dtype == np.float32 or not len(basis):
         return basis
-    if np.abs(basis).sum(axis=1).max() > _FLOAT32_ROW_SUM:
+    if _largest_row_sum(np.ascontiguousarray(basis, dtype=np.float64)) > _FLOAT32_ROW_SUM:
         return basis
     return basis.astype(np.float32)
+
+
+@numba.njit(cache=True, nogil=True)
+def _largest_row_sum(basis):  # pragma: no cover - compiled
+    """``np.abs(basis).sum(axis=1).max()`` without the (V, K) temporary (NaN if any entry is NaN)."""
+    largest = 0.0
+    for v in range(basis.shape[0]):
+        total = 0.0
+        for k in range(basis.shape[1]):
+            total += abs(basis[v, k])
+        if total != total:
+            return total
+        largest = max(largest, total)
+    return largest
 
 
 _EDIT_LANES = 256  # vertices per block of an edit
