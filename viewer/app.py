@@ -6,11 +6,16 @@ legacy OpenGL window (:class:`kpd.viewer.gl.GLView`, fast with software renderin
 :class:`~kpd.viewer.render.ViewSettings` applied in :meth:`EditorApp._apply_settings`. Deformation stays in
 :class:`kpd.rig.Rig` and the edit history in :class:`~kpd.viewer.session.EditSession`.
 
+The mesh is shown as soon as it is read: a rig still to be made (:class:`Binding`) is bound on a worker thread while
+the window shows the mesh (it can be turned, nothing edited) and says so in the panel; the keypoints appear when the
+rig is ready. The coarse stand-in of a large mesh is made on that thread too. Work that leaves the main thread comes
+back through :meth:`EditorApp.post_to_main_thread`.
+
 Input is never blocked behind drawing. The loop takes every pending input first (window system events of both
 windows), then draws at most one frame of the newest state: mouse moves of a drag are coalesced to the latest
 position, keys are applied as they arrive, and nothing is drawn while nothing changed. A mesh of more than
 :data:`kpd.viewer.gl.PROXY_TRIANGLES` triangles is drawn by a coarse stand-in while input flows, and whole again
-0.3 s after it pauses.
+0.3 s after it pauses (the triangles that show in a pixel: :func:`kpd.viewer.gl.visible_triangles`).
 
 Mouse and keys (also listed in the panel):
 
@@ -21,8 +26,9 @@ Mouse and keys (also listed in the panel):
 * U (or Ctrl+Z): undo; Y (or Ctrl+Y): redo; R: reset; S: save the deformed mesh; J: save the session (JSON);
   L: load the session; P: screenshot (PNG); T: the prior on/off; Esc: clear the selection.
 
-With ``events=PATH`` the app appends one JSON object per line for each thing it does (``ready`` with the camera
-matrices, the 3D view's place on the screen and the sliders', ``input`` for each mouse or key event received,
+With ``events=PATH`` the app appends one JSON object per line for each thing it does (``shown`` when the mesh is
+first on the screen, ``ready`` when its rig is too, with the camera matrices, the 3D view's place on the screen and
+the sliders', ``input`` for each mouse or key event received,
 ``frame`` for each frame drawn with the newest input it shows, ``select``, ``drag``, ``release``, ``nudge``, ``undo``,
 ``redo``, ``reset``, ``save``...), so scripts, tests and the benchmark can follow the window without reading pixels.
 """
@@ -33,9 +39,11 @@ import json
 import logging
 import math
 import os
+import queue
+import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -43,13 +51,14 @@ from kpd.errors import InputError, KpdError
 from kpd.viewer.render import Camera, Frame, ViewSettings, camera_pose, pixel_ray, plane_hit, project, write_png
 from kpd.viewer.session import EditSession, component_offsets, propose
 
-__all__ = ["EditorApp", "PANEL_WIDTH", "read_events", "wait_for"]
+__all__ = ["EditorApp", "Binding", "PANEL_WIDTH", "read_events", "wait_for"]
 
 log = logging.getLogger(__name__)
 
 PANEL_WIDTH = 300  # pixels
 _PICK_PIXELS = 14.0  # a click this close to a marker's centre picks it
 _MAX_SLIDERS = 8
+_PREPARE_AFTER = 0.1  # s without input before a large mesh's whole frame is prepared on the frame thread
 _REFINE_AFTER = 0.3  # s without input before a large mesh's stand-in is replaced by the whole mesh
 _LEFT, _TOP = 0, 0  # where the 3D view opens on the screen; the panel opens to its right
 
@@ -59,12 +68,23 @@ _SHIFT, _CTRL = 0x0001, 0x0002
 _PRESS, _RELEASE, _REPEAT = 1, 0, 2
 
 
+class Binding(NamedTuple):
+    """A rig still to be made: the editor shows ``mesh`` at once and calls ``bind()`` on a worker thread; it returns
+    the rig of that mesh (:class:`kpd.rig.Rig` or :class:`kpd.frame.ScanRig`) with ``num_keypoints`` keypoints, or
+    raises (a :class:`~kpd.errors.KpdError` ends the editor with its message)."""
+
+    mesh: Any
+    num_keypoints: int
+    bind: Callable[[], Any]
+
+
 class EditorApp:
     """The editor windows for one rig.
 
     Parameters
     ----------
-    rig : kpd.rig.Rig, the shape to edit (mesh in its own units).
+    rig : kpd.rig.Rig (or kpd.frame.ScanRig), the shape to edit (mesh in its own units); or a :class:`Binding`,
+        bound on a worker thread while the window shows its mesh.
     prior : kpd.prior.KeypointPrior or None: enables the "prior" toggle and the PCA sliders.
     settings : ViewSettings (size of the 3D view, what to show, the prior toggle, the nudge step).
     out : where "save mesh" writes the deformed mesh; None disables saving.
@@ -80,9 +100,13 @@ class EditorApp:
                  screenshot_path: str | os.PathLike | None = None, events: str | os.PathLike | None = None,
                  title: str = "kpd view", initial_session: str | os.PathLike | None = None,
                  force: bool = False) -> None:
-        if prior is not None and prior.num_keypoints != rig.num_keypoints:
-            raise InputError(f"the model's prior has {prior.num_keypoints} keypoints; the rig has {rig.num_keypoints}")
-        self.rig = rig
+        self._binding = rig if isinstance(rig, Binding) else None
+        self.rig = None if self._binding is not None else rig  # None until a Binding's rig is ready
+        self.mesh = rig.mesh
+        self.num_keypoints = int(rig.num_keypoints)
+        if prior is not None and prior.num_keypoints != self.num_keypoints:
+            raise InputError(f"the model's prior has {prior.num_keypoints} keypoints; the rig has "
+                             f"{self.num_keypoints}")
         self.prior = prior
         self.settings = settings or ViewSettings()
         self.out = None if out is None else Path(out)
@@ -90,9 +114,12 @@ class EditorApp:
         self.screenshot_path = Path(screenshot_path) if screenshot_path is not None else Path("kpd_view.png")
         self.title = title
         self.force = force
-        self.session = EditSession(rig.keypoints)
-        if initial_session is not None:
-            self.session.load(initial_session)
+        self._initial_session = initial_session
+        self.session: EditSession | None = None  # None until the rig is ready
+        if self.rig is not None:
+            self._start_session()
+        elif initial_session is not None:  # a bad file ends here, before any window
+            EditSession(np.zeros((self.num_keypoints, 3))).load(initial_session)
         self.selection: list[int] = []
         self._events = None if events is None else Path(events)
         self._event_file: Any = None
@@ -102,9 +129,14 @@ class EditorApp:
         self._gesture = 0
         self._shots = 0
         self._sigmas = np.zeros(0)
-        self._slider_base = self.session.keypoints
+        self._slider_base = None if self.session is None else self.session.keypoints
         self._quiet_sliders = False
-        self._buffer = np.empty_like(rig.mesh.vertices)
+        self._buffer = np.empty_like(self.mesh.vertices)
+        self._posted: queue.SimpleQueue = queue.SimpleQueue()  # callables from the worker threads
+        self._failure: BaseException | None = None
+        self._frames_thread: Any = None  # prepares a large mesh's whole frame (ShadedMesh.prepare)
+        self._preparing: tuple | None = None  # the state being prepared there
+        self._whole: tuple | None = None  # (state, vertices, uploads, milliseconds) of a prepared whole frame
         self._inputs = 0  # input events received
         self._last_input = -math.inf  # time.monotonic() of the newest one
         self._dirty_mesh = True
@@ -131,7 +163,69 @@ class EditorApp:
                 self._loop()
             finally:
                 self._close()
+        if self._failure is not None:  # the worker's binding failed: its error ends the editor
+            raise self._failure
         return 0
+
+    def post_to_main_thread(self, action: Callable[[], Any]) -> None:
+        """Run ``action()`` on the main thread, between two frames (how the worker hands its results back)."""
+        self._posted.put(action)
+
+    def _start_session(self) -> None:
+        self.session = EditSession(self.rig.keypoints)
+        if self._initial_session is not None:
+            self.session.load(self._initial_session)
+        self._slider_base = self.session.keypoints
+
+    def _stand_in(self) -> Any:
+        from kpd.viewer.gl import PROXY_TRIANGLES, proxy_triangles
+
+        return proxy_triangles(self.mesh.vertices, self.drawing.shaded.drawn, PROXY_TRIANGLES)
+
+    def _start_worker(self) -> None:
+        """The rig of a :class:`Binding`, after the stand-in of a large mesh, on a worker thread."""
+        binding = self._binding
+        if binding is None:
+            return
+
+        def work() -> None:
+            try:
+                stand_in = self._stand_in()
+                if stand_in is not None:
+                    self.post_to_main_thread(lambda: self.drawing.set_stand_in(*stand_in))
+                if binding is not None:
+                    started = time.perf_counter()
+                    rig = binding.bind()
+                    log.info("bound the mesh in %.1f s", time.perf_counter() - started)
+                    self.post_to_main_thread(lambda: self._on_bound(rig))
+            except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which ends with it
+                self.post_to_main_thread(lambda: self._on_worker_failed(exc))
+
+        threading.Thread(target=work, name="kpd-editor-worker", daemon=True).start()
+
+    def _on_bound(self, rig: Any) -> None:
+        """The rig of the :class:`Binding` is ready: keypoints, cage and editing."""
+        if len(rig.mesh.vertices) != len(self.mesh.vertices) or rig.num_keypoints != self.num_keypoints:
+            raise KpdError(f"the rig has {len(rig.mesh.vertices)} vertices and {rig.num_keypoints} keypoints; the "
+                           f"mesh shown has {len(self.mesh.vertices)} and {self.num_keypoints} were expected")
+        self.rig = rig
+        self._binding = None
+        self._start_session()
+        self.drawing.set_keypoints(rig.num_keypoints, rig.cage.faces)
+        self._changed()
+        self._emit("ready")
+
+    def _on_worker_failed(self, exc: BaseException) -> None:
+        self._failure = exc
+        self._running = False
+
+    def _run_posted(self) -> None:
+        while True:
+            try:
+                action = self._posted.get_nowait()
+            except queue.Empty:
+                return
+            action()
 
     def _build(self) -> None:
         from kpd.viewer.gl import GLView, RigDrawing
@@ -140,8 +234,10 @@ class EditorApp:
         self._started = time.time()
         self.view = GLView(s.width, s.height, title=self.title, visible=True, left=_LEFT, top=_TOP,
                            background=s.background)
-        self.drawing = RigDrawing(self.view, self.rig.mesh, self.rig.num_keypoints, self.rig.cage.faces, settings=s)
-        rest = self.rig.mesh.vertices
+        rig = self.rig
+        self.drawing = RigDrawing(self.view, self.mesh, 0 if rig is None else rig.num_keypoints,
+                                  None if rig is None else rig.cage.faces, settings=s)
+        rest = self.mesh.vertices
         self.view.set_box(rest)
         self._home = camera_pose(rest, s, margin=0.75)  # room for edits that grow the shape
         self.camera = self._home
@@ -153,9 +249,15 @@ class EditorApp:
             vis.register_key_action_callback(code, lambda _vis, action, mods, code=code:
                                              self._on_key(code, action, mods))
         self._build_panel()
-        self._show()
+        if self.rig is not None:  # editing starts with the first frame: the stand-in of a large mesh is needed now
+            stand_in = self._stand_in()
+            if stand_in is not None:
+                self.drawing.set_stand_in(*stand_in)
         self._draw()
-        self._emit("ready")
+        self._emit("shown")
+        if self.rig is not None:
+            self._emit("ready")
+        self._start_worker()
 
     def _key_codes(self) -> list[int]:
         # every letter, digit and the keys used: unregistered keys would reach Open3D's own viewer shortcuts
@@ -177,7 +279,7 @@ class EditorApp:
         root.geometry(f"+{_LEFT + s.width + 8}+{_TOP}")  # beside the 3D view, as tall as its widgets need
         root.protocol("WM_DELETE_WINDOW", self._on_panel_close)
         pad = {"padx": 6, "pady": 1, "anchor": "w"}
-        tk.Label(root, text=f"{self.title}\n{self.rig.num_keypoints} keypoints, {len(self.rig.mesh.vertices)} vertices",
+        tk.Label(root, text=f"{self.title}\n{self.num_keypoints} keypoints, {len(self.mesh.vertices):,} vertices",
                  justify="left").pack(**pad)
         tk.Label(root, text="Show", font=("TkDefaultFont", 10, "bold")).pack(**pad)
         self._checks: dict[str, Any] = {}
@@ -255,31 +357,92 @@ class EditorApp:
             if not vis.poll_events():  # window-system events of the 3D view: the callbacks only record them
                 break
             self.root.update()  # the panel's events
+            self._run_posted()  # results of the worker threads
             if not self._running:
                 break
             self._apply_pending()
             if self._dirty:
                 self._draw()
-            elif self.drawing._proxy_shown and time.monotonic() - self._last_input > _REFINE_AFTER:
-                self._changed(mesh=True)  # input has paused: the whole mesh in place of its stand-in
-                self._draw()
-            else:
+            elif not self._refine():
                 time.sleep(0.004)
 
     def _draw(self) -> None:
-        """Draw the newest state: one frame, whatever number of inputs it answers."""
+        """Draw the newest state: one frame, whatever number of inputs it answers. A mesh with a stand-in is drawn by
+        it; its whole frame comes from :meth:`_refine`."""
         started = time.perf_counter()
         serial = self._inputs
-        busy = time.monotonic() - self._last_input < _REFINE_AFTER  # large meshes: the stand-in while input flows
-        self._show(mesh=self._dirty_mesh, fast=busy)
+        self._show(mesh=self._dirty_mesh, fast=self.drawing.proxy is not None)
         self._dirty = self._dirty_mesh = False
         self.view.draw()
         self._frames += 1
         self._emit("frame", serial=serial, draw_ms=round(1000 * (time.perf_counter() - started), 3),
                    frame=self._frames, stand_in=self.drawing._proxy_shown)
 
+    def _refine(self) -> bool:
+        """Once input pauses, a large mesh's whole frame in place of its stand-in: prepared on the frame thread
+        after :data:`_PREPARE_AFTER` s (the deformation, normals, the triangles that show, colours), drawn from
+        :data:`_REFINE_AFTER` s when it is ready and still the state on the screen. Returns whether it drew."""
+        if not self.drawing._proxy_shown:
+            return False
+        idle = time.monotonic() - self._last_input
+        if idle < _PREPARE_AFTER:
+            return False
+        state = self._state()
+        if self._whole is None or self._whole[0] != state:
+            if self._preparing != state:
+                self._prepare_whole(state)
+            return False
+        if idle < _REFINE_AFTER:
+            return False
+        _, vertices, uploads, prepare_ms = self._whole
+        self._whole = None
+        started = time.perf_counter()
+        serial = self._inputs
+        keypoints = np.zeros((0, 3)) if self.session is None else self.session.keypoints
+        cage = None if self.rig is None else self.rig.deform_cage(keypoints)
+        self.drawing.show(Frame(vertices, keypoints, cage, tuple(self.selection)), self.camera, prepared=uploads)
+        self.view.draw()
+        self._frames += 1
+        self._emit("frame", serial=serial, draw_ms=round(1000 * (time.perf_counter() - started), 3),
+                   prepare_ms=prepare_ms, frame=self._frames, stand_in=False)
+        return True
+
+    def _state(self) -> tuple:
+        """What a whole frame depends on: the keypoints and the camera."""
+        c = self.camera
+        keypoints = None if self.session is None else self.session.keypoints.tobytes()
+        return keypoints, tuple(c.eye), tuple(c.center), tuple(c.up), c.fov
+
+    def _prepare_whole(self, state: tuple) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        if self._frames_thread is None:
+            self._frames_thread = ThreadPoolExecutor(1, thread_name_prefix="kpd-editor-frames")
+        self._preparing = state
+        rig, mesh, drawing, camera = self.rig, self.mesh, self.drawing, self.camera
+        keypoints = None if self.session is None else self.session.keypoints
+
+        def work() -> None:
+            try:
+                started = time.perf_counter()
+                vertices = mesh.vertices if rig is None else rig.deform(keypoints)
+                uploads = drawing.shaded.prepare(vertices, camera, drawing.view.viewport(camera))
+                milliseconds = round(1000 * (time.perf_counter() - started), 3)
+                self.post_to_main_thread(lambda: self._on_prepared(state, vertices, uploads, milliseconds))
+            except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which ends with it
+                self.post_to_main_thread(lambda: self._on_worker_failed(exc))
+
+        self._frames_thread.submit(work)
+
+    def _on_prepared(self, state: tuple, vertices: np.ndarray, uploads: list, milliseconds: float) -> None:
+        if self._preparing == state:
+            self._preparing = None
+        self._whole = (state, vertices, uploads, milliseconds)
+
     def _close(self) -> None:
         self._emit("close")
+        if self._frames_thread is not None:
+            self._frames_thread.shutdown(wait=False, cancel_futures=True)
         try:
             self.root.destroy()
         except Exception:  # noqa: BLE001 - the panel may be gone already
@@ -294,15 +457,29 @@ class EditorApp:
     # --- the scene --------------------------------------------------------------------------------------------
 
     def _frame(self, rows: np.ndarray | None = None) -> Frame:
-        """The current state; with ``rows``, only those vertices are deformed (the others keep older positions)."""
+        """The current state; with ``rows``, only those vertices are deformed (the others keep older positions).
+        Before the rig is ready: the rest mesh, no keypoints."""
+        from kpd.rig import Rig
+
+        if self.rig is None:
+            return Frame(self.mesh.vertices, np.zeros((0, 3)), None, ())
         keypoints = self.session.keypoints
-        vertices = self.rig.deform(keypoints, out=self._buffer, rows=rows)
+        if rows is not None and isinstance(self.rig, Rig):
+            vertices = self.rig.deform(keypoints, out=self._buffer, rows=rows)
+        else:
+            vertices = self.rig.deform(keypoints, out=self._buffer)
         return Frame(vertices, keypoints, self.rig.deform_cage(keypoints), tuple(self.selection))
 
     def _show(self, *, mesh: bool = True, fast: bool = False) -> None:
         # a frame drawn by a large mesh's stand-in needs the stand-in's vertices only
         stand_in = fast and self.drawing.proxy is not None and not self.settings.xray
         self.drawing.show(self._frame(self.drawing._kept if stand_in else None), self.camera, mesh=mesh, fast=fast)
+
+    def _bound(self) -> bool:
+        """Whether the rig is ready for editing; says so in the panel when not."""
+        if self.rig is None:
+            self._message("binding the mesh to the model: keypoints appear when it is done")
+        return self.rig is not None
 
     def _changed(self, *, mesh: bool = True) -> None:
         self._dirty = True
@@ -338,10 +515,12 @@ class EditorApp:
         self._on_setting("nudge_step", value)
 
     def _update_status(self) -> None:
-        moved = len(self.session.moved)
         prior = "on" if self.settings.prior and self.prior is not None else "off"
-        text = (f"selected: {', '.join(map(str, self.selection)) or '-'}\n"
-                f"moved: {moved}   undo: {self.session.depth}   prior: {prior}")
+        if self.session is None:
+            text = "binding the mesh to the model...\n(keypoints appear when it is done)"
+        else:
+            text = (f"selected: {', '.join(map(str, self.selection)) or '-'}\n"
+                    f"moved: {len(self.session.moved)}   undo: {self.session.depth}   prior: {prior}")
         if self._message_text:
             text += "\n" + self._message_text
         if hasattr(self, "status"):
@@ -398,6 +577,8 @@ class EditorApp:
 
     def pick(self, x: float, y: float) -> int | None:
         """The keypoint under view pixel (x, y), or None (the nearest marker centre within the pick radius)."""
+        if self.rig is None:
+            return None
         view, projection, w, h = self._matrices()
         keypoints = self.session.keypoints
         pixels, depth = project(keypoints, view, projection, w, h)
@@ -501,7 +682,7 @@ class EditorApp:
             self._changed()
 
     def _nudge(self, axis: str, sign: float) -> None:
-        if not self.selection:
+        if not self.selection or not self._bound():
             return
         view = self._matrices()[0]
         direction = {"right": view[0, :3], "up": view[1, :3], "forward": -view[2, :3]}[axis]
@@ -544,17 +725,17 @@ class EditorApp:
         self._emit("select", picked=None)
 
     def _on_undo(self) -> None:
-        if self.session.undo():
+        if self._bound() and self.session.undo():
             self._after_history()
         self._emit("undo")
 
     def _on_redo(self) -> None:
-        if self.session.redo():
+        if self._bound() and self.session.redo():
             self._after_history()
         self._emit("redo")
 
     def _on_reset(self) -> None:
-        if self.session.reset():
+        if self._bound() and self.session.reset():
             self._after_history()
         self._emit("reset")
 
@@ -576,7 +757,7 @@ class EditorApp:
             self._quiet_sliders = False
 
     def _on_slider(self, m: int, value: float) -> None:
-        if self._quiet_sliders or self.prior is None or value == self._sigmas[m]:
+        if self._quiet_sliders or self.prior is None or value == self._sigmas[m] or not self._bound():
             return
         self._count_input("slider", component=m, value=value)
         self._sigmas[m] = float(value)
@@ -593,6 +774,8 @@ class EditorApp:
         if self.out is None:
             self._message("no output path: start kpd view with --out")
             return
+        if not self._bound():
+            return
         try:
             write_mesh(self.out, self.rig.deformed_mesh(self.session.keypoints))
         except KpdError as exc:
@@ -605,6 +788,8 @@ class EditorApp:
         return self.session_path if self.session_path is not None else Path("kpd_session.json")
 
     def _on_save_session(self) -> None:
+        if not self._bound():
+            return
         path = self._session_file()
         try:
             self.session.save(path, prior=bool(self.settings.prior and self.prior is not None))
@@ -615,6 +800,8 @@ class EditorApp:
         self._emit("save_session", path=str(path))
 
     def _on_load_session(self) -> None:
+        if not self._bound():
+            return
         path = self._session_file()
         try:
             self.session.load(path)
@@ -653,12 +840,12 @@ class EditorApp:
         if self._events is None:
             return
         record: dict[str, Any] = {"event": event, "time": time.time(), **data}
-        if event not in ("input", "frame"):
+        if event not in ("input", "frame") and self.session is not None:
             record.update(selection=list(self.selection), keypoints=self.session.keypoints.tolist(),
                           undo=self.session.depth)
         if event == "frame":
             record["keypoints"] = self.drawing.frame.keypoints.tolist()
-        if event == "ready":
+        if event in ("shown", "ready"):
             view, projection, w, h = self._matrices()
             record.update(view=view.tolist(), projection=projection.tolist(), viewport=[0, 0, w, h],
                           title=self.title, started=self._started,

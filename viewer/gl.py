@@ -24,8 +24,9 @@ import logging
 import math
 import os
 import tempfile
+import threading
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numba
 import numpy as np
@@ -37,6 +38,7 @@ __all__ = ["GLView", "ShadedMesh", "RigDrawing", "Shot", "Layer", "render_shots"
 log = logging.getLogger(__name__)
 
 PROXY_TRIANGLES = 50000  # larger meshes are drawn by a coarse stand-in while a gesture is in progress
+CULL_TRIANGLES = 100_000  # a mesh part with more triangles uploads only those that cover a pixel centre, each frame
 
 
 class NoWindowError(KpdError):
@@ -49,7 +51,7 @@ class NoWindowError(KpdError):
 class _Welding:
     """Vertices grouped by position (``inverse`` (V,): the group of each vertex; ``groups``: how many)."""
 
-    def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray | None = None) -> None:
         from kpd.grouping import merge_coincident
 
         self.inverse = merge_coincident(np.asarray(vertices, dtype=np.float64))[1]  # (V,) group of each vertex
@@ -69,11 +71,12 @@ def shading_normals(vertices: np.ndarray, triangles: np.ndarray, eye: np.ndarray
     welding : the vertex groups of these triangles (computed when not given): vertices at one position share a normal.
 
     Each vertex's normal is the sum of its position's triangles' ``(b - a) x (c - a)`` (area-weighted), in one
-    compiled pass over the triangles (a few tens of milliseconds per million triangles).
+    compiled pass over the triangles (a few tens of milliseconds per million triangles). :class:`ShadedMesh` computes
+    the same sums, bit for bit, on two threads (:class:`_Normals`).
     """
     triangles = np.ascontiguousarray(triangles, dtype=np.int64)
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
-    welding = welding or _Welding(vertices, triangles)
+    welding = welding or _Welding(vertices)
     out = np.empty((len(vertices), 3), dtype=np.float32)
     if not len(vertices):
         return out
@@ -112,6 +115,105 @@ def _welded_normals(vertices, triangles, inverse, groups, eye, towards, out):  #
         out[v, 2] = acc[g, 2]
 
 
+class _Normals:
+    """:func:`shading_normals` of one set of triangles, for new positions again and again: each triangle's turned
+    ``(b - a) x (c - a)`` on two threads, then each position's sum over its triangles' corners, listed once in the
+    serial kernel's order (so the sums are its own, bit for bit), on two threads.
+
+    Parameters
+    ----------
+    triangles : (T, 3) int64.
+    welding : the vertices' groups by position.
+    """
+
+    def __init__(self, triangles: np.ndarray, welding: _Welding) -> None:
+        self.triangles = np.ascontiguousarray(triangles, dtype=np.int64)
+        self.welding = welding
+        corners = welding.inverse[self.triangles].reshape(-1)  # (3T,) the group of each corner
+        self.starts = np.zeros(welding.groups + 1, dtype=np.int64)  # (G + 1,) each group's corners in ``entries``
+        self.entries = np.empty(len(corners), dtype=np.int64)  # (3T,) the triangle of each corner, grouped
+        _corner_lists(corners, self.starts, self.entries)
+        self._face = np.empty((len(self.triangles), 3))  # (T, 3)
+        self._groups = np.empty((welding.groups, 3), dtype=np.float32)  # (G, 3)
+
+    def __call__(self, vertices: np.ndarray, eye: np.ndarray | None) -> np.ndarray:
+        """(G, 3) float32 unit normal of each position (index it with ``welding.inverse`` for the vertices')."""
+        vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+        eye_point = np.zeros(3) if eye is None else np.asarray(eye, dtype=np.float64).reshape(3)
+        _halves(_turned_faces, len(self.triangles), vertices, self.triangles, eye_point, eye is not None, self._face)
+        _halves(_summed_groups, len(self._groups), self._face, self.starts, self.entries, self._groups)
+        return self._groups
+
+
+@numba.njit(cache=True, nogil=True)
+def _corner_lists(corners, starts, entries):  # pragma: no cover - compiled
+    """Counting sort of the corners (3T,) by group: ``entries[starts[g]:starts[g + 1]]`` are the triangles of group
+    g's corners in corner order (a triangle twice if two of its corners are in g)."""
+    for i in range(corners.shape[0]):
+        starts[corners[i] + 1] += 1
+    for g in range(1, starts.shape[0]):
+        starts[g] += starts[g - 1]
+    fill = starts[:-1].copy()
+    for i in range(corners.shape[0]):
+        g = corners[i]
+        entries[fill[g]] = i // 3
+        fill[g] += 1
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _turned_faces(lo, hi, vertices, triangles, eye, towards, out):  # pragma: no cover - compiled
+    for t in range(lo, hi):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
+        ux, uy, uz = vertices[b, 0] - ax, vertices[b, 1] - ay, vertices[b, 2] - az
+        vx, vy, vz = vertices[c, 0] - ax, vertices[c, 1] - ay, vertices[c, 2] - az
+        nx = uy * vz - uz * vy
+        ny = uz * vx - ux * vz
+        nz = ux * vy - uy * vx
+        if towards and nx * (eye[0] - ax) + ny * (eye[1] - ay) + nz * (eye[2] - az) < 0:
+            nx, ny, nz = -nx, -ny, -nz
+        out[t, 0] = nx
+        out[t, 1] = ny
+        out[t, 2] = nz
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _summed_groups(lo, hi, face, starts, entries, out):  # pragma: no cover - compiled
+    for g in range(lo, hi):
+        x = y = z = 0.0
+        for i in range(starts[g], starts[g + 1]):
+            t = entries[i]
+            x += face[t, 0]
+            y += face[t, 1]
+            z += face[t, 2]
+        length = np.sqrt(x ** 2 + y ** 2 + z ** 2)
+        if length == 0.0:
+            length = 1.0
+        out[g, 0] = x / length
+        out[g, 1] = y / length
+        out[g, 2] = z / length
+
+
+_POOL: Any = None
+
+
+def _halves(kernel: Any, n: int, *args: Any) -> None:
+    """``kernel(lo, hi, *args)`` over [0, n): in two halves on two threads (compiled kernels that release the GIL)
+    when the machine has two cores and ``n`` is large, else at once."""
+    global _POOL
+    if n < 200_000 or (os.cpu_count() or 1) < 2:
+        kernel(0, n, *args)
+        return
+    if _POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL = ThreadPoolExecutor(2, thread_name_prefix="kpd-draw")  # two callers at once each get one
+    half = n // 2
+    other = _POOL.submit(kernel, half, n, *args)
+    kernel(0, half, *args)
+    other.result()
+
+
 def camera_lights(camera: Any) -> np.ndarray:
     """(2, 3) unit directions towards a key light (above left, in front) and a fill light (right), fixed to the
     camera so that every view of a shape is lit alike."""
@@ -126,7 +228,8 @@ def camera_lights(camera: Any) -> np.ndarray:
 
 
 def shade(albedo: np.ndarray, normals: np.ndarray, camera: Any) -> np.ndarray:
-    """(N, 3) colours in [0, 1]: ``albedo`` (N, 3) lit by :func:`camera_lights` (ambient + Lambert) at ``normals``.
+    """(N, 3) colours in [0, 1]: ``albedo`` (N, 3) or (3,) lit by :func:`camera_lights` (ambient + Lambert) at
+    ``normals`` (N, 3).
 
     The renderer draws unlit (Open3D's legacy lights saturate on surfaces facing the camera and cannot be set from
     Python), so shading is computed here, the same for every picture and the editor."""
@@ -138,8 +241,216 @@ def shade(albedo: np.ndarray, normals: np.ndarray, camera: Any) -> np.ndarray:
     return np.minimum(colors, 1.0, out=colors)
 
 
+# --- what a frame draws: the triangles that show in a pixel ---------------------------------------------------------
+
+
+class Viewport:
+    """Where a view draws: ``width`` x ``height`` pixels seen through a look-at ``camera`` with a symmetric frustum
+    (:meth:`GLView.set_camera`), for :func:`visible_triangles`."""
+
+    def __init__(self, camera: Any, width: int, height: int) -> None:
+        from kpd.viewer.camera import look_at_matrix
+
+        self.camera, self.width, self.height = camera, int(width), int(height)
+        self.view = look_at_matrix(camera)  # (4, 4) world -> camera, looking down -z
+        self.focal = self.height / 2 / math.tan(math.radians(camera.fov) / 2)  # pixels
+
+
+# Depth by which a triangle must lie behind one that surely covers a pixel centre to be left out there, as a share
+# of the depth: far above the depth buffer's steps (24 bits over Open3D's near and far planes: about 4e-6 of the
+# depth at the default camera; 1e-3 with 16 bits) and float32 rounding.
+DEPTH_SLACK = 3e-3
+
+
+def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Viewport) -> np.ndarray:
+    """(T,) bool: the triangles that may show in a pixel of the viewport; a frame drawn without the others is the
+    same picture.
+
+    A rasteriser makes a triangle's fragments at the pixel centres it covers, and keeps at each the nearest. A
+    scan-sized mesh in a window has many triangles per pixel: of the 2.75M distinct triangles of a 1.37M-vertex chair
+    seen whole at 960 x 720, one in six covers a pixel centre and fewer than one in ten is in front there; drawing
+    only those (which is what a rasteriser spends its time finding out) makes a frame several times cheaper. Each
+    vertex is projected as the view projects it; a corner may land up to ``delta`` pixels away in the rasteriser
+    (sub-pixel snapping and float32 rounding, :func:`_margin`), which moves a pixel centre's edge functions by at
+    most ``delta (2 D + L)`` (D the triangle's extent on the screen, L the edge's length). Two passes:
+
+    1. at each pixel centre, the depth behind which nothing of the triangles that surely cover it (inside by that
+       bound) lies: the smallest of their farthest corners' depths;
+    2. a triangle is kept if it may cover a pixel centre (within that bound, either winding) where its nearest
+       corner is not behind that depth by more than :data:`DEPTH_SLACK` of it.
+
+    A triangle with a corner behind the camera or over more than 16 pixel centres is kept untested.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float64.
+    triangles : (T, 3) int.
+    viewport : Viewport.
+    """
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    triangles = np.ascontiguousarray(triangles)
+    screen = np.empty((len(vertices), 3))  # (V, 3) window x, y (y up) and the depth along the view axis
+    _halves(_project, len(vertices), vertices, viewport.view, viewport.focal, viewport.width / 2,
+            viewport.height / 2, screen)
+    delta = _margin(vertices, viewport)
+    w, h = viewport.width, viewport.height
+    depth = np.full((2, h * w), np.inf)  # (2, H W) per pixel, one row per thread
+    _halves(_fronts, len(triangles), triangles, screen, w, h, delta, depth)
+    front = np.minimum(depth[0], depth[1])  # (H W,)
+    keep = np.empty(len(triangles), dtype=np.bool_)
+    _halves(_showing, len(triangles), triangles, screen, w, h, delta, front, DEPTH_SLACK, keep)
+    return keep
+
+
+def _margin(vertices: np.ndarray, viewport: Viewport) -> float:
+    """Pixels by which a drawn vertex may stray from its float64 projection: 1/128 (four times llvmpipe's 8-bit
+    sub-pixel snapping, 1/512) plus a few float32 roundings of the coordinates and the camera transform, seen at the
+    nearest point of the vertices' bounding box."""
+    if not len(vertices):
+        return 1.0 / 128
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    eye = np.asarray(viewport.camera.eye, dtype=np.float64)
+    nearest = float(np.linalg.norm(np.maximum(lo - eye, 0.0) + np.maximum(eye - hi, 0.0)))  # eye to the box
+    size = float(max(np.abs(lo).max(), np.abs(hi).max(), np.abs(eye).max()))
+    rounding = 16 * size * 2.0 ** -24  # units
+    return 1.0 / 128 + viewport.focal * rounding / max(nearest, rounding, 1e-300)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _project(lo, hi, vertices, view, focal, half_width, half_height, screen):  # pragma: no cover - compiled
+    """Window coordinates (x right, y up) and depth in front of the camera (<= 0: not in front)."""
+    for i in range(lo, hi):
+        px, py, pz = vertices[i, 0], vertices[i, 1], vertices[i, 2]
+        x = view[0, 0] * px + view[0, 1] * py + view[0, 2] * pz + view[0, 3]
+        y = view[1, 0] * px + view[1, 1] * py + view[1, 2] * pz + view[1, 3]
+        z = view[2, 0] * px + view[2, 1] * py + view[2, 2] * pz + view[2, 3]
+        screen[i, 2] = -z
+        if z < 0.0:
+            screen[i, 0] = half_width + focal * x / -z
+            screen[i, 1] = half_height + focal * y / -z
+        else:
+            screen[i, 0] = screen[i, 1] = 0.0
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _fronts(lo, hi, triangles, screen, width, height, delta, depth):  # pragma: no cover - compiled
+    """Pass 1 of :func:`visible_triangles`, into ``depth[0]`` for a range from 0 and ``depth[1]`` for the other
+    (:func:`_halves`' second thread)."""
+    out = depth[0] if lo == 0 else depth[1]
+    for t in range(lo, hi):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        za, zb, zc = screen[a, 2], screen[b, 2], screen[c, 2]
+        if not (za > 0.0 and zb > 0.0 and zc > 0.0):
+            continue
+        ax, ay, bx, by, cx, cy = screen[a, 0], screen[a, 1], screen[b, 0], screen[b, 1], screen[c, 0], screen[c, 1]
+        x0, x1, y0, y1 = min(ax, bx, cx), max(ax, bx, cx), min(ay, by, cy), max(ay, by, cy)
+        i0, i1 = max(math.ceil(x0 - 0.5), 0), min(math.floor(x1 - 0.5), width - 1)
+        j0, j1 = max(math.ceil(y0 - 0.5), 0), min(math.floor(y1 - 0.5), height - 1)
+        if i0 > i1 or j0 > j1 or (i1 - i0 + 1) * (j1 - j0 + 1) > 4096:
+            continue
+        area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)  # twice the signed area
+        sign = 1.0 if area > 0.0 else -1.0
+        reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + 2.0 * delta
+        m0 = delta * (reach + math.sqrt((bx - ax) ** 2 + (by - ay) ** 2))
+        m1 = delta * (reach + math.sqrt((cx - bx) ** 2 + (cy - by) ** 2))
+        m2 = delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
+        far = max(za, zb, zc)  # nothing of the triangle lies behind its farthest corner
+        for i in range(i0, i1 + 1):
+            sx = i + 0.5
+            for j in range(j0, j1 + 1):
+                sy = j + 0.5
+                e0 = sign * ((bx - ax) * (sy - ay) - (by - ay) * (sx - ax))
+                e1 = sign * ((cx - bx) * (sy - by) - (cy - by) * (sx - bx))
+                e2 = sign * ((ax - cx) * (sy - cy) - (ay - cy) * (sx - cx))
+                if e0 >= m0 and e1 >= m1 and e2 >= m2:  # surely inside
+                    p = j * width + i
+                    if far < out[p]:
+                        out[p] = far
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _showing(lo, hi, triangles, screen, width, height, delta, front, slack, keep):  # pragma: no cover - compiled
+    """Pass 2 of :func:`visible_triangles`."""
+    for t in range(lo, hi):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        za, zb, zc = screen[a, 2], screen[b, 2], screen[c, 2]
+        if not (za > 0.0 and zb > 0.0 and zc > 0.0):
+            keep[t] = True  # crosses the camera's plane: left to the clipper
+            continue
+        ax, ay, bx, by, cx, cy = screen[a, 0], screen[a, 1], screen[b, 0], screen[b, 1], screen[c, 0], screen[c, 1]
+        x0, x1, y0, y1 = min(ax, bx, cx), max(ax, bx, cx), min(ay, by, cy), max(ay, by, cy)
+        reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + 2.0 * delta
+        # the pixel centres the triangle may cover lie within delta of its box
+        i0, i1 = max(math.ceil(x0 - delta - 0.5), 0), min(math.floor(x1 + delta - 0.5), width - 1)
+        j0, j1 = max(math.ceil(y0 - delta - 0.5), 0), min(math.floor(y1 + delta - 0.5), height - 1)
+        if i0 > i1 or j0 > j1:
+            keep[t] = False
+            continue
+        if (i1 - i0 + 1) * (j1 - j0 + 1) > 16:
+            keep[t] = True
+            continue
+        m0 = delta * (reach + math.sqrt((bx - ax) ** 2 + (by - ay) ** 2))
+        m1 = delta * (reach + math.sqrt((cx - bx) ** 2 + (cy - by) ** 2))
+        m2 = delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
+        near = min(za, zb, zc) / (1.0 + slack)  # nothing of the triangle lies before its nearest corner
+        shows = False
+        for i in range(i0, i1 + 1):
+            sx = i + 0.5
+            for j in range(j0, j1 + 1):
+                sy = j + 0.5
+                if near > front[j * width + i]:
+                    continue  # behind what surely covers this centre
+                e0 = (bx - ax) * (sy - ay) - (by - ay) * (sx - ax)
+                e1 = (cx - bx) * (sy - by) - (cy - by) * (sx - bx)
+                e2 = (ax - cx) * (sy - cy) - (ay - cy) * (sx - cx)
+                if (e0 >= -m0 and e1 >= -m1 and e2 >= -m2) or (e0 <= m0 and e1 <= m1 and e2 <= m2):
+                    shows = True
+                    break
+            if shows:
+                break
+        keep[t] = shows
+
+
+@numba.njit(cache=True, nogil=True)
+def _compact(triangles, keep, remap, used, local):  # pragma: no cover - compiled
+    """The kept triangles over their own vertices: ``used[:n]`` the vertices in order of first use, ``local[:m]`` the
+    kept triangles indexing ``used``; returns (n, m). ``remap`` (V,) must hold -1 and is left so."""
+    n = 0
+    m = 0
+    for t in range(triangles.shape[0]):
+        if not keep[t]:
+            continue
+        for k in range(3):
+            v = triangles[t, k]
+            if remap[v] < 0:
+                remap[v] = n
+                used[n] = v
+                n += 1
+            local[m, k] = remap[v]
+        m += 1
+    for i in range(n):
+        remap[used[i]] = -1
+    return n, m
+
+
+# --- meshes to draw ---------------------------------------------------------------------------------------------------
+
+
+class _Part:
+    """One legacy ``TriangleMesh`` of a :class:`ShadedMesh`: the triangles (into the whole mesh's vertices) it draws,
+    their base colours (per vertex of the whole mesh, or one colour; None for a texture) and corner UVs."""
+
+    def __init__(self, geometry: Any, triangles: np.ndarray, albedo: np.ndarray | None, uvs: np.ndarray | None) -> None:
+        self.geometry, self.triangles, self.albedo, self.uvs = geometry, triangles, albedo, uvs
+        self.layout: tuple[np.ndarray, np.ndarray] | None = None  # (used, local) of all triangles, once uploaded
+
+
 class ShadedMesh:
     """A mesh as legacy Open3D geometries: one ``TriangleMesh`` per texture (or one for the whole mesh).
+
+    Each frame (:meth:`set_vertices`) uploads the triangles that cover a pixel centre (:func:`visible_triangles`),
+    over their own vertices, with colours shaded by the mesh's shading normals (:class:`_Normals`): what the picture
+    needs of a mesh with more triangles than pixels, and the same picture.
 
     Parameters
     ----------
@@ -151,33 +462,26 @@ class ShadedMesh:
         import open3d as o3d
 
         self.mesh = mesh
-        self.triangles = np.asarray(mesh.triangles, dtype=np.int64)
-        self.welding = _Welding(mesh.vertices, self.triangles)
-        self.parts: list[tuple[np.ndarray, Any]] = []  # (used vertex indices or None for all, TriangleMesh)
-        self._albedo: list[np.ndarray | None] = []  # per part: (Vp, 3) base colours to light, None for a texture
-        t = len(self.triangles)
+        triangles = np.asarray(mesh.triangles, dtype=np.int64)
+        self.welding = _Welding(mesh.vertices)
+        self.parts: list[_Part] = []
+        t = len(triangles)
         textured = bool(mesh.textures) and mesh.triangle_uvs is not None and not override
         ids = (mesh.triangle_material_ids if mesh.triangle_material_ids is not None else np.zeros(t, np.int64)) \
             if textured else np.zeros(t, np.int64)
         for material in np.unique(ids) if textured and t else [0]:
             chosen = np.flatnonzero(ids == material) if textured else np.arange(t)
-            present = np.zeros(len(mesh.vertices), dtype=bool)
-            present[self.triangles[chosen]] = True
-            whole = bool(present.all())
-            used = np.flatnonzero(present)  # sorted, as the local indices below need
             part = o3d.geometry.TriangleMesh()
-            part.vertices = o3d.utility.Vector3dVector(mesh.vertices if whole else mesh.vertices[used])
-            local = self.triangles[chosen] if whole else np.searchsorted(used, self.triangles[chosen])
             texture = mesh.textures[int(material)] if textured and 0 <= material < len(mesh.textures) else None
             if texture is None or texture.shape[0] * texture.shape[1] == 1:
                 # a triangle over the same corners as an earlier one draws nothing new: two-sided lighting and back
                 # faces shown (CAD meshes store many triangles twice, once each way round: half of ShapeNet's)
-                local = local[distinct_triangles(local)]
-            part.triangles = o3d.utility.Vector3iVector(local.astype(np.int32))
+                chosen = chosen[distinct_triangles(triangles[chosen])]
+            uvs = None
             if texture is not None and texture.shape[0] * texture.shape[1] == 1:
                 # a material's plain colour (kpd.io reads an OBJ material without a map as a 1x1 image): shaded
                 rgb = texture.reshape(-1)[:3] if texture.shape[-1] >= 3 else np.repeat(texture.reshape(-1)[:1], 3)
-                albedo = np.tile(rgb.astype(np.float32) / 255.0, (len(used), 1))
+                albedo = rgb.astype(np.float32) / 255.0  # (3,)
             elif texture is not None:
                 corners = (3 * chosen[:, None] + np.arange(3)).ravel()  # (3 Tp,)
                 uvs = np.array(mesh.triangle_uvs[corners], dtype=np.float64).reshape(-1, 3, 2)
@@ -186,87 +490,224 @@ class ShadedMesh:
                 uvs -= np.floor(uvs.min(axis=1, keepdims=True))
                 # within the outer texel centres: the renderer's border (black) lies beyond them
                 edge = 0.5 / np.array([texture.shape[1], texture.shape[0]], dtype=np.float64)
-                uvs = np.clip(uvs, edge, 1.0 - edge).reshape(-1, 2)
-                uvs[:, 1] = 1.0 - uvs[:, 1]  # the legacy renderer reads v from the top row down
-                part.triangle_uvs = o3d.utility.Vector2dVector(uvs)
+                uvs = np.clip(uvs, edge, 1.0 - edge)
+                uvs[:, :, 1] = 1.0 - uvs[:, :, 1]  # (Tp, 3, 2); the legacy renderer reads v from the top row down
                 image = np.ascontiguousarray(texture[:, :, :3] if texture.ndim == 3 else
                                              np.repeat(texture[:, :, None], 3, axis=2))
                 part.textures = [o3d.geometry.Image(image)]
-                part.triangle_material_ids = o3d.utility.IntVector(np.zeros(len(chosen), np.int32))
                 albedo = None
             elif mesh.vertex_colors is not None and not override:
-                albedo = np.asarray(mesh.vertex_colors if whole else mesh.vertex_colors[used], dtype=np.float32)
+                albedo = np.asarray(mesh.vertex_colors, dtype=np.float32)  # (V, 3)
             else:
-                albedo = np.tile(np.asarray(color, dtype=np.float32)[:3], (len(used), 1))
-            self.parts.append((None if whole else used, part))
-            self._albedo.append(albedo)
+                albedo = np.asarray(color, dtype=np.float32)[:3]  # (3,)
+            self.parts.append(_Part(part, np.ascontiguousarray(triangles[chosen]), albedo, uvs))
+        drawn = np.concatenate([p.triangles for p in self.parts]) if self.parts else np.zeros((0, 3), np.int64)
+        self._normals = _Normals(drawn, self.welding)  # shading normals from the triangles drawn
+        self._remap = np.full(len(mesh.vertices), -1, dtype=np.int32)  # (V,) scratch of _compact
+        self._used = np.empty(len(mesh.vertices), dtype=np.int64)
+        self._local = np.empty((max((len(p.triangles) for p in self.parts), default=0), 3), dtype=np.int32)
+        self._lock = threading.Lock()  # one preparation at a time: it works in the scratch arrays above
 
     @property
     def geometries(self) -> list[Any]:
-        return [part for _, part in self.parts]
+        return [part.geometry for part in self.parts]
 
-    def set_vertices(self, vertices: np.ndarray, camera: Any) -> None:
-        """New vertex positions (V, 3), shaded as ``camera`` sees them (normals turned towards it)."""
+    @property
+    def drawn(self) -> np.ndarray:
+        """(D, 3) int64: the triangles drawn (each set of corners once where the two sides shade alike)."""
+        return self._normals.triangles
+
+    def set_vertices(self, vertices: np.ndarray, camera: Any, viewport: Viewport | None = None) -> None:
+        """New vertex positions (V, 3), shaded as ``camera`` sees them (normals turned towards it); with ``viewport``
+        (the view's size and this camera), only the triangles that show in a pixel are uploaded."""
+        self.upload(self.prepare(vertices, camera, viewport))
+
+    def prepare(self, vertices: np.ndarray, camera: Any, viewport: Viewport | None = None) -> list:
+        """What :meth:`set_vertices` uploads, worked out without touching the geometries: a thread may prepare a
+        frame while the main thread draws others (one preparation at a time)."""
+        vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+        with self._lock:
+            normals = self._normals(vertices, camera.eye) if any(p.albedo is not None for p in self.parts) else None
+            return [self._prepare_part(part, vertices, normals, camera, viewport) for part in self.parts]
+
+    def _prepare_part(self, part: _Part, vertices: np.ndarray, normals: np.ndarray | None, camera: Any,
+                      viewport: Viewport | None) -> _Upload:
+        layout = part.layout
+        triangles = uvs = None
+        if viewport is not None and len(part.triangles) > CULL_TRIANGLES:
+            keep = visible_triangles(vertices, part.triangles, viewport)
+            n, m = _compact(part.triangles, keep, self._remap, self._used, self._local)
+            used, triangles = self._used[:n], self._local[:m].copy()
+            part.layout = None
+        elif layout is None:  # every triangle, uploaded once
+            keep = np.ones(len(part.triangles), dtype=np.bool_)
+            n, m = _compact(part.triangles, keep, self._remap, self._used, self._local)
+            used, triangles = self._used[:n].copy(), self._local[:m].copy()
+            part.layout = (used, triangles)
+        else:
+            keep, (used, _) = None, layout
+        if triangles is not None and part.albedo is None:
+            uvs = part.uvs[keep].reshape(-1, 2)
+        colors = None
+        if part.albedo is not None:
+            albedo = part.albedo if part.albedo.ndim == 1 else part.albedo[used]
+            colors = shade(albedo, normals[self.welding.inverse[used]], camera).astype(np.float64)
+        return _Upload(vertices[used], triangles, colors, uvs)
+
+    def upload(self, uploads: list) -> None:
+        """Put a :meth:`prepare`'s arrays into the geometries (Open3D copies them: float64 rows at memcpy speed)."""
         import open3d as o3d
 
-        vertices = np.asarray(vertices, dtype=np.float64)
-        normals = shading_normals(vertices, self.triangles, camera.eye, welding=self.welding)
-        for (used, part), albedo in zip(self.parts, self._albedo):
-            part.vertices = o3d.utility.Vector3dVector(vertices if used is None else vertices[used])
-            n = normals if used is None else normals[used]
-            # Vector3dVector copies float64 rows at memcpy speed, other dtypes element by element
-            part.vertex_normals = o3d.utility.Vector3dVector(n.astype(np.float64))
-            if albedo is not None:
-                part.vertex_colors = o3d.utility.Vector3dVector(shade(albedo, n, camera).astype(np.float64))
+        for part, up in zip(self.parts, uploads):
+            geometry = part.geometry
+            geometry.vertices = o3d.utility.Vector3dVector(up.vertices)
+            if up.triangles is not None:
+                geometry.triangles = o3d.utility.Vector3iVector(up.triangles)
+                if up.uvs is not None:
+                    geometry.triangle_uvs = o3d.utility.Vector2dVector(up.uvs)
+                    geometry.triangle_material_ids = o3d.utility.IntVector(np.zeros(len(up.triangles), np.int32))
+            if up.colors is not None:
+                geometry.vertex_colors = o3d.utility.Vector3dVector(up.colors)
+
+
+class _Upload(NamedTuple):
+    """One part's arrays for the next frame: vertices (n, 3) float64, triangles (m, 3) int32 into them (None: as
+    uploaded before), colours (n, 3) float64 or None, corner UVs (3m, 2) or None."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray | None
+    colors: np.ndarray | None
+    uvs: np.ndarray | None
 
 
 def distinct_triangles(triangles: np.ndarray) -> np.ndarray:
-    """(T',) sorted indices of the first triangle over each set of three corners (whatever their order)."""
+    """(T',) sorted indices of the first triangle over each set of three corners (whatever their order); by a counting
+    sort on each triangle's smallest corner, in linear time (the same as :func:`_distinct_triangles_reference`)."""
+    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
+    if not len(triangles):
+        return np.zeros(0, dtype=np.int64)
+    top = int(triangles.max()) + 1
+    keep = np.zeros(len(triangles), dtype=np.bool_)
+    _first_distinct(triangles, np.arange(top, dtype=np.int64), top, False, keep)
+    return np.flatnonzero(keep)
+
+
+@numba.njit(cache=True, nogil=True)
+def _first_distinct(triangles, mapping, top, drop_collapsed, keep):  # pragma: no cover - compiled
+    """``keep[t]``: no earlier triangle has the corners of t, each corner taken through ``mapping`` (into [0, top));
+    with ``drop_collapsed``, triangles with two equal corners are not kept. Triangles are bucketed by their smallest
+    corner (a counting sort, in triangle order), then compared on the other two within a bucket."""
+    n = triangles.shape[0]
+    low = np.empty(n, dtype=np.int64)
+    rest = np.empty(n, dtype=np.int64)  # the two larger corners as one number
+    starts = np.zeros(top + 1, dtype=np.int64)
+    for t in range(n):
+        a, b, c = mapping[triangles[t, 0]], mapping[triangles[t, 1]], mapping[triangles[t, 2]]
+        if a > b:
+            a, b = b, a
+        if b > c:
+            b, c = c, b
+        if a > b:
+            a, b = b, a
+        if drop_collapsed and (a == b or b == c):
+            low[t] = -1
+            continue
+        low[t] = a
+        rest[t] = b * top + c
+        starts[a + 1] += 1
+    for v in range(top):
+        starts[v + 1] += starts[v]
+    fill = starts[:-1].copy()
+    order = np.empty(starts[top], dtype=np.int64)
+    for t in range(n):
+        if low[t] >= 0:
+            order[fill[low[t]]] = t
+            fill[low[t]] += 1
+    for v in range(top):
+        for i in range(starts[v], starts[v + 1]):
+            key = rest[order[i]]
+            seen = False
+            for j in range(starts[v], i):
+                if rest[order[j]] == key:
+                    seen = True
+                    break
+            keep[order[i]] = not seen
+
+
+def _distinct_triangles_reference(triangles: np.ndarray) -> np.ndarray:
+    """:func:`distinct_triangles` by sorting: the corners of each triangle sorted, then the rows."""
     triangles = np.asarray(triangles, dtype=np.int64)
     if not len(triangles):
         return np.zeros(0, dtype=np.int64)
     ordered = np.sort(triangles, axis=1)
-    top = int(ordered.max()) + 1
-    if top < 1 << 21:  # three indices in one int64
-        _, first = np.unique((ordered[:, 0] << 42) | (ordered[:, 1] << 21) | ordered[:, 2], return_index=True)
-    else:
-        order = np.lexsort(ordered.T[::-1])
-        new = np.ones(len(order), dtype=bool)
-        new[1:] = (ordered[order[1:]] != ordered[order[:-1]]).any(axis=1)
-        first = order[new]
-    return np.sort(first)
+    order = np.lexsort(ordered.T[::-1])
+    new = np.ones(len(order), dtype=bool)
+    new[1:] = (ordered[order[1:]] != ordered[order[:-1]]).any(axis=1)
+    return np.sort(order[new])
 
 
 def proxy_triangles(vertices: np.ndarray, triangles: np.ndarray, limit: int) -> tuple[np.ndarray, np.ndarray] | None:
     """A coarse stand-in of a large mesh for frames drawn during a gesture: vertices clustered on a grid, one
-    original vertex kept per cell, triangles that collapse dropped.
+    original vertex kept per cell, triangles that collapse dropped (and each set of corners once).
 
     Returns None when the mesh has at most ``limit`` triangles, else ``(kept, faces)``: (P,) indices of the kept
     original vertices and (Q, 3) triangles into ``kept`` with Q <= ``limit``. Its vertices are original vertices, so
     the stand-in of a deformed mesh is the deformed mesh's rows ``kept``: no deformation of its own.
     """
-    vertices = np.asarray(vertices, dtype=np.float64)
-    triangles = np.asarray(triangles, dtype=np.int64)
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
     if len(triangles) <= limit:
         return None
     lo = vertices.min(axis=0)
     extent = float(np.ptp(vertices, axis=0).max()) or 1.0
     size = extent / math.sqrt(limit)  # about sqrt(limit) cells across the largest side
+    cluster = np.empty(len(vertices), dtype=np.int64)  # (V,) the cell of each vertex, numbered as first met
+    first = np.empty(len(vertices), dtype=np.int64)
+    keep = np.empty(len(triangles), dtype=np.bool_)
     for _ in range(12):
-        cells = np.floor((vertices - lo) / size).astype(np.int64)  # (V, 3)
-        span = cells.max(axis=0) + 1
-        key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]  # (V,) one number per cell
-        _, kept, cluster = np.unique(key, return_index=True, return_inverse=True)
-        faces = cluster.reshape(-1)[triangles]  # (T, 3)
-        faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
-        n = len(kept)
-        ordered = np.sort(faces, axis=1)
-        _, unique = np.unique((ordered[:, 0] * n + ordered[:, 1]) * n + ordered[:, 2], return_index=True)
-        faces = faces[np.sort(unique)]
+        span = np.floor((vertices.max(axis=0) - lo) / size).astype(np.int64) + 1  # cells along each axis
+        count = _cells(vertices, lo, size, span, cluster, first)
+        keep[:] = False
+        _first_distinct(triangles, cluster, count, True, keep)
+        faces = cluster[triangles[keep]]  # (Q, 3)
         if len(faces) <= limit:
-            return kept, faces
+            return first[:count].copy(), faces
         size *= 1.1 * math.sqrt(len(faces) / limit)
-    return kept, faces[:limit]
+    return first[:count].copy(), faces[:limit]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _cells(vertices, lo, size, span, group, first):  # pragma: no cover - compiled
+    """Vertices grouped by grid cell (``floor((v - lo) / size)`` on each axis) with a hash table: ``group[v]``
+    numbers the cells as first met, ``first[g]`` is the first vertex in cell g; returns the number of cells."""
+    n = vertices.shape[0]
+    keys = np.empty(n, dtype=np.int64)
+    slots = 1
+    while slots < 2 * n:
+        slots *= 2
+    table = np.full(slots, -1, dtype=np.int64)
+    mask = slots - 1
+    count = 0
+    for v in range(n):
+        ix = int(np.floor((vertices[v, 0] - lo[0]) / size))
+        iy = int(np.floor((vertices[v, 1] - lo[1]) / size))
+        iz = int(np.floor((vertices[v, 2] - lo[2]) / size))
+        k = (ix * span[1] + iy) * span[2] + iz
+        keys[v] = k
+        h = ((k * 2654435761) ^ (k >> 17)) & mask
+        while True:
+            g = table[h]
+            if g < 0:
+                table[h] = count
+                first[count] = v
+                group[v] = count
+                count += 1
+                break
+            if keys[first[g]] == k:
+                group[v] = g
+                break
+            h = (h + 1) & mask
+    return count
 
 
 # --- the window ----------------------------------------------------------------------------------------------------
@@ -325,6 +766,26 @@ class GLView:
         self._shown: dict[str, bool] = {}
         self._boxed = False
         self.camera: Any = None
+        # frames upload only the triangles that show in a pixel (visible_triangles) when OpenGL draws the window's
+        # pixels, one sample at each centre: not on a display that scales the window, nor with multisampling (Open3D
+        # asks for 4 samples; Mesa's software renderer, under Xvfb or EGL, has none)
+        intrinsic = self.vis.get_view_control().convert_to_pinhole_camera_parameters().intrinsic
+        self._culls = (intrinsic.width, intrinsic.height) == (self.width, self.height) and not self._multisampled()
+
+    def _multisampled(self) -> bool:
+        """Whether the edges of a black triangle on white come out with shades between (anti-aliased)."""
+        import open3d as o3d
+
+        probe = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.array([[0, 0, 0], [1, 0.1, 0], [0.3, 1, 0.0]])),
+                                          o3d.utility.Vector3iVector(np.array([[0, 1, 2]], dtype=np.int32)))
+        probe.vertex_colors = o3d.utility.Vector3dVector(np.zeros((3, 3)))
+        background = self.vis.get_render_option().background_color.copy()
+        self.vis.get_render_option().background_color = np.ones(3)
+        self.vis.add_geometry(probe, reset_bounding_box=True)
+        image = np.asarray(self.vis.capture_screen_float_buffer(do_render=True))[:, :, 0]
+        self.vis.remove_geometry(probe, reset_bounding_box=False)
+        self.vis.get_render_option().background_color = background
+        return bool(((image > 0.02) & (image < 0.98)).any())
 
     # geometry
 
@@ -384,6 +845,11 @@ class GLView:
         self._boxed = True
 
     # camera
+
+    def viewport(self, camera: Any) -> Viewport | None:
+        """The view's pixels seen through ``camera``, for drawing only the triangles that cover a pixel centre
+        (:func:`visible_triangles`); None when OpenGL draws another number of pixels than the window's."""
+        return Viewport(camera, self.width, self.height) if self._culls else None
 
     def set_camera(self, camera: Any) -> None:
         """Look from ``camera.eye`` at ``camera.center`` with ``camera.up`` and vertical ``camera.fov``."""
@@ -550,40 +1016,49 @@ class RigDrawing:
     ----------
     view : GLView.
     mesh : kpd.io.Mesh, the rest mesh in user units.
-    num_keypoints : K.
+    num_keypoints : K (0: the mesh alone, until :meth:`set_keypoints`, while the editor binds it).
     cage_faces : (F, 3) or None.
     settings : kpd.viewer.render.ViewSettings.
     digits : draw the keypoint numbers as camera-facing glyphs (the editor); pictures draw them into the image.
     """
 
-    def __init__(self, view: GLView, mesh: Any, num_keypoints: int, cage_faces: Any = None, *, settings: Any,
+    def __init__(self, view: GLView, mesh: Any, num_keypoints: int = 0, cage_faces: Any = None, *, settings: Any,
                  digits: bool = True) -> None:
-        from kpd.viewer.render import cage_edges, keypoint_palette
-
         self.view, self.mesh, self.settings = view, mesh, settings
-        self.num_keypoints = int(num_keypoints)
-        self.colors = keypoint_palette(self.num_keypoints)
         lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
         self.diagonal = float(np.linalg.norm(hi - lo)) or 1.0
         self.shaded = ShadedMesh(mesh, settings.mesh_color)
-        self.proxy: ShadedMesh | None = None
-        self._kept: np.ndarray | None = None
-        stand_in = proxy_triangles(mesh.vertices, mesh.triangles, PROXY_TRIANGLES)
-        if stand_in is not None:
-            from kpd.io import Mesh
-
-            self._kept, faces = stand_in
-            colors = None if mesh.vertex_colors is None else mesh.vertex_colors[self._kept]
-            self.proxy = ShadedMesh(Mesh(vertices=mesh.vertices[self._kept], triangles=faces, vertex_colors=colors),
-                                    settings.mesh_color)
-        self.markers = Markers(self.colors, self.marker_radius)
-        self.cage_edges = None if cage_faces is None else cage_edges(cage_faces)
+        self.proxy: ShadedMesh | None = None  # the coarse stand-in of a large mesh (set_stand_in)
+        self._kept: np.ndarray | None = None  # (P,) the mesh's vertices the stand-in is made of
+        self._with_digits = digits
         self._edges = None
-        self.digits = Digits(self.colors, 1.5 * self.marker_radius) if digits else None
         self.frame: Any = None
-        self._eye: np.ndarray | None = None
+        self._camera: Any = None  # the camera the shown mesh was shaded and culled for
         self._proxy_shown = False
         self._cage: Any = None  # the cage wireframe, its points updated in place
+        self.set_keypoints(num_keypoints, cage_faces)
+
+    def set_keypoints(self, num_keypoints: int, cage_faces: Any = None) -> None:
+        """Draw ``num_keypoints`` markers (and numbers) and, with ``cage_faces``, the cage (a drawing that started
+        with the mesh alone gets them when its rig is bound)."""
+        from kpd.viewer.render import cage_edges, keypoint_palette
+
+        self.num_keypoints = int(num_keypoints)
+        self.colors = keypoint_palette(self.num_keypoints)
+        self.markers = Markers(self.colors, self.marker_radius) if self.num_keypoints else None
+        self.cage_edges = None if cage_faces is None else cage_edges(cage_faces)
+        self.digits = Digits(self.colors, 1.5 * self.marker_radius) if self._with_digits and self.num_keypoints \
+            else None
+
+    def set_stand_in(self, kept: np.ndarray, faces: np.ndarray) -> None:
+        """The coarse stand-in drawn during gestures: ``(kept, faces)`` of :func:`proxy_triangles` for this mesh
+        (made off the main thread: it takes a second or more for millions of triangles)."""
+        from kpd.io import Mesh
+
+        colors = None if self.mesh.vertex_colors is None else self.mesh.vertex_colors[kept]
+        self.proxy = ShadedMesh(Mesh(vertices=self.mesh.vertices[kept], triangles=faces, vertex_colors=colors),
+                                self.settings.mesh_color)
+        self._kept = kept
 
     @property
     def marker_radius(self) -> float:
@@ -605,23 +1080,28 @@ class RigDrawing:
             self._edges = mesh_edges(self.mesh.triangles)
         return self._edges
 
-    def show(self, frame: Any, camera: Any, *, mesh: bool = True, fast: bool = False) -> None:
+    def show(self, frame: Any, camera: Any, *, mesh: bool = True, fast: bool = False, prepared: list | None = None
+             ) -> None:
         """Put ``frame`` (a kpd.viewer.render.Frame) in the view as ``camera`` sees it.
 
-        ``fast``: a frame during a gesture; a mesh of more than :data:`PROXY_TRIANGLES` triangles is then drawn by its
-        coarse stand-in (:func:`proxy_triangles`), and in full again by the next frame that is not fast.
+        ``fast``: a frame during a gesture; a mesh with a stand-in (:meth:`set_stand_in`) is then drawn by it, and in
+        full again by the next frame that is not fast. ``prepared``: the whole mesh's
+        :meth:`ShadedMesh.prepare` of ``frame.vertices`` for ``camera`` (made on another thread), uploaded as it is.
         """
         import open3d as o3d
 
         s, view = self.settings, self.view
         view.camera = camera
-        eye = np.asarray(camera.eye, dtype=np.float64)
-        moved_eye = self._eye is None or not np.allclose(eye, self._eye)
+        moved = self._camera is None or not _same_camera(camera, self._camera)
         use_proxy = fast and self.proxy is not None
-        if mesh or moved_eye or self.frame is None or use_proxy != self._proxy_shown:
+        if mesh or moved or self.frame is None or use_proxy != self._proxy_shown:
             shown, hidden = (self.proxy, self.shaded) if use_proxy else (self.shaded, self.proxy)
-            shown.set_vertices(frame.vertices[self._kept] if use_proxy else frame.vertices, camera)
-            self._eye = eye.copy()
+            if prepared is not None and not use_proxy:
+                shown.upload(prepared)
+            else:
+                shown.set_vertices(frame.vertices[self._kept] if use_proxy else frame.vertices, camera,
+                                   view.viewport(camera))
+            self._camera = camera
             prefix, other = ("proxy", "mesh") if use_proxy else ("mesh", "proxy")
             for i, part in enumerate(shown.geometries):
                 view.put(f"{prefix}:{i}", part, show=not s.xray)
@@ -633,15 +1113,16 @@ class RigDrawing:
                 view.put("xray", line_set(frame.vertices, self._wire(), (0.45, 0.45, 0.5)))
             else:
                 view.remove("xray")
-        keypoints = np.asarray(frame.keypoints, dtype=np.float64)
-        selected = np.zeros(self.num_keypoints, bool)
-        selected[[i for i in frame.selection if 0 <= i < self.num_keypoints]] = True
-        scales = np.where(selected, 1.6, 1.0)
-        self.markers.set(keypoints, scales, camera)
-        view.put("keypoints", self.markers.geometry, show=s.show_keypoints)
-        if self.digits is not None:
-            self.digits.set(self.label_anchors(keypoints, camera, scales), camera)
-            view.put("numbers", self.digits.geometry, show=s.show_keypoints and s.show_labels)
+        keypoints = np.asarray(frame.keypoints, dtype=np.float64).reshape(-1, 3)
+        if self.markers is not None and len(keypoints) == self.num_keypoints:
+            selected = np.zeros(self.num_keypoints, bool)
+            selected[[i for i in frame.selection if 0 <= i < self.num_keypoints]] = True
+            scales = np.where(selected, 1.6, 1.0)
+            self.markers.set(keypoints, scales, camera)
+            view.put("keypoints", self.markers.geometry, show=s.show_keypoints)
+            if self.digits is not None:
+                self.digits.set(self.label_anchors(keypoints, camera, scales), camera)
+                view.put("numbers", self.digits.geometry, show=s.show_keypoints and s.show_labels)
         if self.cage_edges is not None and frame.cage is not None and s.show_cage:
             if self._cage is None:
                 self._cage = line_set(frame.cage, self.cage_edges, s.cage_color)
@@ -658,6 +1139,12 @@ class RigDrawing:
             view.show("ghost", False)
         self.frame = frame
         view.set_camera(camera)
+
+
+def _same_camera(a: Any, b: Any) -> bool:
+    """Whether two cameras see exactly alike (a frame culled for one is right for the other)."""
+    return all(np.array_equal(np.asarray(getattr(a, k)), np.asarray(getattr(b, k))) for k in ("eye", "center", "up")) \
+        and a.fov == b.fov
 
 
 # --- pictures ------------------------------------------------------------------------------------------------------
@@ -735,7 +1222,7 @@ def render_shots(shots: Sequence[Shot], settings: Any, *, view: GLView | None = 
                 else:
                     shaded = ShadedMesh(layer.mesh, layer.color or settings.mesh_color,
                                         override=layer.color is not None)
-                    shaded.set_vertices(layer.mesh.vertices, camera)
+                    shaded.set_vertices(layer.mesh.vertices, camera, view.viewport(camera))
                     for j, part in enumerate(shaded.geometries):
                         view.put(f"layer:{i}:{j}", part)
             for i, (points_, edges, color) in enumerate(shot.lines):

@@ -89,9 +89,13 @@ def scan_up(scan: Any, model_up: str | None) -> str | None:
     return ("-" if vector[i] < 0 else "+") + "xyz"[i]
 
 
-def load_source(args: argparse.Namespace, *, need_prior: bool = False) -> Source:
+def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bool = False) -> Source:
     """Resolve ``MODEL SHAPE`` (with ``--scan``) or ``--rig`` (with ``--model``) into a rig and an optional prior,
-    as ``kpd deform`` does. Bad combinations and a model of another keypoint count end in :class:`InputError`."""
+    as ``kpd deform`` does. Bad combinations and a model of another keypoint count end in :class:`InputError`.
+
+    ``later``: with ``MODEL SHAPE``, the source's rig is a :class:`kpd.viewer.app.Binding` (the mesh, read and
+    checked, and the binding still to run), so that the editor shows the mesh at once and binds it on a worker
+    thread; a mesh too large for the memory ends here all the same."""
     from kpd.commands.deform import load_rig
     from kpd.commands.keypoints import scan_frame
     from kpd.frame import ScanRig
@@ -133,15 +137,32 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False) -> Source
     from kpd.io import file_up
 
     mesh = read_mesh(args.shape)
+    if later:
+        from kpd.rig import check_bind_memory
+
+        check_bind_memory(len(mesh.vertices), len(mesh.triangles), model.num_keypoints)
     if args.scan:
         scan = scan_frame(args, model, mesh)
-        aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
-        rig = ScanRig(aligned, mesh, scan)
-        return Source(rig, model.prior, Path(args.shape).name, scan_up(scan, model.up) or args.up)
+
+        def bind():
+            aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
+            return ScanRig(aligned, mesh, scan)
+
+        return Source(_later(mesh, model, bind) if later else bind(), model.prior, Path(args.shape).name,
+                      scan_up(scan, model.up) or args.up)
     from kpd.commands.keypoints import rig_checked  # kpd view and kpd render: the frame and category check
 
-    rig = rig_checked(model, mesh, args.seed, args.shape)
-    return Source(rig, model.prior, Path(args.shape).name, file_up(args.shape))
+    def bind():
+        return rig_checked(model, mesh, args.seed, args.shape)
+
+    return Source(_later(mesh, model, bind) if later else bind(), model.prior, Path(args.shape).name,
+                  file_up(args.shape))
+
+
+def _later(mesh: Any, model: Any, bind: Any) -> Any:
+    from kpd.viewer.app import Binding
+
+    return Binding(mesh, model.num_keypoints, bind)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -195,7 +216,7 @@ def run(args: argparse.Namespace) -> int:
     if not (args.step > 0 and np.isfinite(args.step)):
         raise InputError(f"--step must be a positive number; got {args.step}")
     view_settings(args)  # bad --size or --view-up ends here, before any work
-    source = load_source(args, need_prior=args.prior)
+    source = load_source(args, need_prior=args.prior, later=True)  # bound on the editor's worker thread
     if args.out is not None:  # 'save mesh' adds the companions of --out (an OBJ's .mtl and maps): checked now
         from kpd.io import Outputs, mesh_companions
 
