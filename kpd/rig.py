@@ -620,9 +620,10 @@ class _StraightenSystem:
         self.indptr, self.indices, self.points = indptr, indices, points
         self.sliver_values, self.anchor = np.zeros(len(indices)), np.empty(n)  # the rest of a row: _row
         ends, along, height = np.empty((len(tri), 3), dtype=np.int32), np.empty(len(tri)), np.empty(len(tri))
+        self.label = np.empty(n, dtype=np.int64)  # connected pieces
         self.slivers, longest = _sliver_terms(points, tri, indptr, indices, float(thinness), 1.0 / reach**2,
                                               _STRAIGHTEN_ENDS, _STRAIGHTEN_CAP, self.sliver_values, self.anchor, ends,
-                                              along, height)
+                                              along, height, self.label)
         self.floor = 1e-6 * max(longest, 1e-300)  # edge lengths floored at 1e-6 of the longest
         del tri
         if self.slivers == 0:
@@ -630,7 +631,6 @@ class _StraightenSystem:
         s = self.slivers
         self.ends, self.along, self.height = ends[:s].copy(), along[:s].copy(), height[:s].copy()  # per sliver
         del ends, along, height
-        self.label = _region_parts(indptr, indices, np.ones(n, dtype=np.bool_))[0]  # connected pieces
         self.pieces = int(self.label.max()) + 1
 
     def solve(self, basis: np.ndarray, tolerance: float) -> np.ndarray:
@@ -736,7 +736,7 @@ def _graph_pattern(tri, n):  # pragma: no cover - compiled
     for i in range(n):
         count[i + 1] += count[i]
     fill = count[:-1].copy()
-    other = np.empty(count[n], dtype=np.int64)
+    other = np.empty(count[n], dtype=np.int32)  # n < 2**31: a mesh that large is refused before binding
     for i in range(n):
         other[fill[i]] = i
         fill[i] += 1
@@ -787,11 +787,14 @@ def _entry(indptr, indices, row, col):  # pragma: no cover - compiled
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _sliver_terms(points, tri, indptr, indices, thinness, inverse_reach2, ends_weight, cap, sliver_values, anchor,
-                  sliver_ends, sliver_along, sliver_height):  # pragma: no cover - compiled
+                  sliver_ends, sliver_along, sliver_height, piece):  # pragma: no cover - compiled
     """One pass over the triangles: the slivers' ``SᵀWS`` into the pattern (``sliver_values``); per sliver, in the
     order found, its third corner and long edge's ends (``sliver_ends``), the corner's place along that edge and its
-    height; each point's anchor weight (``anchor``). Returns the number of slivers and the longest edge."""
+    height; each point's anchor weight (``anchor``) and connected piece (``piece``, numbered from 0 in order of
+    the points). Returns the number of slivers and the longest edge."""
     n = points.shape[0]
+    for i in range(n):
+        piece[i] = i  # union-find: each point's parent
     area = np.zeros(n)
     corner_of = np.zeros(n, dtype=np.bool_)
     slivers = 0
@@ -802,6 +805,15 @@ def _sliver_terms(points, tri, indptr, indices, thinness, inverse_reach2, ends_w
         if v[0] == v[1] or v[1] == v[2] or v[2] == v[0]:
             continue
         a, b, c = v
+        for x, y in ((a, b), (a, c)):
+            while piece[x] != x:
+                piece[x] = piece[piece[x]]
+                x = piece[x]
+            while piece[y] != y:
+                piece[y] = piece[piece[y]]
+                y = piece[y]
+            if x != y:
+                piece[max(x, y)] = min(x, y)
         l0 = np.sqrt((points[c, 0] - points[b, 0]) ** 2 + (points[c, 1] - points[b, 1]) ** 2
                      + (points[c, 2] - points[b, 2]) ** 2)
         l1 = np.sqrt((points[a, 0] - points[c, 0]) ** 2 + (points[a, 1] - points[c, 1]) ** 2
@@ -846,6 +858,16 @@ def _sliver_terms(points, tri, indptr, indices, thinness, inverse_reach2, ends_w
     mean_area = max(mean_area / max(n, 1), 1e-300)
     for i in range(n):
         anchor[i] = (area[i] / mean_area + 1e-6) * (1.0 if corner_of[i] else ends_weight) * inverse_reach2
+    pieces = 0
+    for i in range(n):  # roots are the smallest point of their piece: number them in order, then the rest
+        if piece[i] == i:
+            piece[i] = -1 - pieces  # numbered roots are negative until the end
+            pieces += 1
+        else:
+            root = piece[piece[i]]
+            piece[i] = root if root < 0 else piece[root]  # a root below i is numbered already
+    for i in range(n):
+        piece[i] = -1 - piece[i]
     return slivers, longest_edge
 
 
