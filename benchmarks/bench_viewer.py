@@ -7,10 +7,16 @@ ShapeNet chair subdivided to 1.37M vertices (5.5M triangles), with the shipped c
 
 * ``render_wall_s``: ``kpd render chair MESH --move ... --out v.png`` in a fresh process, wall time (median of
   ``--runs``; target <= 3 s for 10k vertices).
-* ``first_frame_s``: ``kpd view chair MESH`` from process start to its first frame on the screen (target <= 5 s).
+* ``first_frame_s``: ``kpd view chair MESH`` from process start to its first frame on the screen (the mesh; target
+  <= 5 s, <= 8 s at 1.3M vertices); ``first_whole_s`` to the first frame of the whole mesh (not its coarse stand-in);
+  ``ready_after_s`` to the keypoints (the rig is bound on a worker thread meanwhile).
 * ``drag_step_ms``: the time the editor takes to show one drag step (deform + upload + draw + swap), from the
   ``draw_ms`` of its frame events during drags (median, 95th percentile, max; target <= 50 ms for 10k vertices and
   <= 100 ms for 100k).
+* ``full_frame_ms``: the whole mesh's frames after the rig is ready, ``draw_ms`` on the main thread (upload, draw,
+  swap); for a large mesh, ``prepare_ms`` is its preparation on the frame thread before (deformation, normals, the
+  triangles that show, colours) and ``after_pause_ms`` the time from the pause (0.3 s after the last input) to the end
+  of the frame (target <= 500 ms at 1.3M vertices).
 * ``latency_ms``: over a scripted session of at least 50 drags and key presses sent with xdotool, the time from
   sending an input (taken before the xdotool process starts, so it errs long) to the end of the frame that shows it
   (median, max; target max <= 250 ms); ``lost``: whether the last frame showed the final state.
@@ -176,18 +182,35 @@ def bench_editor(mesh: Path, drags: int, folder: Path) -> dict:
         if any(previous < s <= f["serial"] for s in move_serials):
             steps.append(f["draw_ms"])
         previous = f["serial"]
-    full = [f["draw_ms"] for f in frames[1:] if not f.get("stand_in")]  # the whole mesh (after a gesture, keys)
+    # the whole mesh after the rig is ready (after a gesture, keys; for a large mesh once input paused)
+    whole = [f for f in frames if not f.get("stand_in") and f["time"] > ready["time"]]
+    full = [f["draw_ms"] for f in whole]
+    prepared = [f["prepare_ms"] for f in whole if "prepare_ms" in f]
+    after_pause = []
+    for f in whole:
+        before = [e["time"] for e in log if e["event"] == "input" and e["time"] < f["time"]]
+        if "prepare_ms" in f and before:
+            after_pause.append(1000 * (f["time"] - before[-1] - 0.3))
     final = [e for e in log if e["event"] == "redo"][-1]["keypoints"]
+
+    def summary(values: list, digits: int = 2) -> dict:
+        if not values:
+            return {"n": 0}
+        return {"median": round(statistics.median(values), digits), "max": round(max(values), digits), "n": len(values)}
+
     return {
         "vertices": None,
         "first_frame_s": round(first - launched, 3),
+        "first_whole_s": round(min(f["time"] for f in frames if not f.get("stand_in")) - launched, 3),
         "ready_after_s": round(ready["time"] - launched, 3),
         "inputs": len(inputs),
         "frames": len(frames),
         "drag_step_ms": {"median": round(statistics.median(steps), 2), "p95": round(float(np.percentile(steps, 95)), 2),
                          "max": round(max(steps), 2), "n": len(steps)},
         "stand_in_frames": sum(bool(f.get("stand_in")) for f in frames),
-        "full_frame_ms": {"median": round(statistics.median(full), 2), "max": round(max(full), 2), "n": len(full)},
+        "full_frame_ms": summary(full),
+        "prepare_ms": summary(prepared),
+        "after_pause_ms": summary(after_pause, 1),
         "latency_ms": {"median": round(statistics.median(latencies), 1),
                        "p95": round(float(np.percentile(latencies, 95)), 1), "max": round(max(latencies), 1),
                        "n": len(latencies)},
@@ -228,7 +251,9 @@ def main() -> None:
     print(json.dumps({
         "benchmark": "editor and kpd render on software rendering (Mesa llvmpipe under Xvfb), 960x720",
         "targets": {"render_wall_s_10k": 3.0, "first_frame_s": 5.0, "drag_step_ms_10k": 50.0,
-                    "drag_step_ms_100k": 100.0, "latency_ms_max": 250.0},
+                    "drag_step_ms_100k": 100.0, "latency_ms_max": 250.0, "first_frame_s_1.3M": 8.0,
+                    "drag_step_ms_1.3M": 100.0, "drag_step_ms_shapenet": 50.0, "after_pause_ms_1.3M": 500.0,
+                    "render_wall_s_1.3M": 6.0},
         "loaded": "one other CPU-bound process (python busy loop) on the 2 cores; the machine is shared, so 'quiet' "
                   "has the load average given",
         "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),

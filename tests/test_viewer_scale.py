@@ -1,8 +1,11 @@
 """The editor on a mesh of over a million vertices, in a real window under Xvfb driven by xdotool."""
 
+import subprocess
+import threading
+
 import numpy as np
 import pytest
-from test_viewer import HAS_XVFB, _clear_keypoint, _drags_with_nudges, _editor_window, _last
+from test_viewer import HAS_XVFB, _clear_keypoint, _drags_with_nudges, _editor_window, _last, chair_rig  # noqa: F401
 
 from kpd.viewer.app import read_events, wait_for
 
@@ -58,3 +61,183 @@ def test_distinct_triangles_drop_a_triangle_stored_again_either_way_round():
     big = triangles + (1 << 21)  # indices past 2^21 take the sorting path
     np.testing.assert_array_equal(distinct_triangles(big), [0, 2, 5])
     assert distinct_triangles(np.zeros((0, 3), np.int64)).shape == (0,)
+
+
+def test_distinct_triangles_is_its_sorting_twin_on_any_triangles():
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from kpd.viewer.gl import _distinct_triangles_reference, distinct_triangles
+
+    @settings(max_examples=60, deadline=None)
+    @given(n=st.integers(1, 300), top=st.integers(1, 12), seed=st.integers(0, 2**16))
+    def check(n, top, seed):
+        triangles = np.random.default_rng(seed).integers(0, top, size=(n, 3))  # repeats, either way round, collapsed
+        np.testing.assert_array_equal(distinct_triangles(triangles), _distinct_triangles_reference(triangles))
+
+    check()
+
+
+def test_prepared_normals_are_the_serial_kernels_bit_for_bit():
+    from kpd.viewer.gl import _Normals, _Welding, shading_normals
+
+    rng = np.random.default_rng(4)
+    vertices = rng.normal(size=(400, 3))
+    vertices[300:] = vertices[:100]  # copies of a position (a UV seam) share its normal
+    triangles = rng.integers(0, 400, size=(3000, 3))
+    welding = _Welding(vertices)
+    for eye in (None, np.array([0.5, -4.0, 2.0])):
+        expected = shading_normals(vertices, triangles, eye, welding=welding)
+        groups = _Normals(triangles, welding)(vertices, eye)  # (G, 3), two threads when large
+        np.testing.assert_array_equal(groups[welding.inverse], expected)
+    big = rng.integers(0, 400, size=(250_000, 3))  # past the size split over two threads
+    np.testing.assert_array_equal(_Normals(big, welding)(vertices, np.ones(3))[welding.inverse],
+                                  shading_normals(vertices, big, np.ones(3), welding=welding))
+
+
+@pytest.fixture(scope="module")
+def dense_chair(data_dir):
+    """The unseen ShapeNet chair subdivided twice (86k vertices, 344k triangles, half of them stored twice)."""
+    import open3d as o3d
+
+    from kpd.io import Mesh, read_mesh
+
+    mesh = read_mesh(data_dir / "keypointnet" / "models" / "03001627" / "fe6b3c001a86d844d5767a0de8dd037e" /
+                     "model.obj")
+    fine = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
+                                     o3d.utility.Vector3iVector(mesh.triangles.astype(np.int32))).subdivide_midpoint(2)
+    return Mesh(np.asarray(fine.vertices), np.asarray(fine.triangles, dtype=np.int64))
+
+
+@pytest.mark.parametrize("offset", [0.0, 300.0])  # away from the origin: float32 rounds the drawn positions coarser
+def test_a_frame_of_the_visible_triangles_is_the_picture_of_all_of_them(dense_chair, offset):
+    """Culled and whole frames of a dense mesh are the same pixels, from outside, below, close up and from inside
+    the mesh (corners behind the camera), while the culled ones draw far fewer triangles."""
+    from kpd.io import Mesh
+    from kpd.viewer.display import gl_display
+    from kpd.viewer.gl import GLView, ShadedMesh, visible_triangles
+    from kpd.viewer.render import ViewSettings, camera_pose
+
+    mesh = Mesh(dense_chair.vertices + offset, dense_chair.triangles)
+    width, height = 400, 300
+    with gl_display("egl", width, height):
+        view = GLView(width, height)
+        try:
+            assert view.viewport(camera_pose(mesh.vertices, ViewSettings())) is not None  # one sample a pixel here
+            shaded = ShadedMesh(mesh)
+            view.set_box(mesh.vertices)
+            for azimuth, elevation, zoom in [(30, 20, 1.0), (200, -40, 1.0), (75, 60, 4.0), (10, 5, 30.0)]:
+                camera = camera_pose(mesh.vertices, ViewSettings(width=width, height=height, azimuth=azimuth,
+                                                                 elevation=elevation, zoom=zoom))
+                pictures = []
+                for viewport in (None, view.viewport(camera)):
+                    shaded.set_vertices(mesh.vertices, camera, viewport)
+                    for i, part in enumerate(shaded.geometries):
+                        view.put(f"mesh:{i}", part)
+                    view.set_camera(camera)
+                    pictures.append(view.capture())
+                np.testing.assert_array_equal(pictures[1], pictures[0])
+                assert (pictures[0] != 255).any(axis=2).mean() > 0.05  # the chair is in the picture
+                kept = visible_triangles(mesh.vertices, shaded.drawn, view.viewport(camera))
+                if zoom == 1.0:  # seen whole: most triangles are hidden or between pixel centres
+                    assert kept.mean() < (0.4 if offset == 0 else 0.9), kept.mean()
+        finally:
+            view.close()
+
+
+_HELD_BINDING = """
+import sys, time
+from pathlib import Path
+from kpd.rig import Rig
+from kpd.viewer.app import Binding, EditorApp
+from kpd.viewer.render import ViewSettings
+
+rig = Rig.load(sys.argv[1])
+release = Path(sys.argv[3])
+
+def bind():  # held until the test lets it go
+    while not release.exists():
+        time.sleep(0.05)
+    return rig
+
+app = EditorApp(Binding(rig.mesh, rig.num_keypoints, bind), settings=ViewSettings(width=480, height=400),
+                events=sys.argv[2], title="kpd binding test")
+sys.exit(app.run())
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
+def test_editor_shows_the_mesh_at_once_and_answers_input_while_it_binds(chair_rig, tmp_path):  # noqa: F811
+    """A rig still to be made (viewer.app.Binding): the mesh is on the screen before the rig is ready, a drag and
+    keys meanwhile are taken (the view turns; edits wait, the panel says why), and the keypoints appear when the
+    binding returns."""
+    import os
+    import sys
+
+    from kpd.rig import Rig
+    from kpd.viewer.render import private_display
+
+    rig = Rig.load(chair_rig)
+    events, release = tmp_path / "events.jsonl", tmp_path / "release"
+    with private_display(1400, 900) as display:
+        env = dict(os.environ, DISPLAY=display)
+        window = subprocess.Popen([sys.executable, "-c", _HELD_BINDING, str(chair_rig), str(events), str(release)],
+                                  env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+        def xdo(*args: object) -> None:
+            subprocess.run(["xdotool", *map(str, args)], env=env, check=True, capture_output=True)
+
+        try:
+            wait_for(lambda: _last(events, "shown"), 120, "the mesh")
+            xdo("mousemove", 240, 200)
+            xdo("mousedown", 1)
+            for step in range(1, 5):
+                xdo("mousemove", 240 + 15 * step, 200 + 5 * step)
+            xdo("mouseup", 1)
+            xdo("key", "u")
+            xdo("key", "Right")
+            wait_for(lambda: [e for e in read_events(events) if e["event"] == "frame" and e["serial"] >= 5], 60,
+                     "a frame of the turned view")
+            assert _last(events, "ready") is None
+            release.touch()
+            wait_for(lambda: _last(events, "ready"), 60, "the rig")
+            wait_for(lambda: [e for e in read_events(events) if e["event"] == "frame" and e["keypoints"]], 60,
+                     "a frame with the keypoints")
+        finally:
+            release.touch()
+            window.terminate()
+            window.wait(30)
+        assert b"Traceback" not in window.stderr.read()
+    log = read_events(events)
+    names = [e["event"] for e in log]
+    ready = log[names.index("ready")]
+    assert names.index("shown") < names.index("ready")
+    first = next(e for e in log if e["event"] == "frame")
+    assert first["keypoints"] == [] and first["time"] < ready["time"]
+    inputs = [e for e in log if e["event"] == "input"]
+    assert len(inputs) >= 7 and all(e["time"] < ready["time"] for e in inputs)
+    assert "undo" in names and "nudge" not in names  # the key was taken; no keypoint to nudge yet
+    assert ready["undo"] == 0
+    np.testing.assert_allclose(ready["keypoints"], rig.keypoints)
+    last = [e for e in log if e["event"] == "frame"][-1]
+    np.testing.assert_allclose(last["keypoints"], rig.keypoints)  # the keypoints are drawn
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
+def test_kpd_view_ends_with_the_bindings_error_in_one_line(tmp_path):
+    """The binding runs after the window opened: its error still ends kpd view with one line and status 2."""
+    import os
+
+    from kpd.io import Mesh, write_mesh
+    from kpd.viewer.render import private_display
+    from test_viewer import kpd
+
+    flat = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]])  # every triangle without area: nothing to sample
+    write_mesh(tmp_path / "flat.ply", Mesh(flat, np.array([[0, 1, 2], [1, 2, 3]])))
+    with private_display(1400, 900) as display:
+        done = kpd("view", "chair", tmp_path / "flat.ply", "--size", "320x240", env=dict(os.environ, DISPLAY=display))
+    assert done.returncode == 2, done.stderr
+    lines = [line for line in done.stderr.strip().splitlines() if not line.startswith("warning:")]
+    assert len(lines) == 1 and lines[0].startswith("kpd view: error:") and "zero area" in lines[0], done.stderr

@@ -199,7 +199,7 @@ class EditorApp:
                     log.info("bound the mesh in %.1f s", time.perf_counter() - started)
                     self.post_to_main_thread(lambda: self._on_bound(rig))
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which ends with it
-                self.post_to_main_thread(lambda: self._on_worker_failed(exc))
+                self.post_to_main_thread(lambda failure=exc: self._on_worker_failed(failure))
 
         threading.Thread(target=work, name="kpd-editor-worker", daemon=True).start()
 
@@ -430,7 +430,7 @@ class EditorApp:
                 milliseconds = round(1000 * (time.perf_counter() - started), 3)
                 self.post_to_main_thread(lambda: self._on_prepared(state, vertices, uploads, milliseconds))
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which ends with it
-                self.post_to_main_thread(lambda: self._on_worker_failed(exc))
+                self.post_to_main_thread(lambda failure=exc: self._on_worker_failed(failure))
 
         self._frames_thread.submit(work)
 
