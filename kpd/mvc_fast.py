@@ -3,15 +3,24 @@
 The same coordinates as :func:`kpd.mvc.mvc_weights` (the same formula, docs/scale.md says how it was measured), as
 a numba kernel: for a block of points it computes the per-edge quantities ``G = (p_a - x) × (p_b - x)`` and
 ``θ / |G|`` once per cage edge, the face sums ``m = Σ_k θ_k G_k / |G_k|`` and the corner weights
-``w_k = G_k · m / D``, normalises them and multiplies them at once by a (C, R) matrix of rows, so that a caller
-who needs ``weights @ rows`` (an edit basis ``MVC · Wᵀ``, R = K) never holds the (N, C) weights. The points are
-the vector lanes: each loop over a block's points is branch-free (the arctangent is Cephes' rational
-approximation, written without branches) and the compiler turns it into SIMD code.
+``w_k = G_k · m / D``, sums them per cage vertex, normalises them and multiplies them at once by a (C, R) matrix of
+rows, so that a caller who needs ``weights @ rows`` (an edit basis ``MVC · Wᵀ``, R = K) never holds the (N, C)
+weights.
 
-Points the vectorised formula cannot handle (within ``1e-6`` of some face's plane, on a cage vertex, or with a
-non-finite total) are flagged by the kernel and redone with :mod:`kpd.mvc`'s careful per-point rules, so every
-result equals :func:`kpd.mvc.mvc_weights` to rounding. The kernel is compiled once per machine and cached next to
-this file (numba's ``cache=True``); the first call in a fresh installation compiles it (a few seconds).
+The points are the vector lanes: every loop over a block's points is branch-free and compiles to SIMD code (512 bits
+wide where the processor has them). The faces are visited in an order that keeps each edge's two faces close
+(:func:`_schedule`), so an edge's quantities live in a few kilobytes from when they are computed until their second
+face has used them, and the corner weights are summed into the cage vertices as they come. The arctangent is a
+polynomial on a reduced argument, written without branches (:func:`theta_over`); the divisions, the kernel's
+slowest instructions after the square roots, are shared by pairs of edges and pairs of faces
+(``1/a = b / (ab)``, ``1/b = a / (ab)``).
+
+Points the vectorised formula cannot handle (within ``1e-6`` of some face's plane, on a cage vertex, more than
+``1e6`` cage sizes away, or with a non-finite total) are flagged by the kernel and redone with :mod:`kpd.mvc`'s
+careful per-point rules, so every result equals :func:`kpd.mvc.mvc_weights` to rounding. The kernel works in the
+cage's frame (centred on its centroid, in units of its size), where the products of pairs stay far from overflow.
+It is compiled once per machine and cached next to this file (numba's ``cache=True``); the first call in a fresh
+installation compiles it (a few seconds).
 """
 
 from __future__ import annotations
@@ -22,194 +31,561 @@ from typing import Any
 
 import numba
 import numpy as np
+from numba.core import types
+from numba.extending import intrinsic
 
-from kpd.errors import InputError
-from kpd.mvc import _careful_row, _prepare
+from kpd.errors import InputError, KpdError
+from kpd.mvc import _LINEAR_FRACTION, _TOL_FACE, _TOL_INSIDE, _TOL_PLANE, _TOL_VERTEX, _prepare
 
 __all__ = ["mvc_project", "mvc_weights_compiled", "theta_over"]
 
-_LANES = 16  # points per block: the vector lanes of every inner loop
+_LANES = 32  # points per block: the vector lanes of every inner loop
 _MAX_THREADS = 2
 _MIN_POINTS_PER_THREAD = 4096  # below this a second thread costs more than it saves
+_FAR = 1e6  # points farther than this many cage sizes from the cage's centroid go to the careful path
 
-# Cephes atan: atan(u) = u + u z P(z) / Q(z), z = u², |u| <= 0.66 (relative error ~2e-16)
-_P0, _P1, _P2, _P3, _P4 = (-8.750608600031904122785e-01, -1.615753718733365076637e01, -7.500855792314704667340e01,
-                           -1.228866684490136173410e02, -6.485021904942025371773e01)
-_Q0, _Q1, _Q2, _Q3, _Q4 = (2.485846490142306297962e01, 1.650270098316988542046e02, 4.328810604912902668951e02,
-                           4.853903996359136964868e02, 1.945506571482613964425e02)
-_PIO4, _PIO2, _PI = 0.78539816339744830962, 1.57079632679489661923, 3.14159265358979323846
-_MOREBITS = 6.123233995736765886130e-17
+# atan(u) = u p(u²) for |u| <= tan(π/8): least squares on Chebyshev nodes in 50-digit arithmetic (mpmath), the
+# coefficients rounded to float64; |p(z) - atan(u)/u| <= 5e-18 over the interval.
+_C1, _C2, _C3, _C4, _C5 = (-0.33333333333333126, 0.19999999999942342, -0.14285714279381564, 0.11111110751018727,
+                           -0.09090896974391927)
+_C6, _C7, _C8, _C9, _C10, _C11 = (0.07692048125814824, -0.06662982166188505, 0.05847090096609891,
+                                  -0.05036020352571326, 0.03798774160996723, -0.017829184144146384)
+# atan(u) = u q(u²) for |u| <= 1, the same way (degree 20, |q(z) - atan(u)/u| <= 3e-17 over the interval)
+_Q = (1.0, -0.33333333333332915, 0.1999999999993773, -0.14285714281997444, 0.11111110993238364,
+      -0.09090906793644227, 0.07692277667688094, -0.06666387916153538, 0.058804389537863676, -0.052531477398832904,
+      0.04721130438922795, -0.04216198778373341, 0.036583631277373956, -0.029814707615010965, 0.021878711429278077,
+      -0.01380332201345613, 0.007129330491332074, -0.0028510930888307924, 0.0008196104190276198,
+      -0.00014966918123631508, 1.2979577084858152e-05)
+(_Q0, _Q1, _Q2, _Q3, _Q4, _Q5, _Q6, _Q7, _Q8, _Q9, _Q10, _Q11, _Q12, _Q13, _Q14, _Q15, _Q16, _Q17, _Q18, _Q19,
+ _Q20) = _Q
+_TAN_PI_8 = 0.41421356237309503
+_PI, _PI_2, _PI_4, _PI_3_4 = np.pi, np.pi / 2, np.pi / 4, 3 * np.pi / 4
+
+
+@intrinsic
+def _tune(typingctx):  # pragma: no cover - compiled
+    """Two promises to LLVM about the calling function, so that its loops over the lanes compile to wide SIMD code.
+
+    * Its array arguments do not overlap (``noalias`` on their data pointers): otherwise LLVM must test at run time
+      that a loop's stores do not feed its own loads, and gives up when there are more than a few such tests or the
+      loop is short. :func:`mvc_project` passes separate arrays (it copies an input that shares memory with ``out``).
+    * 512-bit vectors where the processor has them (``prefer-vector-width``; LLVM prefers 256 bits by default), about
+      twice the lanes per instruction. Results do not change: every lane does the same operations in the same order
+      whatever the width.
+
+    llvmlite accepts only its own list of function attribute names, so the string attribute is added to the set it
+    checks. Numba passes an array as its fields; the data pointer is field 4 (``arg.<name>.4``)."""
+
+    def codegen(context, builder, signature, args):
+        function = builder.function
+        attribute = '"prefer-vector-width"="512"'
+        function.attributes._known = function.attributes._known | {attribute}
+        function.attributes.add(attribute)
+        for argument in function.args:
+            if argument.name.startswith("arg.") and argument.name.endswith(".4"):
+                argument.add_attribute("noalias")
+        return context.get_dummy_value()
+
+    return types.void(), codegen
 
 
 @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _theta_over(y: float, x: float) -> float:
-    """atan2(y, x) / y for y > 0 (the angle an edge subtends over |G|), without branches and with two divisions.
+def _reduce(y, x):
+    """atan2(y, x) for y >= 0 as ``base + atan(num / den)`` times a sign, with ``|num / den| <= tan(π/8)``.
 
-    The smaller of y and |x| over the larger, t, is reduced to |u| <= 0.66 (u = (t - 1) / (t + 1) above 0.66),
-    Cephes' atan(u) = u + u z P(z) / Q(z) gives the angle, and selects restore the octant:
-    θ = base + sign (u + u z P / Q), written over the one denominator Q y."""
+    The smaller of y and |x| over the larger, t, is reduced to u = (t - 1) / (t + 1) above tan(π/8); the octant is
+    restored by the base angle and the sign. Returns ``(num, den, base, signed_num)``."""
     ax = abs(x)
     swap = y > ax
     big = y if swap else ax
     small = ax if swap else y
-    high = 1.0 * (small > 0.66 * big)
-    num = small - high * big
-    u = num / (big + high * small)
-    z = u * u
-    p = (((_P0 * z + _P1) * z + _P2) * z + _P3) * z + _P4
-    q = ((((z + _Q0) * z + _Q1) * z + _Q2) * z + _Q3) * z + _Q4
-    turn = 1.0 * swap
-    back = 1.0 * (x < 0.0)
-    base = back * _PI + (1.0 - 2.0 * back) * (turn * _PIO2 + (1.0 - 2.0 * turn) * high * (_PIO4 + 0.5 * _MOREBITS))
-    sign = (1.0 - 2.0 * back) * (1.0 - 2.0 * turn)
-    # θ = base + sign (u + u z p / q) = (base q + sign u (q + z p)) / q
-    return (base * q + sign * u * (q + z * p)) / (q * y)
+    high = small > _TAN_PI_8 * big
+    num = small - big if high else small
+    den = big + small if high else big
+    back = x < 0.0
+    if high:
+        base = _PI_3_4 if back else _PI_4
+    else:
+        base = _PI_2 if swap else (_PI if back else 0.0)
+    signed = -num if back != swap else num
+    return num, den, base, signed
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
+def _atan_over(z):
+    """atan(u) / u for z = u² <= tan²(π/8)."""
+    return ((((((((((_C11 * z + _C10) * z + _C9) * z + _C8) * z + _C7) * z + _C6) * z + _C5) * z + _C4) * z + _C3) * z
+             + _C2) * z + _C1) * z + 1.0
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
+def _atan_over_quarter(z):
+    """atan(u) / u for z = u² <= 1 (angles up to π/4), without a reduction."""
+    p = _Q20 * z + _Q19
+    p = p * z + _Q18
+    p = p * z + _Q17
+    p = p * z + _Q16
+    p = p * z + _Q15
+    p = p * z + _Q14
+    p = p * z + _Q13
+    p = p * z + _Q12
+    p = p * z + _Q11
+    p = p * z + _Q10
+    p = p * z + _Q9
+    p = p * z + _Q8
+    p = p * z + _Q7
+    p = p * z + _Q6
+    p = p * z + _Q5
+    p = p * z + _Q4
+    p = p * z + _Q3
+    p = p * z + _Q2
+    p = p * z + _Q1
+    return p * z + 1.0
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
+def _finish(num, den, base, signed, y, r):
+    """θ / y from :func:`_reduce`'s parts and ``r = 1 / (den y)``: ``r (base den + signed p(u²))``, u = num y r."""
+    u = num * (y * r)
+    return r * (base * den + signed * _atan_over(u * u))
+
+
+@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
+def _theta_over_pair(y0, x0, y1, x1):
+    """``(atan2(y0, x0) / y0, atan2(y1, x1) / y1)`` for y0, y1 > 0 with one division for both."""
+    num0, den0, base0, signed0 = _reduce(y0, x0)
+    num1, den1, base1, signed1 = _reduce(y1, x1)
+    q0 = den0 * y0
+    q1 = den1 * y1
+    r = 1.0 / (q0 * q1)
+    return _finish(num0, den0, base0, signed0, y0, r * q1), _finish(num1, den1, base1, signed1, y1, r * q0)
 
 
 @numba.njit(cache=True, nogil=True)
 def theta_over(y: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """The kernel's ``arctan2(y, x) / y`` for ``y > 0`` on arrays (for tests): ``(N,)`` float64."""
-    out = np.empty(len(y))
-    for i in range(len(y)):
-        out[i] = _theta_over(y[i], x[i])
+    """The kernel's ``arctan2(y, x) / y`` for ``y > 0`` on arrays, consecutive elements paired as the kernel pairs
+    edges (for tests): ``(N,)`` float64."""
+    n = len(y)
+    out = np.empty(n)
+    for i in range(0, n - 1, 2):
+        out[i], out[i + 1] = _theta_over_pair(y[i], x[i], y[i + 1], x[i + 1])
+    if n % 2:
+        out[n - 1], _ = _theta_over_pair(y[n - 1], x[n - 1], 1.0, 1.0)
     return out
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def _project_range(points, lo, hi, px, py, pz, edge_a, edge_b, face_edge, face_sign, nx, ny, nz, offset, near,
-                   corner_start, corners, rows, out, flags):  # pragma: no cover - compiled
-    """``out[lo:hi] = normalised MVC weights of points[lo:hi] @ rows``; ``flags[lo:hi]`` marks points to redo."""
+def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b, edge_slot, step_edges, face_slot,
+                   face_sign, corner_vertex, nx, ny, nz, offset, near, nonzero_row, nonzero_column, nonzero_value, R,
+                   out, flags, xs, g, bad, w, w0, w1, w2, acc):  # pragma: no cover - compiled
+    """``out[lo:hi] = normalised MVC weights of points[lo:hi] @ rows``; ``flags[lo:hi]`` marks points to redo.
+
+    The cage is in its own frame (``(p - center) * inv_size``). Step s computes the edge pairs
+    ``step_edges[s]:step_edges[s + 1]`` (edges ``2k`` and ``2k + 1``, into the pair slot ``edge_slot[k]`` of g),
+    then faces ``2s`` and ``2s + 1`` (in schedule order), whose corner k uses the rows of g from
+    ``face_slot[f, k]`` times ``face_sign[f, k]`` and adds its weight to cage vertex ``corner_vertex[3f + k]`` in
+    w<k>. ``rows`` (C, R + 1), the last column ones, comes as its non-zero entries. Every array is flat with the lanes
+    last and the lane count a constant, so that each loop over the lanes reads and writes at fixed offsets from a few
+    bases; the arguments from xs on are the thread's scratch."""
+    _tune()
     L = _LANES
     C = px.shape[0]
-    E = edge_a.shape[0]
-    F = face_edge.shape[0]
-    R = rows.shape[1]
-    d = np.empty((C, 3, L))  # p_c - x
-    g = np.empty((E, 4, L))  # G = (p_a - x) x (p_b - x) and θ / |G|, per edge
-    cw = np.empty((3 * F, L))  # corner weights, row 3 f + k
-    w = np.empty((C, L))
-    acc = np.empty((R, L))
-    xs = np.empty((3, L))
-    tot = np.empty(L)
-    bad = np.empty(L, dtype=np.bool_)
+    S = face_slot.shape[0] // 2
+    M = bad.shape[0]  # L, but not a constant, so that LLVM vectorises the short loops over the lanes below
+    c0, c1, c2 = center[0], center[1], center[2]
     for start in range(lo, hi, L):
         n = min(L, hi - start)
         for i in range(L):  # a short last block repeats its last point
             j = start + min(i, n - 1)
-            for k in range(3):
-                xs[k, i] = points[j, k]
-        for c in range(C):
-            dc = d[c]
-            for i in range(L):
-                dc[0, i] = px[c] - xs[0, i]
-                dc[1, i] = py[c] - xs[1, i]
-                dc[2, i] = pz[c] - xs[2, i]
-        for e in range(E):
-            da = d[edge_a[e]]
-            db = d[edge_b[e]]
-            ge = g[e]
-            for i in range(L):
-                ax = da[0, i]
-                ay = da[1, i]
-                az = da[2, i]
-                bx = db[0, i]
-                by = db[1, i]
-                bz = db[2, i]
-                cx = ay * bz - az * by
-                cy = az * bx - ax * bz
-                cz = ax * by - ay * bx
-                ge[0, i] = cx
-                ge[1, i] = cy
-                ge[2, i] = cz
-                ge[3, i] = _theta_over(np.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
+            xs[i] = (points[j, 0] - c0) * inv_size
+            xs[L + i] = (points[j, 1] - c1) * inv_size
+            xs[2 * L + i] = (points[j, 2] - c2) * inv_size
         for i in range(L):
-            bad[i] = False
-        for f in range(F):
-            a0 = g[face_edge[f, 0]]
-            a1 = g[face_edge[f, 1]]
-            a2 = g[face_edge[f, 2]]
-            s0 = face_sign[f, 0]
-            s1 = face_sign[f, 1]
-            s2 = face_sign[f, 2]
-            fx = nx[f]
-            fy = ny[f]
-            fz = nz[f]
-            fo = offset[f]
-            w0 = cw[3 * f]
-            w1 = cw[3 * f + 1]
-            w2 = cw[3 * f + 2]
-            for i in range(L):
-                g0x = s0 * a0[0, i]
-                g0y = s0 * a0[1, i]
-                g0z = s0 * a0[2, i]
-                g1x = s1 * a1[0, i]
-                g1y = s1 * a1[1, i]
-                g1z = s1 * a1[2, i]
-                g2x = s2 * a2[0, i]
-                g2y = s2 * a2[1, i]
-                g2z = s2 * a2[2, i]
-                t0 = a0[3, i]
-                t1 = a1[3, i]
-                t2 = a2[3, i]
-                mx = t0 * g0x + t1 * g1x + t2 * g2x
-                my = t0 * g0y + t1 * g1y + t2 * g2y
-                mz = t0 * g0z + t1 * g1z + t2 * g2z
-                inv = 1.0 / (fo - (fx * xs[0, i] + fy * xs[1, i] + fz * xs[2, i]))  # 1 / det[p_0 - x, p_1 - x, p_2 - x]
-                w0[i] = (g0x * mx + g0y * my + g0z * mz) * inv
-                w1[i] = (g1x * mx + g1y * my + g1z * mz) * inv
-                w2[i] = (g2x * mx + g2y * my + g2z * mz) * inv
-            fn = near[f]
-            for i in range(L):
-                bad[i] |= abs(fo - (fx * xs[0, i] + fy * xs[1, i] + fz * xs[2, i])) <= fn
-        for i in range(L):
-            tot[i] = 0.0
-        for c in range(C):
-            wc = w[c]
-            for i in range(L):
-                wc[i] = 0.0
-            for j in range(corner_start[c], corner_start[c + 1]):
-                src = cw[corners[j]]
+            bad[i] = max(abs(xs[i]), abs(xs[L + i]), abs(xs[2 * L + i])) > _FAR
+        for s in range(S):
+            for k in range(step_edges[s], step_edges[s + 1]):
+                e0 = 2 * k
+                e1 = e0 + 1
+                ax0, ay0, az0 = px[edge_a[e0]], py[edge_a[e0]], pz[edge_a[e0]]
+                bx0, by0, bz0 = px[edge_b[e0]], py[edge_b[e0]], pz[edge_b[e0]]
+                ax1, ay1, az1 = px[edge_a[e1]], py[edge_a[e1]], pz[edge_a[e1]]
+                bx1, by1, bz1 = px[edge_b[e1]], py[edge_b[e1]], pz[edge_b[e1]]
+                o = max(edge_slot[k], 0) * 8 * L  # G, θ / |G| of edge 2k at o, o + L, ..., of edge 2k + 1 from o + 4L
+                # both edges seen under at most π/4 from every lane: θ / |G| = q(|G|² / (a.b)²) / a.b, no square root
+                wide = False
                 for i in range(L):
-                    wc[i] += src[i]
+                    x = xs[i]
+                    y = xs[L + i]
+                    z = xs[2 * L + i]
+                    a0 = ax0 - x
+                    a1 = ay0 - y
+                    a2 = az0 - z
+                    b0 = bx0 - x
+                    b1 = by0 - y
+                    b2 = bz0 - z
+                    gx0 = a1 * b2 - a2 * b1
+                    gy0 = a2 * b0 - a0 * b2
+                    gz0 = a0 * b1 - a1 * b0
+                    dot0 = a0 * b0 + a1 * b1 + a2 * b2
+                    a0 = ax1 - x
+                    a1 = ay1 - y
+                    a2 = az1 - z
+                    b0 = bx1 - x
+                    b1 = by1 - y
+                    b2 = bz1 - z
+                    gx1 = a1 * b2 - a2 * b1
+                    gy1 = a2 * b0 - a0 * b2
+                    gz1 = a0 * b1 - a1 * b0
+                    dot1 = a0 * b0 + a1 * b1 + a2 * b2
+                    r = 1.0 / (dot0 * dot1)
+                    i0 = r * dot1
+                    i1 = r * dot0
+                    z0 = (gx0 * gx0 + gy0 * gy0 + gz0 * gz0) * (i0 * i0)
+                    z1 = (gx1 * gx1 + gy1 * gy1 + gz1 * gz1) * (i1 * i1)
+                    t0 = _atan_over_quarter(z0) * i0
+                    t1 = _atan_over_quarter(z1) * i1
+                    wide |= not ((dot0 > 0.0) & (dot1 > 0.0) & (z0 <= 1.0) & (z1 <= 1.0))
+                    g[o + i] = gx0
+                    g[o + L + i] = gy0
+                    g[o + 2 * L + i] = gz0
+                    g[o + 3 * L + i] = t0
+                    g[o + 4 * L + i] = gx1
+                    g[o + 5 * L + i] = gy1
+                    g[o + 6 * L + i] = gz1
+                    g[o + 7 * L + i] = t1
+                if wide:  # the general arctangent
+                    for i in range(L):
+                        x = xs[i]
+                        y = xs[L + i]
+                        z = xs[2 * L + i]
+                        a0 = ax0 - x
+                        a1 = ay0 - y
+                        a2 = az0 - z
+                        b0 = bx0 - x
+                        b1 = by0 - y
+                        b2 = bz0 - z
+                        gx0 = a1 * b2 - a2 * b1
+                        gy0 = a2 * b0 - a0 * b2
+                        gz0 = a0 * b1 - a1 * b0
+                        dot0 = a0 * b0 + a1 * b1 + a2 * b2
+                        a0 = ax1 - x
+                        a1 = ay1 - y
+                        a2 = az1 - z
+                        b0 = bx1 - x
+                        b1 = by1 - y
+                        b2 = bz1 - z
+                        gx1 = a1 * b2 - a2 * b1
+                        gy1 = a2 * b0 - a0 * b2
+                        gz1 = a0 * b1 - a1 * b0
+                        dot1 = a0 * b0 + a1 * b1 + a2 * b2
+                        t0, t1 = _theta_over_pair(np.sqrt(gx0 * gx0 + gy0 * gy0 + gz0 * gz0), dot0,
+                                                  np.sqrt(gx1 * gx1 + gy1 * gy1 + gz1 * gz1), dot1)
+                        g[o + i] = gx0
+                        g[o + L + i] = gy0
+                        g[o + 2 * L + i] = gz0
+                        g[o + 3 * L + i] = t0
+                        g[o + 4 * L + i] = gx1
+                        g[o + 5 * L + i] = gy1
+                        g[o + 6 * L + i] = gz1
+                        g[o + 7 * L + i] = t1
+            fa = 2 * s
+            fb = fa + 1
+            oa0, oa1, oa2 = max(face_slot[fa, 0], 0) * L, max(face_slot[fa, 1], 0) * L, max(face_slot[fa, 2], 0) * L
+            ob0, ob1, ob2 = max(face_slot[fb, 0], 0) * L, max(face_slot[fb, 1], 0) * L, max(face_slot[fb, 2], 0) * L
+            sa0, sa1, sa2 = face_sign[fa, 0], face_sign[fa, 1], face_sign[fa, 2]
+            sb0, sb1, sb2 = face_sign[fb, 0], face_sign[fb, 1], face_sign[fb, 2]
+            nxa, nya, nza, da0, near_a = nx[fa], ny[fa], nz[fa], offset[fa], near[fa]
+            nxb, nyb, nzb, db0, near_b = nx[fb], ny[fb], nz[fb], offset[fb], near[fb]
+            # corner k of both faces adds to w<k> (the two faces never share a vertex at the same k, _Cage rotates them)
+            cv = corner_vertex[6 * s:6 * s + 6]
+            q0, q1, q2 = max(cv[0], 0) * L, max(cv[1], 0) * L, max(cv[2], 0) * L
+            q3, q4, q5 = max(cv[3], 0) * L, max(cv[4], 0) * L, max(cv[5], 0) * L
             for i in range(L):
-                tot[i] += wc[i]
-        for r in range(R):
-            for i in range(L):
-                acc[r, i] = 0.0
-        for c in range(C):
-            wc = w[c]
-            for r in range(R):
-                rc = rows[c, r]
-                ar = acc[r]
-                for i in range(L):
-                    ar[i] += wc[i] * rc
+                x = xs[i]
+                y = xs[L + i]
+                z = xs[2 * L + i]
+                da = da0 - (nxa * x + nya * y + nza * z)  # det[p_0 - x, p_1 - x, p_2 - x]
+                db = db0 - (nxb * x + nyb * y + nzb * z)
+                r = 1.0 / (da * db)
+                ia = r * db
+                ib = r * da
+                gx0, gy0, gz0 = g[oa0 + i], g[oa0 + L + i], g[oa0 + 2 * L + i]
+                gx1, gy1, gz1 = g[oa1 + i], g[oa1 + L + i], g[oa1 + 2 * L + i]
+                gx2, gy2, gz2 = g[oa2 + i], g[oa2 + L + i], g[oa2 + 2 * L + i]
+                t0 = sa0 * g[oa0 + 3 * L + i]
+                t1 = sa1 * g[oa1 + 3 * L + i]
+                t2 = sa2 * g[oa2 + 3 * L + i]
+                mx = t0 * gx0 + t1 * gx1 + t2 * gx2
+                my = t0 * gy0 + t1 * gy1 + t2 * gy2
+                mz = t0 * gz0 + t1 * gz1 + t2 * gz2
+                w0[q0 + i] += (gx0 * mx + gy0 * my + gz0 * mz) * (sa0 * ia)
+                w1[q1 + i] += (gx1 * mx + gy1 * my + gz1 * mz) * (sa1 * ia)
+                w2[q2 + i] += (gx2 * mx + gy2 * my + gz2 * mz) * (sa2 * ia)
+                gx0, gy0, gz0 = g[ob0 + i], g[ob0 + L + i], g[ob0 + 2 * L + i]
+                gx1, gy1, gz1 = g[ob1 + i], g[ob1 + L + i], g[ob1 + 2 * L + i]
+                gx2, gy2, gz2 = g[ob2 + i], g[ob2 + L + i], g[ob2 + 2 * L + i]
+                t0 = sb0 * g[ob0 + 3 * L + i]
+                t1 = sb1 * g[ob1 + 3 * L + i]
+                t2 = sb2 * g[ob2 + 3 * L + i]
+                mx = t0 * gx0 + t1 * gx1 + t2 * gx2
+                my = t0 * gy0 + t1 * gy1 + t2 * gy2
+                mz = t0 * gz0 + t1 * gz1 + t2 * gz2
+                w0[q3 + i] += (gx0 * mx + gy0 * my + gz0 * mz) * (sb0 * ib)
+                w1[q4 + i] += (gx1 * mx + gy1 * my + gz1 * mz) * (sb1 * ib)
+                w2[q5 + i] += (gx2 * mx + gy2 * my + gz2 * mz) * (sb2 * ib)
+                bad[i] |= (abs(da) <= near_a) | (abs(db) <= near_b)
+        for i in range(C * L):
+            w[i] = w0[i] + w1[i] + w2[i]
+            w0[i] = 0.0
+            w1[i] = 0.0
+            w2[i] = 0.0
+        for i in range((R + 1) * L):
+            acc[i] = 0.0
+        for j in range(nonzero_row.shape[0]):  # the last row of rows is ones: the total weight
+            oc = max(nonzero_row[j], 0) * L
+            oa = max(nonzero_column[j], 0) * L
+            v = nonzero_value[j]
+            for i in range(M):
+                acc[oa + i] += w[oc + i] * v
         for i in range(n):
-            t = tot[i]
+            t = acc[R * L + i]
             flags[start + i] = bad[i] | (not np.isfinite(t)) | (t == 0.0)
             inv = 1.0 / t
             for r in range(R):
-                out[start + i, r] = acc[r, i] * inv
+                out[start + i, r] = acc[r * L + i] * inv
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _face_weights(p0, p1, p2, out, k0, k1, k2, w, scale_by):  # pragma: no cover - compiled
+    """``w[k_j] += scale_by * w_j`` with Ju's weights ``w_j = G_j . m / D`` of a face whose corners minus the point are
+    ``p0, p1, p2`` ((3,) each), as :func:`kpd.mvc._face_weights`; ``out`` is (3, 3) scratch for the G's."""
+    ps = (p0, p1, p2)
+    mx = 0.0
+    my = 0.0
+    mz = 0.0
+    for j in range(3):
+        a = ps[(j + 1) % 3]
+        b = ps[(j + 2) % 3]
+        gx = a[1] * b[2] - a[2] * b[1]
+        gy = a[2] * b[0] - a[0] * b[2]
+        gz = a[0] * b[1] - a[1] * b[0]
+        out[j, 0] = gx
+        out[j, 1] = gy
+        out[j, 2] = gz
+        length = np.sqrt(gx * gx + gy * gy + gz * gz)
+        t = np.arctan2(length, a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) / length
+        mx += t * gx
+        my += t * gy
+        mz += t * gz
+    big_d = p0[0] * out[0, 0] + p0[1] * out[0, 1] + p0[2] * out[0, 2]
+    ks = (k0, k1, k2)
+    for j in range(3):
+        w[ks[j]] += scale_by * ((out[j, 0] * mx + out[j, 1] * my + out[j, 2] * mz) / big_d)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _segment_distance(x, a, b):  # pragma: no cover - compiled
+    """Distance from ``x`` to the segment ``a b`` ((3,) each)."""
+    ab0, ab1, ab2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    s = ((x[0] - a[0]) * ab0 + (x[1] - a[1]) * ab1 + (x[2] - a[2]) * ab2) / (ab0 * ab0 + ab1 * ab1 + ab2 * ab2)
+    s = min(max(s, 0.0), 1.0)
+    d0, d1, d2 = a[0] + s * ab0 - x[0], a[1] + s * ab1 - x[1], a[2] + s * ab2 - x[2]
+    return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _careful_rows(points, index, v, faces, n2, n2_norm, offset, scale, rows, out):  # pragma: no cover - compiled
+    """``out[i] = careful weights of points[i] @ rows`` for i in ``index``: :func:`kpd.mvc._careful_row`'s rules
+    (one-hot on a vertex, barycentric on a face, a lifted point for faces whose plane grazes the point), compiled.
+    Returns -1, or the position in ``index`` of a point whose total weight is not finite and non-zero."""
+    C = v.shape[0]
+    F = faces.shape[0]
+    R = rows.shape[1]
+    w = np.empty(C)
+    rel = np.empty((C, 3))
+    delta = np.empty(F)
+    bary = np.empty((F, 3))
+    inside = np.empty(F, dtype=np.bool_)
+    scratch = np.empty((3, 3))
+    lifted = np.empty(3)
+    q0, q1, q2 = np.empty(3), np.empty(3), np.empty(3)
+    for q in range(index.shape[0]):
+        x = points[index[q]]
+        for c in range(C):
+            w[c] = 0.0
+        nearest = 0
+        best = np.inf
+        for c in range(C):
+            for k in range(3):
+                rel[c, k] = v[c, k] - x[k]
+            dist = np.sqrt(rel[c, 0] * rel[c, 0] + rel[c, 1] * rel[c, 1] + rel[c, 2] * rel[c, 2])
+            if dist < best:
+                best = dist
+                nearest = c
+        if best <= _TOL_VERTEX * scale:
+            w[nearest] = 1.0
+        else:
+            on_face = False
+            for f in range(F):
+                a, b, c = rel[faces[f, 0]], rel[faces[f, 1]], rel[faces[f, 2]]
+                delta[f] = (offset[f] - (n2[f, 0] * x[0] + n2[f, 1] * x[1] + n2[f, 2] * x[2])) / n2_norm[f]
+                ps = (a, b, c)
+                lowest = np.inf
+                for k in range(3):
+                    u = ps[(k + 1) % 3]
+                    t = ps[(k + 2) % 3]
+                    gx = u[1] * t[2] - u[2] * t[1]
+                    gy = u[2] * t[0] - u[0] * t[2]
+                    gz = u[0] * t[1] - u[1] * t[0]
+                    bary[f, k] = (n2[f, 0] * gx + n2[f, 1] * gy + n2[f, 2] * gz) / (n2_norm[f] * n2_norm[f])
+                    lowest = min(lowest, bary[f, k])
+                inside[f] = lowest >= -_TOL_INSIDE
+                on_face |= (abs(delta[f]) <= _TOL_FACE * scale) and inside[f]
+            if on_face:
+                for f in range(F):
+                    if abs(delta[f]) <= _TOL_FACE * scale and inside[f]:
+                        for k in range(3):
+                            w[faces[f, k]] += bary[f, k]
+            else:
+                for f in range(F):  # the faces whose plane does not graze x, then the grazing ones
+                    grazing = abs(delta[f]) <= _TOL_PLANE * scale and not inside[f]
+                    if grazing:
+                        reach = np.inf
+                        for k in range(3):
+                            reach = min(reach, _segment_distance(x, v[faces[f, k]], v[faces[f, (k + 1) % 3]]))
+                        height = min(_TOL_PLANE * scale, _LINEAR_FRACTION * reach)
+                        if abs(delta[f]) < height:
+                            continue
+                    _face_weights(rel[faces[f, 0]], rel[faces[f, 1]], rel[faces[f, 2]], scratch, faces[f, 0],
+                                  faces[f, 1], faces[f, 2], w, 1.0)
+                for f in range(F):
+                    if not (abs(delta[f]) <= _TOL_PLANE * scale and not inside[f]):
+                        continue
+                    reach = np.inf
+                    for k in range(3):
+                        reach = min(reach, _segment_distance(x, v[faces[f, k]], v[faces[f, (k + 1) % 3]]))
+                    height = min(_TOL_PLANE * scale, _LINEAR_FRACTION * reach)
+                    dl = delta[f]
+                    if not abs(dl) < height:
+                        continue
+                    # x sits at signed distance dl below the plane; y = x + (dl - sign(dl) h) n sits at height h on
+                    # the same side, and p - y = p - x - (dl - sign(dl) h) n
+                    shift = dl - (-height if dl < 0 else height)
+                    for k in range(3):
+                        lifted[k] = shift * (n2[f, k] / n2_norm[f])
+                    for k in range(3):
+                        q0[k] = rel[faces[f, 0], k] - lifted[k]
+                        q1[k] = rel[faces[f, 1], k] - lifted[k]
+                        q2[k] = rel[faces[f, 2], k] - lifted[k]
+                    _face_weights(q0, q1, q2, scratch, faces[f, 0], faces[f, 1], faces[f, 2], w, abs(dl) / height)
+        total = 0.0
+        for c in range(C):
+            total += w[c]
+        if not (np.isfinite(total) and total != 0.0):
+            return q
+        row = index[q]
+        for r in range(R):
+            acc = 0.0
+            for c in range(C):
+                acc += w[c] / total * rows[c, r]
+            out[row, r] = acc
+    return -1
+
+
+def _schedule(faces: np.ndarray, face_edges: np.ndarray, n_edges: int):
+    """An order of the faces that keeps each edge's two faces close, and when each edge is computed and kept.
+
+    Faces are taken greedily, each time one with the most edges already computed (the first such in index order),
+    so the computed edges still waiting for their second face stay few (tens for the rig cages). The faces go in
+    pairs (a closed triangle mesh has an even number of faces); before each pair the edges it needs that are not
+    computed yet are computed, in pairs, one edge early when their number is odd. A pair of edges takes a slot
+    (of 8 rows) from when it is computed until the second face of both is done.
+
+    Returns ``(order (F,), edges (E,) in computation order, step_edges (F/2 + 1,) edge-pair ranges per face pair,
+    pair_slot (E/2,), face_row (F, 3) row of g of each corner's edge, slot count)``.
+    """
+    n_faces = len(faces)
+    edge_faces = np.argsort(face_edges.ravel(), kind="stable").reshape(n_edges, 2) // 3  # (E, 2)
+    done = np.zeros(n_edges, dtype=bool)
+    known = np.zeros(n_faces, dtype=np.int64)  # computed edges per face
+    taken = np.zeros(n_faces, dtype=bool)
+    order = []
+    for _ in range(n_faces):
+        f = int(np.argmax(np.where(taken, -1, known)))
+        taken[f] = True
+        order.append(f)
+        for e in face_edges[f]:
+            if not done[e]:
+                done[e] = True
+                known[edge_faces[e]] += 1
+    order = np.asarray(order, dtype=np.int64)
+    position = np.empty(n_faces, dtype=np.int64)
+    position[order] = np.arange(n_faces)
+    first_pair = position[edge_faces].min(axis=1) // 2  # (E,) the face pair that first needs each edge
+    last_pair = position[edge_faces].max(axis=1) // 2
+    edges = np.argsort(first_pair, kind="stable")  # by first use
+    needed = np.searchsorted(first_pair[edges], np.arange(n_faces // 2), side="right")  # edges done by each pair
+    step_edges = np.concatenate([[0], (needed + 1) // 2]).astype(np.int64)  # edge pairs done by each pair
+    pair_last = last_pair[edges].reshape(-1, 2).max(axis=1)  # (E/2,)
+    pair_slot = np.empty(n_edges // 2, dtype=np.int64)
+    free: list[int] = []
+    used = 0
+    release: dict[int, list[int]] = {}
+    for s in range(n_faces // 2):
+        for k in range(step_edges[s], step_edges[s + 1]):
+            if free:
+                pair_slot[k] = free.pop()
+            else:
+                pair_slot[k] = used
+                used += 1
+            release.setdefault(int(pair_last[k]), []).append(int(pair_slot[k]))
+        free.extend(release.pop(s, []))
+    row = np.empty(n_edges, dtype=np.int64)  # first of the 4 rows of g holding each edge
+    row[edges] = 8 * np.repeat(pair_slot, 2) + 4 * (np.arange(n_edges) % 2)
+    return order, edges, step_edges, pair_slot, row[face_edges[order]], used
 
 
 class _Cage:
-    """The cage's tables in the kernel's layout (from :class:`kpd.mvc._Tables`)."""
+    """The cage's tables in the kernel's layout and frame (from :class:`kpd.mvc._Tables`)."""
 
     def __init__(self, t) -> None:
-        self.t = t
-        rows = np.stack(t.rows, axis=1)  # (F, 3): edge row per corner, + E when the edge runs backwards
-        self.face_edge = np.ascontiguousarray(rows % t.E)
-        self.face_sign = np.where(rows >= t.E, -1.0, 1.0)
         v = t.vertices
-        corner_vertex = t.faces.ravel()  # (3F,) cage vertex of corner 3 f + k
-        corners = np.argsort(corner_vertex, kind="stable")
-        corner_start = np.searchsorted(corner_vertex[corners], np.arange(t.C + 1))
+        self.center = v.mean(axis=0)
+        self.inv_size = 1.0 / t.scale
+        v = (v - self.center) * self.inv_size  # (C, 3) in the cage's frame
+        rows = np.stack(t.rows, axis=1)  # (F, 3): edge row per corner, + E when the edge runs backwards
+        order, edges, step_edges, pair_slot, face_row, slots = _schedule(t.faces, rows % t.E, t.E)
+        self.slots, self.C = slots, t.C
+        faces = t.faces[order]
+        sign = np.where(rows[order] >= t.E, -1.0, 1.0)  # (F, 3)
+        # the second face of each pair turned so that no vertex is corner k of both (the kernel's w<k>); a turn
+        # relabels a face's corners and leaves its weights as they are
+        turn = np.zeros(t.F, dtype=np.int64)
+        for f in range(1, t.F, 2):
+            for r in range(3):
+                if (faces[f - 1] != np.roll(faces[f], -r)).all():
+                    turn[f] = r
+                    break
+        index = (np.arange(3)[None, :] + turn[:, None]) % 3  # (F, 3)
+        faces, sign, face_row = (np.take_along_axis(a, index, axis=1) for a in (faces, sign, face_row))
+        p0, p1, p2 = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
+        n2 = np.cross(p1 - p0, p2 - p0)  # (F, 3) twice the area times the unit normal
+        offset = np.einsum("fi,fi->f", n2, p0)  # D = offset - n2 . x
+        near = (_TOL_PLANE * t.scale * self.inv_size) * np.linalg.norm(n2, axis=1)
+        edge_ends = t.edges[edges]  # (E, 2)
         self.args = (
+            self.center, self.inv_size,
             np.ascontiguousarray(v[:, 0]), np.ascontiguousarray(v[:, 1]), np.ascontiguousarray(v[:, 2]),
-            np.ascontiguousarray(t.edges[:, 0]), np.ascontiguousarray(t.edges[:, 1]), self.face_edge,
-            self.face_sign, np.ascontiguousarray(t.n2[:, 0]), np.ascontiguousarray(t.n2[:, 1]),
-            np.ascontiguousarray(t.n2[:, 2]), np.ascontiguousarray(t.offset), np.ascontiguousarray(t.col["near"][:, 0]),
-            corner_start.astype(np.int64), corners.astype(np.int64),
+            np.ascontiguousarray(edge_ends[:, 0]), np.ascontiguousarray(edge_ends[:, 1]), pair_slot, step_edges,
+            np.ascontiguousarray(face_row), sign, np.ascontiguousarray(faces.ravel()), np.ascontiguousarray(n2[:, 0]),
+            np.ascontiguousarray(n2[:, 1]), np.ascontiguousarray(n2[:, 2]), offset, near,
         )
+
+    def scratch(self, r: int) -> tuple:
+        """One thread's work arrays: xs, g, bad, w, w0, w1, w2, acc (w0, w1, w2 zero: the kernel leaves them so)."""
+        L = _LANES
+        return (np.empty(3 * L), np.empty(8 * self.slots * L), np.empty(L, dtype=bool), np.empty(self.C * L),
+                *[np.zeros(self.C * L) for _ in range(3)], np.empty((r + 1) * L))
 
 
 def _check_threads(threads: Any) -> int:
@@ -225,7 +601,7 @@ def mvc_project(points: Any, cage_vertices: Any, cage_faces: Any, rows: Any, *, 
     """Mean value coordinates of points times a matrix, without the (N, C) coordinates.
 
     ``mvc_project(x, v, f, rows) == mvc_weights(x, v, f) @ rows`` to rounding; with ``rows = influence.T`` this is
-    a rig's edit basis (:class:`kpd.rig.Rig`). Work memory is a few hundred kilobytes per thread, whatever N.
+    a rig's edit basis (:class:`kpd.rig.Rig`). Work memory is a few tens of kilobytes per thread, whatever N.
 
     Parameters
     ----------
@@ -257,8 +633,17 @@ def mvc_project(points: Any, cage_vertices: Any, cage_faces: Any, rows: Any, *, 
     flags = np.zeros(n, dtype=bool)
     points = np.ascontiguousarray(points)
 
+    # the kernel is told that its arrays do not overlap (_tune)
+    if np.may_share_memory(points, out):
+        points = points.copy()
+    if np.may_share_memory(rows, out):
+        rows = rows.copy()
+
+    rows_and_ones = np.concatenate([rows, np.ones((t.C, 1))], axis=1)  # (C, R + 1)
+    nonzero = [np.ascontiguousarray(a) for a in (*np.nonzero(rows_and_ones), rows_and_ones[rows_and_ones != 0])]
+
     def run(lo: int, hi: int) -> None:
-        _project_range(points, lo, hi, *cage.args, rows, out, flags)
+        _project_range(points, lo, hi, *cage.args, *nonzero, r, out, flags, *cage.scratch(r))
 
     if threads == 1:
         run(0, n)
@@ -268,8 +653,11 @@ def mvc_project(points: Any, cage_vertices: Any, cage_faces: Any, rows: Any, *, 
         bounds = [min(n, (blocks * i // threads) * _LANES) for i in range(threads + 1)]
         with ThreadPoolExecutor(threads) as pool:
             list(pool.map(run, bounds[:-1], bounds[1:]))
-    for i in np.flatnonzero(flags):
-        out[i] = _careful_row(t, points[i]) @ rows
+    index = np.flatnonzero(flags)
+    failed = _careful_rows(points, index, t.vertices, t.faces, t.n2, t.n2_norm, t.offset, t.scale, rows, out)
+    if failed >= 0:
+        x = points[index[failed]]
+        raise KpdError(f"mean value coordinates failed at point {x.tolist()}: total weight not finite and non-zero")
     return out
 
 
