@@ -590,7 +590,7 @@ def _check_straighten(basis: Any, vertices: Any, triangles: Any, thinness: float
 _SOLVE_BATCH = 1 << 17  # merged points per sparse factorisation: small connected pieces are solved together
 _MAX_SOLVE_THREADS = 2
 _FOLD_MOVE = 1.0  # a sliver that a move this large (half the model box) of every keypoint would turn over is straightened
-_WHOLE_PIECE = 0.25  # a connected piece whose points the region covers more than this share of is solved whole
+_WHOLE_PIECE = 0.5  # a connected piece whose points the region covers more than this share of is solved whole
 _FIRST_RINGS = 2  # the region first reaches this many edges from the slivers to straighten, then doubles where needed
 
 
@@ -608,7 +608,7 @@ class _StraightenSystem:
     correction), the region grows from them by twice as many edges, and its parts that grew are solved again. The
     region's connected parts are factorised on their own (small ones a few at a time), two at a time, in SuperLU's
     symmetric mode with a minimum-degree ordering of AᵀA + A; a connected piece of the mesh that the region covers
-    more than a quarter of is taken whole.
+    more than half of is taken whole.
     """
 
     def __init__(self, points: np.ndarray, tri: np.ndarray, thinness: float, reach: float) -> None:
@@ -652,8 +652,8 @@ class _StraightenSystem:
         frontier, rings = seeds, _FIRST_RINGS
         while len(frontier):
             reached = _rings(self.indptr, self.indices, frontier, rings)
-            # a piece the region covers a good part of is taken whole: solving it whole costs little more than
-            # solving that part, and a rim there could make the part grow and be factorised again
+            # a piece the region covers mostly is taken whole: solving it whole costs little more than solving
+            # that part, and a rim there could make the part grow and be factorised again
             covered = np.bincount(self.label, weights=inside | reached, minlength=self.pieces)
             reached |= (covered > _WHOLE_PIECE * piece_size)[self.label]
             added = reached & ~inside
