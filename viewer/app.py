@@ -58,7 +58,7 @@ log = logging.getLogger(__name__)
 PANEL_WIDTH = 300  # pixels
 _PICK_PIXELS = 14.0  # a click this close to a marker's centre picks it
 _MAX_SLIDERS = 8
-_PREPARE_AFTER = 0.1  # s without input before a large mesh's whole frame is prepared on the frame thread
+_PREPARE_AFTER = 0.15  # s without input before a large mesh's whole frame is prepared on the frame thread
 _REFINE_AFTER = 0.3  # s without input before a large mesh's stand-in is replaced by the whole mesh
 _LEFT, _TOP = 0, 0  # where the 3D view opens on the screen; the panel opens to its right
 
@@ -421,12 +421,16 @@ class EditorApp:
         self._preparing = state
         rig, mesh, drawing, camera = self.rig, self.mesh, self.drawing, self.camera
         keypoints = None if self.session is None else self.session.keypoints
+        inputs = self._inputs
+
+        def stale() -> bool:  # an input came: the frame may no longer be the one wanted (a newer one will be)
+            return self._inputs != inputs
 
         def work() -> None:
             try:
                 started = time.perf_counter()
                 vertices = mesh.vertices if rig is None else rig.deform(keypoints)
-                uploads = drawing.shaded.prepare(vertices, camera, drawing.view.viewport(camera))
+                uploads = drawing.shaded.prepare(vertices, camera, drawing.view.viewport(camera), stale=stale)
                 milliseconds = round(1000 * (time.perf_counter() - started), 3)
                 self.post_to_main_thread(lambda: self._on_prepared(state, vertices, uploads, milliseconds))
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which ends with it
@@ -434,10 +438,11 @@ class EditorApp:
 
         self._frames_thread.submit(work)
 
-    def _on_prepared(self, state: tuple, vertices: np.ndarray, uploads: list, milliseconds: float) -> None:
+    def _on_prepared(self, state: tuple, vertices: np.ndarray, uploads: list | None, milliseconds: float) -> None:
         if self._preparing == state:
             self._preparing = None
-        self._whole = (state, vertices, uploads, milliseconds)
+        if uploads is not None:
+            self._whole = (state, vertices, uploads, milliseconds)
 
     def _close(self) -> None:
         self._emit("close")

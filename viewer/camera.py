@@ -7,11 +7,12 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import numpy as np
 
 from kpd.viewer.settings import ViewSettings, up_axis
 
-__all__ = ["Camera", "camera_pose", "look_at_matrix", "perspective_matrix", "project", "pixel_ray", "plane_hit"]
+__all__ = ["Camera", "camera_pose", "box", "look_at_matrix", "perspective_matrix", "project", "pixel_ray", "plane_hit"]
 
 
 @dataclass(frozen=True)
@@ -31,12 +32,17 @@ def camera_pose(vertices: Any, settings: ViewSettings, *, margin: float = 0.9) -
     elevation around the up axis, as close as lets every vertex into the view with ``margin`` (a fraction of the
     view's half-width and half-height) to spare; ``settings.zoom`` > 1 moves it closer.
 
+    ``vertices`` may be a list of (N, 3) arrays (a shape and its keypoints, several frames), framed together without
+    joining them. Each array is read twice by a compiled pass (a few milliseconds for a million vertices).
+
     The front view (azimuth 0) looks along the horizontal axis that follows the up axis (x -> y -> z -> x) in the
     positive direction, i.e. from ``-that axis``: for ModelNet (z up, chair backs towards +y) that is the view from
     the front of a chair.
     """
-    vertices = np.asarray(vertices, dtype=np.float64)
-    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    parts = [np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
+             for p in (vertices if isinstance(vertices, (list, tuple)) else [vertices])]
+    parts = [p for p in parts if len(p)]
+    lo, hi = box(parts)
     center = (lo + hi) / 2
     radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
     up = up_axis(settings.up)
@@ -51,15 +57,50 @@ def camera_pose(vertices: Any, settings: ViewSettings, *, margin: float = 0.9) -
     right = np.cross(forward, up)
     right /= np.linalg.norm(right)
     upward = np.cross(right, forward)
-    offsets = vertices - center  # (V, 3)
-    x, y, z = np.abs(offsets @ right), np.abs(offsets @ upward), offsets @ direction
     tan_v = math.tan(math.radians(settings.fov) / 2)
     tan_h = tan_v * settings.width / settings.height
-    distance = float(np.max(z + np.maximum(x / (margin * tan_h), y / (margin * tan_v)))) if len(z) else 1.0
+    axes = np.stack([right, upward, direction])  # (3, 3)
+    distance = max((_reach(p, center, axes, margin * tan_h, margin * tan_v) for p in parts), default=1.0)
     distance = max(distance, 1e-3 * radius) / settings.zoom
     eye = center + distance * direction
     return Camera(center=center, eye=eye, up=up, fov=float(settings.fov), near=max(distance - 3 * radius, distance / 100),
                   far=distance + 3 * radius)
+
+
+def box(parts: list) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) lowest and (3,) highest coordinates of the points of (N, 3) float64 arrays (zeros without points)."""
+    boxes = [_box(p) for p in parts if len(p)]
+    if not boxes:
+        return np.zeros(3), np.zeros(3)
+    return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _box(points):  # pragma: no cover - compiled
+    lo = points[0].copy()
+    hi = points[0].copy()
+    for i in range(1, points.shape[0]):
+        for k in range(3):
+            x = points[i, k]
+            if x < lo[k]:
+                lo[k] = x
+            elif x > hi[k]:
+                hi[k] = x
+    return lo, hi
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _reach(points, center, axes, half_width, half_height):  # pragma: no cover - compiled
+    """The largest distance back along ``axes[2]`` from ``center`` that sees every point within the view's half-width
+    and half-height (tangents, times the margin)."""
+    best = -np.inf
+    for i in range(points.shape[0]):
+        ox, oy, oz = points[i, 0] - center[0], points[i, 1] - center[1], points[i, 2] - center[2]
+        x = abs(ox * axes[0, 0] + oy * axes[0, 1] + oz * axes[0, 2])
+        y = abs(ox * axes[1, 0] + oy * axes[1, 1] + oz * axes[1, 2])
+        z = ox * axes[2, 0] + oy * axes[2, 1] + oz * axes[2, 2]
+        best = max(best, z + max(x / half_width, y / half_height))
+    return best
 
 
 def look_at_matrix(camera: Camera) -> np.ndarray:

@@ -32,6 +32,7 @@ import numba
 import numpy as np
 
 from kpd.errors import KpdError
+from kpd.viewer.camera import box
 
 __all__ = ["GLView", "ShadedMesh", "RigDrawing", "Shot", "Layer", "render_shots", "shading_normals", "NoWindowError"]
 
@@ -129,10 +130,9 @@ class _Normals:
     def __init__(self, triangles: np.ndarray, welding: _Welding) -> None:
         self.triangles = np.ascontiguousarray(triangles, dtype=np.int64)
         self.welding = welding
-        corners = welding.inverse[self.triangles].reshape(-1)  # (3T,) the group of each corner
         self.starts = np.zeros(welding.groups + 1, dtype=np.int64)  # (G + 1,) each group's corners in ``entries``
-        self.entries = np.empty(len(corners), dtype=np.int64)  # (3T,) the triangle of each corner, grouped
-        _corner_lists(corners, self.starts, self.entries)
+        self.entries = np.empty(3 * len(self.triangles), dtype=np.int32)  # (3T,) the triangle of each corner, grouped
+        _corner_lists(self.triangles, welding.inverse, self.starts, self.entries)
         self._face = np.empty((len(self.triangles), 3))  # (T, 3)
         self._groups = np.empty((welding.groups, 3), dtype=np.float32)  # (G, 3)
 
@@ -146,18 +146,20 @@ class _Normals:
 
 
 @numba.njit(cache=True, nogil=True)
-def _corner_lists(corners, starts, entries):  # pragma: no cover - compiled
-    """Counting sort of the corners (3T,) by group: ``entries[starts[g]:starts[g + 1]]`` are the triangles of group
-    g's corners in corner order (a triangle twice if two of its corners are in g)."""
-    for i in range(corners.shape[0]):
-        starts[corners[i] + 1] += 1
+def _corner_lists(triangles, inverse, starts, entries):  # pragma: no cover - compiled
+    """Counting sort of the triangles' corners by their vertex's group: ``entries[starts[g]:starts[g + 1]]`` are the
+    triangles of group g's corners in corner order (a triangle twice if two of its corners are in g)."""
+    for t in range(triangles.shape[0]):
+        for k in range(3):
+            starts[inverse[triangles[t, k]] + 1] += 1
     for g in range(1, starts.shape[0]):
         starts[g] += starts[g - 1]
     fill = starts[:-1].copy()
-    for i in range(corners.shape[0]):
-        g = corners[i]
-        entries[fill[g]] = i // 3
-        fill[g] += 1
+    for t in range(triangles.shape[0]):
+        for k in range(3):
+            g = inverse[triangles[t, k]]
+            entries[fill[g]] = t
+            fill[g] += 1
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -262,7 +264,8 @@ class Viewport:
 DEPTH_SLACK = 3e-3
 
 
-def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Viewport) -> np.ndarray:
+def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Viewport, *,
+                      scratch: dict | None = None) -> np.ndarray:
     """(T,) bool: the triangles that may show in a pixel of the viewport; a frame drawn without the others is the
     same picture.
 
@@ -286,18 +289,24 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
     vertices : (V, 3) float64.
     triangles : (T, 3) int.
     viewport : Viewport.
+    scratch : the arrays of an earlier call with as many vertices and triangles and the same viewport size, reused
+        (fresh memory costs as much as the work here); a dict, filled on the first call.
     """
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
     triangles = np.ascontiguousarray(triangles)
-    screen = np.empty((len(vertices), 3))  # (V, 3) window x, y (y up) and the depth along the view axis
-    _halves(_project, len(vertices), vertices, viewport.view, viewport.focal, viewport.width / 2,
-            viewport.height / 2, screen)
-    delta = _margin(vertices, viewport)
     w, h = viewport.width, viewport.height
-    depth = np.full((2, h * w), np.inf)  # (2, H W) per pixel, one row per thread
+    scratch = {} if scratch is None else scratch
+    if scratch.get("sizes") != (len(vertices), len(triangles), w, h):
+        scratch.update(sizes=(len(vertices), len(triangles), w, h), screen=np.empty((len(vertices), 3)),
+                       depth=np.empty((2, h * w)), front=np.empty(h * w), keep=np.empty(len(triangles), np.bool_))
+    screen = scratch["screen"]  # (V, 3) window x, y (y up) and the depth along the view axis
+    _halves(_project, len(vertices), vertices, viewport.view, viewport.focal, w / 2, h / 2, screen)
+    delta = _margin(vertices, viewport)
+    depth = scratch["depth"]  # (2, H W) per pixel, one row per thread
+    depth.fill(np.inf)
     _halves(_fronts, len(triangles), triangles, screen, w, h, delta, depth)
-    front = np.minimum(depth[0], depth[1])  # (H W,)
-    keep = np.empty(len(triangles), dtype=np.bool_)
+    front = np.minimum(depth[0], depth[1], out=scratch["front"])  # (H W,)
+    keep = scratch["keep"]
     _halves(_showing, len(triangles), triangles, screen, w, h, delta, front, DEPTH_SLACK, keep)
     return keep
 
@@ -308,7 +317,7 @@ def _margin(vertices: np.ndarray, viewport: Viewport) -> float:
     nearest point of the vertices' bounding box."""
     if not len(vertices):
         return 1.0 / 128
-    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    lo, hi = box([vertices])
     eye = np.asarray(viewport.camera.eye, dtype=np.float64)
     nearest = float(np.linalg.norm(np.maximum(lo - eye, 0.0) + np.maximum(eye - hi, 0.0)))  # eye to the box
     size = float(max(np.abs(lo).max(), np.abs(hi).max(), np.abs(eye).max()))
@@ -443,6 +452,7 @@ class _Part:
     def __init__(self, geometry: Any, triangles: np.ndarray, albedo: np.ndarray | None, uvs: np.ndarray | None) -> None:
         self.geometry, self.triangles, self.albedo, self.uvs = geometry, triangles, albedo, uvs
         self.layout: tuple[np.ndarray, np.ndarray] | None = None  # (used, local) of all triangles, once uploaded
+        self.scratch: dict = {}  # visible_triangles' arrays, reused frame after frame
 
 
 class ShadedMesh:
@@ -470,13 +480,16 @@ class ShadedMesh:
         ids = (mesh.triangle_material_ids if mesh.triangle_material_ids is not None else np.zeros(t, np.int64)) \
             if textured else np.zeros(t, np.int64)
         for material in np.unique(ids) if textured and t else [0]:
-            chosen = np.flatnonzero(ids == material) if textured else np.arange(t)
+            chosen = np.flatnonzero(ids == material) if textured else None  # None: every triangle
             part = o3d.geometry.TriangleMesh()
             texture = mesh.textures[int(material)] if textured and 0 <= material < len(mesh.textures) else None
             if texture is None or texture.shape[0] * texture.shape[1] == 1:
                 # a triangle over the same corners as an earlier one draws nothing new: two-sided lighting and back
                 # faces shown (CAD meshes store many triangles twice, once each way round: half of ShapeNet's)
-                chosen = chosen[distinct_triangles(triangles[chosen])]
+                first = distinct_triangles(triangles if chosen is None else triangles[chosen])
+                chosen = first if chosen is None else chosen[first]
+            elif chosen is None:
+                chosen = np.arange(t)
             uvs = None
             if texture is not None and texture.shape[0] * texture.shape[1] == 1:
                 # a material's plain colour (kpd.io reads an OBJ material without a map as a 1x1 image): shaded
@@ -500,8 +513,9 @@ class ShadedMesh:
                 albedo = np.asarray(mesh.vertex_colors, dtype=np.float32)  # (V, 3)
             else:
                 albedo = np.asarray(color, dtype=np.float32)[:3]  # (3,)
-            self.parts.append(_Part(part, np.ascontiguousarray(triangles[chosen]), albedo, uvs))
-        drawn = np.concatenate([p.triangles for p in self.parts]) if self.parts else np.zeros((0, 3), np.int64)
+            self.parts.append(_Part(part, triangles[chosen], albedo, uvs))
+        drawn = (self.parts[0].triangles if len(self.parts) == 1 else np.concatenate([p.triangles for p in self.parts])
+                 ) if self.parts else np.zeros((0, 3), np.int64)
         self._normals = _Normals(drawn, self.welding)  # shading normals from the triangles drawn
         self._remap = np.full(len(mesh.vertices), -1, dtype=np.int32)  # (V,) scratch of _compact
         self._used = np.empty(len(mesh.vertices), dtype=np.int64)
@@ -522,20 +536,32 @@ class ShadedMesh:
         (the view's size and this camera), only the triangles that show in a pixel are uploaded."""
         self.upload(self.prepare(vertices, camera, viewport))
 
-    def prepare(self, vertices: np.ndarray, camera: Any, viewport: Viewport | None = None) -> list:
+    def prepare(self, vertices: np.ndarray, camera: Any, viewport: Viewport | None = None, *,
+                stale: Any = None) -> list | None:
         """What :meth:`set_vertices` uploads, worked out without touching the geometries: a thread may prepare a
-        frame while the main thread draws others (one preparation at a time)."""
+        frame while the main thread draws others (one preparation at a time). ``stale()``, asked between the steps,
+        abandons the work (returns None) once the frame is no longer wanted."""
         vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         with self._lock:
             normals = self._normals(vertices, camera.eye) if any(p.albedo is not None for p in self.parts) else None
-            return [self._prepare_part(part, vertices, normals, camera, viewport) for part in self.parts]
+            uploads = []
+            for part in self.parts:
+                if stale is not None and stale():
+                    return None
+                upload = self._prepare_part(part, vertices, normals, camera, viewport, stale)
+                if upload is None:
+                    return None
+                uploads.append(upload)
+            return uploads
 
     def _prepare_part(self, part: _Part, vertices: np.ndarray, normals: np.ndarray | None, camera: Any,
-                      viewport: Viewport | None) -> _Upload:
+                      viewport: Viewport | None, stale: Any = None) -> _Upload | None:
         layout = part.layout
         triangles = uvs = None
         if viewport is not None and len(part.triangles) > CULL_TRIANGLES:
-            keep = visible_triangles(vertices, part.triangles, viewport)
+            keep = visible_triangles(vertices, part.triangles, viewport, scratch=part.scratch)
+            if stale is not None and stale():
+                return None
             n, m = _compact(part.triangles, keep, self._remap, self._used, self._local)
             used, triangles = self._used[:n], self._local[:m].copy()
             part.layout = None
@@ -831,11 +857,15 @@ class GLView:
         if self.camera is not None:
             self.set_camera(self.camera)
 
-    def set_box(self, vertices: np.ndarray) -> None:
-        """Make the view's bounding box (which sets the clipping planes) hold ``vertices`` (N, 3)."""
+    def set_box(self, vertices: Any) -> None:
+        """Make the view's bounding box (which sets the clipping planes) hold ``vertices`` (N, 3), or a list of such
+        arrays."""
         import open3d as o3d
 
-        lo, hi = np.min(vertices, axis=0), np.max(vertices, axis=0)
+        from kpd.viewer.camera import box
+
+        lo, hi = box([np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
+                      for p in (vertices if isinstance(vertices, (list, tuple)) else [vertices])])
         pad = 1.5 * (hi - lo).max()
         box = o3d.geometry.LineSet()
         box.points = o3d.utility.Vector3dVector(np.array([lo - pad, hi + pad]))
@@ -1020,14 +1050,16 @@ class RigDrawing:
     cage_faces : (F, 3) or None.
     settings : kpd.viewer.render.ViewSettings.
     digits : draw the keypoint numbers as camera-facing glyphs (the editor); pictures draw them into the image.
+    shaded : ``ShadedMesh(mesh, settings.mesh_color)`` made beforehand (on another thread, while the mesh is bound),
+        or None to make it here.
     """
 
     def __init__(self, view: GLView, mesh: Any, num_keypoints: int = 0, cage_faces: Any = None, *, settings: Any,
-                 digits: bool = True) -> None:
+                 digits: bool = True, shaded: ShadedMesh | None = None) -> None:
         self.view, self.mesh, self.settings = view, mesh, settings
-        lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+        lo, hi = box([np.ascontiguousarray(mesh.vertices, dtype=np.float64)])
         self.diagonal = float(np.linalg.norm(hi - lo)) or 1.0
-        self.shaded = ShadedMesh(mesh, settings.mesh_color)
+        self.shaded = shaded if shaded is not None else ShadedMesh(mesh, settings.mesh_color)
         self.proxy: ShadedMesh | None = None  # the coarse stand-in of a large mesh (set_stand_in)
         self._kept: np.ndarray | None = None  # (P,) the mesh's vertices the stand-in is made of
         self._with_digits = digits

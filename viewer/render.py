@@ -48,7 +48,7 @@ def _rig_frames(rig: Any, keypoint_sets: Sequence[Any], selections: Sequence[Seq
 
 
 def render_rig(rig: Any, keypoints: Any = None, *, settings: ViewSettings | None = None, selection: Sequence[int] = (),
-               backend: str = "auto", timeout: float = 300.0) -> np.ndarray:
+               backend: str = "auto", timeout: float = 300.0, shaded: Any = None) -> np.ndarray:
     """Draw a rig with its keypoints at ``keypoints`` (default: rest) without opening a window.
 
     Parameters
@@ -59,6 +59,8 @@ def render_rig(rig: Any, keypoints: Any = None, *, settings: ViewSettings | None
     selection : keypoint indices drawn as selected.
     backend : one of :data:`BACKENDS` (see the module notes).
     timeout : seconds to wait for a window backend's child process.
+    shaded : ``kpd.viewer.gl.ShadedMesh(rig.mesh, settings.mesh_color)`` made beforehand (``kpd render`` makes it on
+        a thread while the mesh is bound), or None.
 
     Returns
     -------
@@ -66,12 +68,12 @@ def render_rig(rig: Any, keypoints: Any = None, *, settings: ViewSettings | None
     """
     keypoints = rig.keypoints if keypoints is None else keypoints
     return render_frames(rig, [keypoints], settings=settings, selections=[selection], backend=backend,
-                         timeout=timeout)[0]
+                         timeout=timeout, shaded=shaded)[0]
 
 
 def render_frames(rig: Any, keypoint_sets: Sequence[Any], *, settings: ViewSettings | None = None,
                   selections: Sequence[Sequence[int]] | None = None, backend: str = "auto",
-                  timeout: float = 300.0) -> list[np.ndarray]:
+                  timeout: float = 300.0, shaded: Any = None) -> list[np.ndarray]:
     """:func:`render_rig` of several keypoint sets with one renderer (a gallery of edits): a list of (H, W, 3).
 
     One camera frames every frame's deformed shape (and its keypoints), so edits that grow the shape stay in view and
@@ -87,20 +89,22 @@ def render_frames(rig: Any, keypoint_sets: Sequence[Any], *, settings: ViewSetti
             raise InputError(f"keypoints must have shape ({k}, 3) for this rig; got {shape}")
     frames = _rig_frames(rig, keypoint_sets, selections)
     backend = resolve_backend(backend)
-    camera = camera_pose(np.vstack([np.vstack([f.vertices, f.keypoints]) for f in frames]), settings)
+    framed = [f.vertices for f in frames] + [f.keypoints for f in frames]  # every frame's shape and keypoints
+    camera = camera_pose(framed, settings)
     log.info("rendering %d frame(s) of %dx%d with the %s backend", len(frames), settings.width, settings.height, backend)
     with gl_display(backend, settings.width, settings.height):
-        return _render_gl(rig, frames, settings, camera, on_display=backend != "egl")
+        return _render_gl(rig, frames, settings, camera, on_display=backend != "egl", shaded=shaded)
 
 
 def _render_gl(rig: Any, frames: list[Frame], settings: ViewSettings, camera: Camera, *,
-               on_display: bool = False) -> list[np.ndarray]:
+               on_display: bool = False, shaded: Any = None) -> list[np.ndarray]:
     from kpd.viewer.gl import GLView, RigDrawing
 
     view = GLView(settings.width, settings.height, background=settings.background, on_display=on_display)
     try:
-        drawing = RigDrawing(view, rig.mesh, rig.num_keypoints, rig.cage.faces, settings=settings, digits=False)
-        view.set_box(np.vstack([np.vstack([f.vertices, f.keypoints]) for f in frames]))
+        drawing = RigDrawing(view, rig.mesh, rig.num_keypoints, rig.cage.faces, settings=settings, digits=False,
+                             shaded=shaded)
+        view.set_box([f.vertices for f in frames] + [f.keypoints for f in frames])
         images = []
         for frame in frames:
             drawing.show(frame, camera)

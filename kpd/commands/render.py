@@ -53,20 +53,38 @@ def _run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise InputError(f"--select must be keypoint numbers like 0,3; got {args.select!r}") from exc
     view_settings(args)  # bad --size or --view-up ends here, before any work
-    source = load_source(args, need_prior=args.prior)
+    source = load_source(args, need_prior=args.prior, later=True)
     settings = view_settings(args, source.up)
-    rig = source.rig
-    k = rig.num_keypoints
-    for index in list(moves) + selection:
+    k = source.rig.num_keypoints
+    for index in list(moves) + selection:  # before the binding
         if not 0 <= index < k:
             raise InputError(f"keypoint index must lie in [0, {k}) for this {k}-keypoint rig; got {index}")
+    rig, shaded = bind_beside_drawing(source.rig, settings)
     keypoints = rig.moved(moves)
     if args.prior and moves:
         keypoints = propose(rig.keypoints, {i: keypoints[i] for i in moves}, prior=source.prior,
                             normalizer=rig.normalizer)
-    image = render_rig(rig, keypoints, settings=settings, selection=selection, backend=args.backend)
+    image = render_rig(rig, keypoints, settings=settings, selection=selection, backend=args.backend, shaded=shaded)
     with outputs:
         write_png(outputs.stage(out), image)
     print(f"wrote {out} ({image.shape[1]}x{image.shape[0]}, {len(moves)} keypoint(s) moved"
           f"{', others by the prior' if args.prior and moves else ''})")
     return 0
+
+
+def bind_beside_drawing(rig, settings):
+    """``(rig, shaded)``: a :class:`kpd.viewer.app.Binding` bound on this thread while a worker thread gets its mesh
+    ready to draw (:class:`kpd.viewer.gl.ShadedMesh`: positions grouped, each triangle once, the normals' lists; a
+    second or more for millions of triangles); a rig already made is returned as it is, with None."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from kpd.viewer.app import Binding
+
+    if not isinstance(rig, Binding):
+        return rig, None
+    from kpd.viewer.gl import ShadedMesh
+
+    with ThreadPoolExecutor(1, thread_name_prefix="kpd-render-mesh") as pool:
+        shaded = pool.submit(ShadedMesh, rig.mesh, settings.mesh_color)
+        bound = rig.bind()
+        return bound, shaded.result()
