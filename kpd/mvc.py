@@ -220,38 +220,54 @@ def _run_block(t: _Tables, points: np.ndarray, out: np.ndarray, chunk: int) -> n
     return flags
 
 
+def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot products ``(..., 3) -> (...)``, summed left to right (the compiled twin,
+    :func:`kpd.mvc_fast._careful_rows`, sums the same way, so the two round alike)."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+_libm_atan2 = np.frompyfunc(math.atan2, 2, 1)  # the C library's, as compiled code calls it (numpy's may be SIMD)
+
+
 def _face_weights(p: np.ndarray) -> np.ndarray:
     """Ju's weights of whole faces: ``p (F', 3, 3)`` are the corners minus the point -> ``(F', 3)`` w_k = G_k.m / D."""
     g = np.stack([np.cross(p[:, (k + 1) % 3], p[:, (k + 2) % 3]) for k in range(3)], axis=1)  # (F', 3, 3)
-    length = np.linalg.norm(g, axis=2)  # (F', 3)
-    dots = np.stack([np.einsum("fi,fi->f", p[:, (k + 1) % 3], p[:, (k + 2) % 3]) for k in range(3)], axis=1)
-    m = np.einsum("fk,fki->fi", np.arctan2(length, dots) / length, g)  # (F', 3)
-    big_d = np.einsum("fi,fi->f", p[:, 0], g[:, 0])  # (F',)
-    return np.einsum("fki,fi->fk", g, m) / big_d[:, None]
+    length = np.sqrt(_rowdot(g, g))  # (F', 3)
+    dots = np.stack([_rowdot(p[:, (k + 1) % 3], p[:, (k + 2) % 3]) for k in range(3)], axis=1)
+    t = _libm_atan2(length, dots).astype(np.float64) / length  # (F', 3)
+    m = t[:, 0, None] * g[:, 0] + t[:, 1, None] * g[:, 1] + t[:, 2, None] * g[:, 2]  # (F', 3)
+    return _rowdot(g, m[:, None, :]) / _rowdot(p[:, 0], g[:, 0])[:, None]
 
 
 def _segment_distance(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Distance from ``x (3,)`` to the segments ``a (F', 3)`` - ``b (F', 3)``."""
     ab = b - a
-    s = np.clip(np.einsum("fi,fi->f", x - a, ab) / np.einsum("fi,fi->f", ab, ab), 0.0, 1.0)
-    return np.linalg.norm(a + s[:, None] * ab - x, axis=1)
+    s = np.clip(_rowdot(x - a, ab) / _rowdot(ab, ab), 0.0, 1.0)
+    d = a + s[:, None] * ab - x
+    return np.sqrt(_rowdot(d, d))
 
 
 def _careful_row(t: _Tables, x: np.ndarray) -> np.ndarray:
-    """Normalised weights of one point, with the vertex and face rules and care near face planes."""
+    """Normalised weights of one point, with the vertex and face rules and care near face planes.
+
+    Near a face's plane the lifted share below is steep (it scales with the point's distance to the plane over a
+    height of 1e-6), so the rounding of that distance shows in the weights at ~1e-10; every sum here runs in a fixed
+    order and the arctangent is the C library's, as in :func:`kpd.mvc_fast._careful_rows`, so that the numpy and the
+    compiled path round alike."""
     v, faces = t.vertices, t.faces
-    dist = np.linalg.norm(v - x, axis=1)  # (C,)
+    rel = v - x  # (C, 3)
+    dist = np.sqrt(_rowdot(rel, rel))  # (C,)
     j = int(np.argmin(dist))
     w = np.zeros(t.C)
     if dist[j] <= _TOL_VERTEX * t.scale:
         w[j] = 1.0
         return w
-    p = (v - x)[faces]  # (F, 3, 3) corners relative to x
-    delta = (t.offset - t.n2 @ x) / t.n2_norm  # (F,) signed distance to each plane
+    p = rel[faces]  # (F, 3, 3) corners relative to x
+    delta = (t.offset - _rowdot(t.n2, x)) / t.n2_norm  # (F,) signed distance to each plane
     # Barycentric coordinates of x's projection: corner k gets n2 . (p_{k+1} - x) x (p_{k+2} - x) / |n2|^2.
     bary = np.stack(
-        [np.einsum("fi,fi->f", t.n2, np.cross(p[:, (k + 1) % 3], p[:, (k + 2) % 3])) for k in range(3)], axis=1
-    ) / (t.n2_norm**2)[:, None]  # (F, 3)
+        [_rowdot(t.n2, np.cross(p[:, (k + 1) % 3], p[:, (k + 2) % 3])) for k in range(3)], axis=1
+    ) / (t.n2_norm * t.n2_norm)[:, None]  # (F, 3)
     inside = bary.min(axis=1) >= -_TOL_INSIDE
     on_face = (np.abs(delta) <= _TOL_FACE * t.scale) & inside
     if on_face.any():
