@@ -58,7 +58,7 @@ log = logging.getLogger(__name__)
 PANEL_WIDTH = 300  # pixels
 _PICK_PIXELS = 14.0  # a click this close to a marker's centre picks it
 _MAX_SLIDERS = 8
-_PREPARE_AFTER = 0.15  # s without input before a large mesh's whole frame is prepared on the frame thread
+_PREPARE_AFTER = 0.2  # s without input before a large mesh's whole frame is prepared on the frame thread
 _REFINE_AFTER = 0.3  # s without input before a large mesh's stand-in is replaced by the whole mesh
 _LEFT, _TOP = 0, 0  # where the 3D view opens on the screen; the panel opens to its right
 

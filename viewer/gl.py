@@ -246,43 +246,54 @@ def shade(albedo: np.ndarray, normals: np.ndarray, camera: Any) -> np.ndarray:
 # --- what a frame draws: the triangles that show in a pixel ---------------------------------------------------------
 
 
+# Where a rasteriser samples a pixel, as offsets from its lower-left corner (y up): a frame that is read back
+# (pictures: Open3D draws them into a framebuffer of one sample a pixel) at the centre; a window at the centre, or at
+# the four points of the standard 4x multisampling pattern (Open3D asks for four samples; Mesa's software renderer
+# gives them under Xvfb, at these points, which a test checks against the picture on the screen).
+PIXEL_CENTRE = np.array([[0.5, 0.5]])
+WINDOW_SAMPLES = np.array([[0.5, 0.5], [0.375, 0.875], [0.875, 0.625], [0.125, 0.375], [0.625, 0.125]])
+
+
 class Viewport:
     """Where a view draws: ``width`` x ``height`` pixels seen through a look-at ``camera`` with a symmetric frustum
-    (:meth:`GLView.set_camera`), for :func:`visible_triangles`."""
+    (:meth:`GLView.set_camera`), each pixel sampled at ``samples`` (S, 2) (offsets from its lower-left corner), for
+    :func:`visible_triangles`."""
 
-    def __init__(self, camera: Any, width: int, height: int) -> None:
+    def __init__(self, camera: Any, width: int, height: int, samples: np.ndarray = PIXEL_CENTRE) -> None:
         from kpd.viewer.camera import look_at_matrix
 
         self.camera, self.width, self.height = camera, int(width), int(height)
+        self.samples = np.ascontiguousarray(samples, dtype=np.float64)
         self.view = look_at_matrix(camera)  # (4, 4) world -> camera, looking down -z
         self.focal = self.height / 2 / math.tan(math.radians(camera.fov) / 2)  # pixels
 
 
-# Depth by which a triangle must lie behind one that surely covers a pixel centre to be left out there, as a share
-# of the depth: far above the depth buffer's steps (24 bits over Open3D's near and far planes: about 4e-6 of the
-# depth at the default camera; 1e-3 with 16 bits) and float32 rounding.
+# Depth by which a triangle must lie behind one that surely covers a sample to be left out there, as a share of the
+# depth: far above the depth buffer's steps (24 bits over Open3D's near and far planes: about 4e-6 of the depth at
+# the default camera; 1e-3 with 16 bits) and float32 rounding.
 DEPTH_SLACK = 3e-3
 
 
 def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Viewport, *,
-                      scratch: dict | None = None) -> np.ndarray:
+                      scratch: dict | None = None, stale: Any = None) -> np.ndarray | None:
     """(T,) bool: the triangles that may show in a pixel of the viewport; a frame drawn without the others is the
     same picture.
 
-    A rasteriser makes a triangle's fragments at the pixel centres it covers, and keeps at each the nearest. A
-    scan-sized mesh in a window has many triangles per pixel: of the 2.75M distinct triangles of a 1.37M-vertex chair
-    seen whole at 960 x 720, one in six covers a pixel centre and fewer than one in ten is in front there; drawing
-    only those (which is what a rasteriser spends its time finding out) makes a frame several times cheaper. Each
-    vertex is projected as the view projects it; a corner may land up to ``delta`` pixels away in the rasteriser
-    (sub-pixel snapping and float32 rounding, :func:`_margin`), which moves a pixel centre's edge functions by at
-    most ``delta (2 D + L)`` (D the triangle's extent on the screen, L the edge's length). Two passes:
+    A rasteriser makes a triangle's fragments at the sample points it covers (the pixel centres, or several points a
+    pixel with multisampling), and keeps at each the nearest. A scan-sized mesh in a window has many triangles per
+    pixel: of the 2.75M distinct triangles of a 1.37M-vertex chair seen whole at 960 x 720, one in eight covers a
+    pixel centre in front; drawing only those (which is what a rasteriser spends its time finding out) makes a frame
+    several times cheaper. Each vertex is projected as the view projects it; a corner may land up to ``delta``
+    pixels away in the rasteriser (sub-pixel snapping and float32 rounding, :func:`_margin`), which moves a point's
+    edge functions by at most ``delta (2 D + L)`` (D the triangle's extent on the screen, L the edge's length). Two
+    passes:
 
-    1. at each pixel centre, the depth behind which nothing of the triangles that surely cover it (inside by that
+    1. at each sample point, the depth behind which nothing of the triangles that surely cover it (inside by that
        bound) lies: the smallest of their farthest corners' depths;
-    2. a triangle is kept if it may cover a pixel centre (within that bound, either winding) where its nearest
-       corner is not behind that depth by more than :data:`DEPTH_SLACK` of it.
+    2. a triangle is kept if it may cover a sample point (within that bound, either winding) where its nearest corner
+       is not behind that depth by more than :data:`DEPTH_SLACK` of it.
 
-    A triangle with a corner behind the camera or over more than 16 pixel centres is kept untested.
+    A triangle with a corner behind the camera or over more than 25 pixels is kept untested.
 
     Parameters
     ----------
@@ -291,23 +302,28 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
     viewport : Viewport.
     scratch : the arrays of an earlier call with as many vertices and triangles and the same viewport size, reused
         (fresh memory costs as much as the work here); a dict, filled on the first call.
+    stale : asked between the passes; when it returns True the work stops and None is returned.
     """
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
     triangles = np.ascontiguousarray(triangles)
-    w, h = viewport.width, viewport.height
+    w, h, samples = viewport.width, viewport.height, viewport.samples
+    points = h * w * len(samples)
     scratch = {} if scratch is None else scratch
-    if scratch.get("sizes") != (len(vertices), len(triangles), w, h):
-        scratch.update(sizes=(len(vertices), len(triangles), w, h), screen=np.empty((len(vertices), 3)),
-                       depth=np.empty((2, h * w)), front=np.empty(h * w), keep=np.empty(len(triangles), np.bool_))
+    if scratch.get("sizes") != (len(vertices), len(triangles), points):
+        scratch.update(sizes=(len(vertices), len(triangles), points), screen=np.empty((len(vertices), 3)),
+                       depth=np.empty((2, points), np.float32), front=np.empty(points, np.float32),
+                       keep=np.empty(len(triangles), np.bool_))
     screen = scratch["screen"]  # (V, 3) window x, y (y up) and the depth along the view axis
     _halves(_project, len(vertices), vertices, viewport.view, viewport.focal, w / 2, h / 2, screen)
     delta = _margin(vertices, viewport)
-    depth = scratch["depth"]  # (2, H W) per pixel, one row per thread
+    depth = scratch["depth"]  # (2, H W S) per sample point, one row per thread
     depth.fill(np.inf)
-    _halves(_fronts, len(triangles), triangles, screen, w, h, delta, depth)
-    front = np.minimum(depth[0], depth[1], out=scratch["front"])  # (H W,)
+    _halves(_fronts, len(triangles), triangles, screen, w, h, samples, delta, depth)
+    if stale is not None and stale():
+        return None
+    front = np.minimum(depth[0], depth[1], out=scratch["front"])  # (H W S,)
     keep = scratch["keep"]
-    _halves(_showing, len(triangles), triangles, screen, w, h, delta, front, DEPTH_SLACK, keep)
+    _halves(_showing, len(triangles), triangles, screen, w, h, samples, delta, front, DEPTH_SLACK, keep)
     return keep
 
 
@@ -341,11 +357,24 @@ def _project(lo, hi, vertices, view, focal, half_width, half_height, screen):  #
             screen[i, 0] = screen[i, 1] = 0.0
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _any_sample(x0, x1, y0, y1, i0, i1, j0, j1, samples):  # pragma: no cover - compiled
+    """Whether a sample point of the pixels [i0, i1] x [j0, j1] lies in the box [x0, x1] x [y0, y1]."""
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            for k in range(samples.shape[0]):
+                sx, sy = i + samples[k, 0], j + samples[k, 1]
+                if x0 <= sx <= x1 and y0 <= sy <= y1:
+                    return True
+    return False
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _fronts(lo, hi, triangles, screen, width, height, delta, depth):  # pragma: no cover - compiled
+def _fronts(lo, hi, triangles, screen, width, height, samples, delta, depth):  # pragma: no cover - compiled
     """Pass 1 of :func:`visible_triangles`, into ``depth[0]`` for a range from 0 and ``depth[1]`` for the other
     (:func:`_halves`' second thread)."""
     out = depth[0] if lo == 0 else depth[1]
+    count = samples.shape[0]
     for t in range(lo, hi):
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         za, zb, zc = screen[a, 2], screen[b, 2], screen[c, 2]
@@ -353,10 +382,12 @@ def _fronts(lo, hi, triangles, screen, width, height, delta, depth):  # pragma: 
             continue
         ax, ay, bx, by, cx, cy = screen[a, 0], screen[a, 1], screen[b, 0], screen[b, 1], screen[c, 0], screen[c, 1]
         x0, x1, y0, y1 = min(ax, bx, cx), max(ax, bx, cx), min(ay, by, cy), max(ay, by, cy)
-        i0, i1 = max(math.ceil(x0 - 0.5), 0), min(math.floor(x1 - 0.5), width - 1)
-        j0, j1 = max(math.ceil(y0 - 0.5), 0), min(math.floor(y1 - 0.5), height - 1)
+        i0, i1 = max(math.floor(x0), 0), min(math.floor(x1), width - 1)  # the pixels the box touches
+        j0, j1 = max(math.floor(y0), 0), min(math.floor(y1), height - 1)
         if i0 > i1 or j0 > j1 or (i1 - i0 + 1) * (j1 - j0 + 1) > 4096:
             continue
+        if not _any_sample(x0, x1, y0, y1, i0, i1, j0, j1, samples):
+            continue  # most triangles of a dense mesh: between the sample points
         area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)  # twice the signed area
         sign = 1.0 if area > 0.0 else -1.0
         reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + 2.0 * delta
@@ -365,21 +396,23 @@ def _fronts(lo, hi, triangles, screen, width, height, delta, depth):  # pragma: 
         m2 = delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
         far = max(za, zb, zc)  # nothing of the triangle lies behind its farthest corner
         for i in range(i0, i1 + 1):
-            sx = i + 0.5
             for j in range(j0, j1 + 1):
-                sy = j + 0.5
-                e0 = sign * ((bx - ax) * (sy - ay) - (by - ay) * (sx - ax))
-                e1 = sign * ((cx - bx) * (sy - by) - (cy - by) * (sx - bx))
-                e2 = sign * ((ax - cx) * (sy - cy) - (ay - cy) * (sx - cx))
-                if e0 >= m0 and e1 >= m1 and e2 >= m2:  # surely inside
-                    p = j * width + i
-                    if far < out[p]:
-                        out[p] = far
+                base = (j * width + i) * count
+                for k in range(count):
+                    sx, sy = i + samples[k, 0], j + samples[k, 1]
+                    if sx < x0 or sx > x1 or sy < y0 or sy > y1:
+                        continue
+                    e0 = sign * ((bx - ax) * (sy - ay) - (by - ay) * (sx - ax))
+                    e1 = sign * ((cx - bx) * (sy - by) - (cy - by) * (sx - bx))
+                    e2 = sign * ((ax - cx) * (sy - cy) - (ay - cy) * (sx - cx))
+                    if e0 >= m0 and e1 >= m1 and e2 >= m2 and far < out[base + k]:  # surely inside, nearer
+                        out[base + k] = far
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _showing(lo, hi, triangles, screen, width, height, delta, front, slack, keep):  # pragma: no cover - compiled
+def _showing(lo, hi, triangles, screen, width, height, samples, delta, front, slack, keep):  # pragma: no cover
     """Pass 2 of :func:`visible_triangles`."""
+    count = samples.shape[0]
     for t in range(lo, hi):
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         za, zb, zc = screen[a, 2], screen[b, 2], screen[c, 2]
@@ -387,33 +420,37 @@ def _showing(lo, hi, triangles, screen, width, height, delta, front, slack, keep
             keep[t] = True  # crosses the camera's plane: left to the clipper
             continue
         ax, ay, bx, by, cx, cy = screen[a, 0], screen[a, 1], screen[b, 0], screen[b, 1], screen[c, 0], screen[c, 1]
-        x0, x1, y0, y1 = min(ax, bx, cx), max(ax, bx, cx), min(ay, by, cy), max(ay, by, cy)
-        reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + 2.0 * delta
-        # the pixel centres the triangle may cover lie within delta of its box
-        i0, i1 = max(math.ceil(x0 - delta - 0.5), 0), min(math.floor(x1 + delta - 0.5), width - 1)
-        j0, j1 = max(math.ceil(y0 - delta - 0.5), 0), min(math.floor(y1 + delta - 0.5), height - 1)
-        if i0 > i1 or j0 > j1:
+        # the sample points the triangle may cover lie within delta of its box
+        x0, x1 = min(ax, bx, cx) - delta, max(ax, bx, cx) + delta
+        y0, y1 = min(ay, by, cy) - delta, max(ay, by, cy) + delta
+        i0, i1 = max(math.floor(x0), 0), min(math.floor(x1), width - 1)
+        j0, j1 = max(math.floor(y0), 0), min(math.floor(y1), height - 1)
+        if i0 > i1 or j0 > j1 or not _any_sample(x0, x1, y0, y1, i0, i1, j0, j1, samples):
             keep[t] = False
             continue
-        if (i1 - i0 + 1) * (j1 - j0 + 1) > 16:
+        if (i1 - i0 + 1) * (j1 - j0 + 1) > 25:
             keep[t] = True
             continue
+        reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2)  # the box's diagonal, with the margin
         m0 = delta * (reach + math.sqrt((bx - ax) ** 2 + (by - ay) ** 2))
         m1 = delta * (reach + math.sqrt((cx - bx) ** 2 + (cy - by) ** 2))
         m2 = delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
         near = min(za, zb, zc) / (1.0 + slack)  # nothing of the triangle lies before its nearest corner
         shows = False
         for i in range(i0, i1 + 1):
-            sx = i + 0.5
             for j in range(j0, j1 + 1):
-                sy = j + 0.5
-                if near > front[j * width + i]:
-                    continue  # behind what surely covers this centre
-                e0 = (bx - ax) * (sy - ay) - (by - ay) * (sx - ax)
-                e1 = (cx - bx) * (sy - by) - (cy - by) * (sx - bx)
-                e2 = (ax - cx) * (sy - cy) - (ay - cy) * (sx - cx)
-                if (e0 >= -m0 and e1 >= -m1 and e2 >= -m2) or (e0 <= m0 and e1 <= m1 and e2 <= m2):
-                    shows = True
+                base = (j * width + i) * count
+                for k in range(count):
+                    sx, sy = i + samples[k, 0], j + samples[k, 1]
+                    if sx < x0 or sx > x1 or sy < y0 or sy > y1 or near > front[base + k]:
+                        continue  # out of reach, or behind what surely covers this point
+                    e0 = (bx - ax) * (sy - ay) - (by - ay) * (sx - ax)
+                    e1 = (cx - bx) * (sy - by) - (cy - by) * (sx - bx)
+                    e2 = (ax - cx) * (sy - cy) - (ay - cy) * (sx - cx)
+                    if (e0 >= -m0 and e1 >= -m1 and e2 >= -m2) or (e0 <= m0 and e1 <= m1 and e2 <= m2):
+                        shows = True
+                        break
+                if shows:
                     break
             if shows:
                 break
@@ -559,8 +596,8 @@ class ShadedMesh:
         layout = part.layout
         triangles = uvs = None
         if viewport is not None and len(part.triangles) > CULL_TRIANGLES:
-            keep = visible_triangles(vertices, part.triangles, viewport, scratch=part.scratch)
-            if stale is not None and stale():
+            keep = visible_triangles(vertices, part.triangles, viewport, scratch=part.scratch, stale=stale)
+            if keep is None or (stale is not None and stale()):
                 return None
             n, m = _compact(part.triangles, keep, self._remap, self._used, self._local)
             used, triangles = self._used[:n], self._local[:m].copy()
@@ -792,26 +829,11 @@ class GLView:
         self._shown: dict[str, bool] = {}
         self._boxed = False
         self.camera: Any = None
+        self.visible = bool(visible)
         # frames upload only the triangles that show in a pixel (visible_triangles) when OpenGL draws the window's
-        # pixels, one sample at each centre: not on a display that scales the window, nor with multisampling (Open3D
-        # asks for 4 samples; Mesa's software renderer, under Xvfb or EGL, has none)
+        # pixels (not on a display that scales the window)
         intrinsic = self.vis.get_view_control().convert_to_pinhole_camera_parameters().intrinsic
-        self._culls = (intrinsic.width, intrinsic.height) == (self.width, self.height) and not self._multisampled()
-
-    def _multisampled(self) -> bool:
-        """Whether the edges of a black triangle on white come out with shades between (anti-aliased)."""
-        import open3d as o3d
-
-        probe = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.array([[0, 0, 0], [1, 0.1, 0], [0.3, 1, 0.0]])),
-                                          o3d.utility.Vector3iVector(np.array([[0, 1, 2]], dtype=np.int32)))
-        probe.vertex_colors = o3d.utility.Vector3dVector(np.zeros((3, 3)))
-        background = self.vis.get_render_option().background_color.copy()
-        self.vis.get_render_option().background_color = np.ones(3)
-        self.vis.add_geometry(probe, reset_bounding_box=True)
-        image = np.asarray(self.vis.capture_screen_float_buffer(do_render=True))[:, :, 0]
-        self.vis.remove_geometry(probe, reset_bounding_box=False)
-        self.vis.get_render_option().background_color = background
-        return bool(((image > 0.02) & (image < 0.98)).any())
+        self._culls = (intrinsic.width, intrinsic.height) == (self.width, self.height)
 
     # geometry
 
@@ -877,9 +899,13 @@ class GLView:
     # camera
 
     def viewport(self, camera: Any) -> Viewport | None:
-        """The view's pixels seen through ``camera``, for drawing only the triangles that cover a pixel centre
-        (:func:`visible_triangles`); None when OpenGL draws another number of pixels than the window's."""
-        return Viewport(camera, self.width, self.height) if self._culls else None
+        """The view's pixels seen through ``camera``, for drawing only the triangles that show in them
+        (:func:`visible_triangles`), sampled as a window may be (:data:`WINDOW_SAMPLES`) when the view is on the
+        screen, at the centres when it is only read back; None when OpenGL draws another number of pixels than the
+        window's."""
+        if not self._culls:
+            return None
+        return Viewport(camera, self.width, self.height, WINDOW_SAMPLES if self.visible else PIXEL_CENTRE)
 
     def set_camera(self, camera: Any) -> None:
         """Look from ``camera.eye`` at ``camera.center`` with ``camera.up`` and vertical ``camera.fov``."""
