@@ -40,6 +40,7 @@ from kpd.mvc import _LINEAR_FRACTION, _TOL_FACE, _TOL_INSIDE, _TOL_PLANE, _TOL_V
 __all__ = ["mvc_project", "mvc_weights_compiled", "theta_over"]
 
 _LANES = 32  # points per block: the vector lanes of every inner loop
+_CHUNK = 4096  # points ordered along a Z curve together (a multiple of _LANES)
 _MAX_THREADS = 2
 _MIN_POINTS_PER_THREAD = 4096  # below this a second thread costs more than it saves
 _FAR = 1e6  # points farther than this many cage sizes from the cage's centroid go to the careful path
@@ -178,10 +179,44 @@ def theta_over(y: np.ndarray, x: np.ndarray) -> np.ndarray:
     return out[:n]
 
 
+@numba.njit(cache=True, nogil=True)
+def _spread(q):  # pragma: no cover - compiled
+    """The 10 low bits of q spread to every third bit (bit k to bit 3k)."""
+    q &= 0x3FF
+    q = (q | (q << 16)) & 0x30000FF
+    q = (q | (q << 8)) & 0x300F00F
+    q = (q | (q << 4)) & 0x30C30C3
+    return (q | (q << 2)) & 0x9249249
+
+
+@numba.njit(cache=True, nogil=True)
+def _near_first(points, lo, m):  # pragma: no cover - compiled
+    """``(m,)`` an order of points[lo:lo + m] along a Z curve (Morton order) in their bounding cube, so that the
+    kernel's blocks of consecutive points are small in space: an edge is then seen under a narrow angle from all
+    the points of a block more often, and the block goes the narrow way."""
+    low = np.empty(3)
+    size = 0.0
+    for k in range(3):
+        low[k] = points[lo, k]
+        high = points[lo, k]
+        for i in range(lo, lo + m):
+            low[k] = min(low[k], points[i, k])
+            high = max(high, points[i, k])
+        size = max(size, high - low[k])
+    step = 1023.0 / size if size > 0.0 else 0.0
+    keys = np.empty(m, dtype=np.int64)
+    for i in range(m):
+        key = 0
+        for k in range(3):
+            key |= _spread(int((points[lo + i, k] - low[k]) * step)) << k
+        keys[i] = key
+    return np.argsort(keys, kind="mergesort")
+
+
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b, edge_slot, step_edges, face_slot,
                    face_sign, corner_vertex, nx, ny, nz, offset, near, nonzero_row, nonzero_column, nonzero_value, R,
-                   out, flags, xs, g, bad, w, w0, w1, w2, acc):  # pragma: no cover - compiled
+                   out, flags, xs, g, lane_dot, lane_narrow, bad, w, w0, w1, w2, acc):  # pragma: no cover
     """``out[lo:hi] = normalised MVC weights of points[lo:hi] @ rows``; ``flags[lo:hi]`` marks points to redo.
 
     The cage is in its own frame (``(p - center) * inv_size``). Step s computes the edge pairs
@@ -197,62 +232,29 @@ def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b,
     S = face_slot.shape[0] // 2
     M = bad.shape[0]  # L, but not a constant, so that LLVM vectorises the short loops over the lanes below
     c0, c1, c2 = center[0], center[1], center[2]
-    for start in range(lo, hi, L):
-        n = min(L, hi - start)
-        for i in range(L):  # a short last block repeats its last point
-            j = start + min(i, n - 1)
-            xs[i] = (points[j, 0] - c0) * inv_size
-            xs[L + i] = (points[j, 1] - c1) * inv_size
-            xs[2 * L + i] = (points[j, 2] - c2) * inv_size
-        for i in range(L):
-            bad[i] = max(abs(xs[i]), abs(xs[L + i]), abs(xs[2 * L + i])) > _FAR
-        for s in range(S):
-            for k in range(step_edges[s], step_edges[s + 1]):
-                e0 = 2 * k
-                e1 = e0 + 1
-                ax0, ay0, az0 = px[edge_a[e0]], py[edge_a[e0]], pz[edge_a[e0]]
-                bx0, by0, bz0 = px[edge_b[e0]], py[edge_b[e0]], pz[edge_b[e0]]
-                ax1, ay1, az1 = px[edge_a[e1]], py[edge_a[e1]], pz[edge_a[e1]]
-                bx1, by1, bz1 = px[edge_b[e1]], py[edge_b[e1]], pz[edge_b[e1]]
-                o = max(edge_slot[k], 0) * 8 * L  # G, θ / |G| of edge 2k at o, o + L, ..., of edge 2k + 1 from o + 4L
-                # both edges seen under at most π/4 from every lane: θ / |G| = P(z) / (Q(z) a.b), z = |G|² / (a.b)²
-                wide = False
-                for i in range(L):
-                    x = xs[i]
-                    y = xs[L + i]
-                    z = xs[2 * L + i]
-                    a0 = ax0 - x
-                    a1 = ay0 - y
-                    a2 = az0 - z
-                    b0 = bx0 - x
-                    b1 = by0 - y
-                    b2 = bz0 - z
-                    gx0 = a1 * b2 - a2 * b1
-                    gy0 = a2 * b0 - a0 * b2
-                    gz0 = a0 * b1 - a1 * b0
-                    dot0 = a0 * b0 + a1 * b1 + a2 * b2
-                    a0 = ax1 - x
-                    a1 = ay1 - y
-                    a2 = az1 - z
-                    b0 = bx1 - x
-                    b1 = by1 - y
-                    b2 = bz1 - z
-                    gx1 = a1 * b2 - a2 * b1
-                    gy1 = a2 * b0 - a0 * b2
-                    gz1 = a0 * b1 - a1 * b0
-                    dot1 = a0 * b0 + a1 * b1 + a2 * b2
-                    t0, t1, narrow = _theta_over_narrow_pair(gx0 * gx0 + gy0 * gy0 + gz0 * gz0, dot0,
-                                                             gx1 * gx1 + gy1 * gy1 + gz1 * gz1, dot1)
-                    wide |= not narrow
-                    g[o + i] = gx0
-                    g[o + L + i] = gy0
-                    g[o + 2 * L + i] = gz0
-                    g[o + 3 * L + i] = t0
-                    g[o + 4 * L + i] = gx1
-                    g[o + 5 * L + i] = gy1
-                    g[o + 6 * L + i] = gz1
-                    g[o + 7 * L + i] = t1
-                if wide:  # the general arctangent
+    for chunk in range(lo, hi, _CHUNK):
+        m = min(_CHUNK, hi - chunk)
+        order = _near_first(points, chunk, m)
+        for start in range(0, m, L):
+            n = min(L, m - start)
+            for i in range(L):  # a short last block repeats its last point
+                j = chunk + order[start + min(i, n - 1)]
+                xs[i] = (points[j, 0] - c0) * inv_size
+                xs[L + i] = (points[j, 1] - c1) * inv_size
+                xs[2 * L + i] = (points[j, 2] - c2) * inv_size
+            for i in range(L):
+                bad[i] = max(abs(xs[i]), abs(xs[L + i]), abs(xs[2 * L + i])) > _FAR
+            for s in range(S):
+                for k in range(step_edges[s], step_edges[s + 1]):
+                    e0 = 2 * k
+                    e1 = e0 + 1
+                    ax0, ay0, az0 = px[edge_a[e0]], py[edge_a[e0]], pz[edge_a[e0]]
+                    bx0, by0, bz0 = px[edge_b[e0]], py[edge_b[e0]], pz[edge_b[e0]]
+                    ax1, ay1, az1 = px[edge_a[e1]], py[edge_a[e1]], pz[edge_a[e1]]
+                    bx1, by1, bz1 = px[edge_b[e1]], py[edge_b[e1]], pz[edge_b[e1]]
+                    o = max(edge_slot[k], 0) * 8 * L  # G, θ / |G| of edge 2k from o, of edge 2k + 1 from o + 4L
+                    # both edges seen under at most π/4 from every lane: θ / |G| = P(z) / (Q(z) a.b), z = |G|² / (a.b)²
+                    wide = False
                     for i in range(L):
                         x = xs[i]
                         y = xs[L + i]
@@ -277,8 +279,12 @@ def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b,
                         gy1 = a2 * b0 - a0 * b2
                         gz1 = a0 * b1 - a1 * b0
                         dot1 = a0 * b0 + a1 * b1 + a2 * b2
-                        t0, t1 = _theta_over_pair(np.sqrt(gx0 * gx0 + gy0 * gy0 + gz0 * gz0), dot0,
-                                                  np.sqrt(gx1 * gx1 + gy1 * gy1 + gz1 * gz1), dot1)
+                        t0, t1, narrow = _theta_over_narrow_pair(gx0 * gx0 + gy0 * gy0 + gz0 * gz0, dot0,
+                                                                 gx1 * gx1 + gy1 * gy1 + gz1 * gz1, dot1)
+                        wide |= not narrow
+                        lane_narrow[i] = narrow
+                        lane_dot[i] = dot0
+                        lane_dot[L + i] = dot1
                         g[o + i] = gx0
                         g[o + L + i] = gy0
                         g[o + 2 * L + i] = gz0
@@ -287,71 +293,81 @@ def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b,
                         g[o + 5 * L + i] = gy1
                         g[o + 6 * L + i] = gz1
                         g[o + 7 * L + i] = t1
-            fa = 2 * s
-            fb = fa + 1
-            oa0, oa1, oa2 = max(face_slot[fa, 0], 0) * L, max(face_slot[fa, 1], 0) * L, max(face_slot[fa, 2], 0) * L
-            ob0, ob1, ob2 = max(face_slot[fb, 0], 0) * L, max(face_slot[fb, 1], 0) * L, max(face_slot[fb, 2], 0) * L
-            sa0, sa1, sa2 = face_sign[fa, 0], face_sign[fa, 1], face_sign[fa, 2]
-            sb0, sb1, sb2 = face_sign[fb, 0], face_sign[fb, 1], face_sign[fb, 2]
-            nxa, nya, nza, da0, near_a = nx[fa], ny[fa], nz[fa], offset[fa], near[fa]
-            nxb, nyb, nzb, db0, near_b = nx[fb], ny[fb], nz[fb], offset[fb], near[fb]
-            # corner k of both faces adds to w<k> (the two faces never share a vertex at the same k, _Cage rotates them)
-            cv = corner_vertex[6 * s:6 * s + 6]
-            q0, q1, q2 = max(cv[0], 0) * L, max(cv[1], 0) * L, max(cv[2], 0) * L
-            q3, q4, q5 = max(cv[3], 0) * L, max(cv[4], 0) * L, max(cv[5], 0) * L
-            for i in range(L):
-                x = xs[i]
-                y = xs[L + i]
-                z = xs[2 * L + i]
-                da = da0 - (nxa * x + nya * y + nza * z)  # det[p_0 - x, p_1 - x, p_2 - x]
-                db = db0 - (nxb * x + nyb * y + nzb * z)
-                r = 1.0 / (da * db)
-                ia = r * db
-                ib = r * da
-                gx0, gy0, gz0 = g[oa0 + i], g[oa0 + L + i], g[oa0 + 2 * L + i]
-                gx1, gy1, gz1 = g[oa1 + i], g[oa1 + L + i], g[oa1 + 2 * L + i]
-                gx2, gy2, gz2 = g[oa2 + i], g[oa2 + L + i], g[oa2 + 2 * L + i]
-                t0 = sa0 * g[oa0 + 3 * L + i]
-                t1 = sa1 * g[oa1 + 3 * L + i]
-                t2 = sa2 * g[oa2 + 3 * L + i]
-                mx = t0 * gx0 + t1 * gx1 + t2 * gx2
-                my = t0 * gy0 + t1 * gy1 + t2 * gy2
-                mz = t0 * gz0 + t1 * gz1 + t2 * gz2
-                w0[q0 + i] += (gx0 * mx + gy0 * my + gz0 * mz) * (sa0 * ia)
-                w1[q1 + i] += (gx1 * mx + gy1 * my + gz1 * mz) * (sa1 * ia)
-                w2[q2 + i] += (gx2 * mx + gy2 * my + gz2 * mz) * (sa2 * ia)
-                gx0, gy0, gz0 = g[ob0 + i], g[ob0 + L + i], g[ob0 + 2 * L + i]
-                gx1, gy1, gz1 = g[ob1 + i], g[ob1 + L + i], g[ob1 + 2 * L + i]
-                gx2, gy2, gz2 = g[ob2 + i], g[ob2 + L + i], g[ob2 + 2 * L + i]
-                t0 = sb0 * g[ob0 + 3 * L + i]
-                t1 = sb1 * g[ob1 + 3 * L + i]
-                t2 = sb2 * g[ob2 + 3 * L + i]
-                mx = t0 * gx0 + t1 * gx1 + t2 * gx2
-                my = t0 * gy0 + t1 * gy1 + t2 * gy2
-                mz = t0 * gz0 + t1 * gz1 + t2 * gz2
-                w0[q3 + i] += (gx0 * mx + gy0 * my + gz0 * mz) * (sb0 * ib)
-                w1[q4 + i] += (gx1 * mx + gy1 * my + gz1 * mz) * (sb1 * ib)
-                w2[q5 + i] += (gx2 * mx + gy2 * my + gz2 * mz) * (sb2 * ib)
-                bad[i] |= (abs(da) <= near_a) | (abs(db) <= near_b)
-        for i in range(C * L):
-            w[i] = w0[i] + w1[i] + w2[i]
-            w0[i] = 0.0
-            w1[i] = 0.0
-            w2[i] = 0.0
-        for i in range((R + 1) * L):
-            acc[i] = 0.0
-        for j in range(nonzero_row.shape[0]):  # the last row of rows is ones: the total weight
-            oc = max(nonzero_row[j], 0) * L
-            oa = max(nonzero_column[j], 0) * L
-            v = nonzero_value[j]
-            for i in range(M):
-                acc[oa + i] += w[oc + i] * v
-        for i in range(n):
-            t = acc[R * L + i]
-            flags[start + i] = bad[i] | (not np.isfinite(t)) | (t == 0.0)
-            inv = 1.0 / t
-            for r in range(R):
-                out[start + i, r] = acc[r * L + i] * inv
+                    if wide:  # the general arctangent, for the lanes that are not narrow
+                        for i in range(L):
+                            gx0, gy0, gz0 = g[o + i], g[o + L + i], g[o + 2 * L + i]
+                            gx1, gy1, gz1 = g[o + 4 * L + i], g[o + 5 * L + i], g[o + 6 * L + i]
+                            t0, t1 = _theta_over_pair(np.sqrt(gx0 * gx0 + gy0 * gy0 + gz0 * gz0), lane_dot[i],
+                                                      np.sqrt(gx1 * gx1 + gy1 * gy1 + gz1 * gz1), lane_dot[L + i])
+                            narrow = lane_narrow[i]
+                            g[o + 3 * L + i] = g[o + 3 * L + i] if narrow else t0
+                            g[o + 7 * L + i] = g[o + 7 * L + i] if narrow else t1
+                fa = 2 * s
+                fb = fa + 1
+                oa0, oa1, oa2 = max(face_slot[fa, 0], 0) * L, max(face_slot[fa, 1], 0) * L, max(face_slot[fa, 2], 0) * L
+                ob0, ob1, ob2 = max(face_slot[fb, 0], 0) * L, max(face_slot[fb, 1], 0) * L, max(face_slot[fb, 2], 0) * L
+                sa0, sa1, sa2 = face_sign[fa, 0], face_sign[fa, 1], face_sign[fa, 2]
+                sb0, sb1, sb2 = face_sign[fb, 0], face_sign[fb, 1], face_sign[fb, 2]
+                nxa, nya, nza, da0, near_a = nx[fa], ny[fa], nz[fa], offset[fa], near[fa]
+                nxb, nyb, nzb, db0, near_b = nx[fb], ny[fb], nz[fb], offset[fb], near[fb]
+                # corner k of both faces adds to w<k> (they never share a vertex at the same k: _Cage turns them)
+                cv = corner_vertex[6 * s:6 * s + 6]
+                q0, q1, q2 = max(cv[0], 0) * L, max(cv[1], 0) * L, max(cv[2], 0) * L
+                q3, q4, q5 = max(cv[3], 0) * L, max(cv[4], 0) * L, max(cv[5], 0) * L
+                for i in range(L):
+                    x = xs[i]
+                    y = xs[L + i]
+                    z = xs[2 * L + i]
+                    da = da0 - (nxa * x + nya * y + nza * z)  # det[p_0 - x, p_1 - x, p_2 - x]
+                    db = db0 - (nxb * x + nyb * y + nzb * z)
+                    r = 1.0 / (da * db)
+                    ia = r * db
+                    ib = r * da
+                    gx0, gy0, gz0 = g[oa0 + i], g[oa0 + L + i], g[oa0 + 2 * L + i]
+                    gx1, gy1, gz1 = g[oa1 + i], g[oa1 + L + i], g[oa1 + 2 * L + i]
+                    gx2, gy2, gz2 = g[oa2 + i], g[oa2 + L + i], g[oa2 + 2 * L + i]
+                    t0 = sa0 * g[oa0 + 3 * L + i]
+                    t1 = sa1 * g[oa1 + 3 * L + i]
+                    t2 = sa2 * g[oa2 + 3 * L + i]
+                    mx = t0 * gx0 + t1 * gx1 + t2 * gx2
+                    my = t0 * gy0 + t1 * gy1 + t2 * gy2
+                    mz = t0 * gz0 + t1 * gz1 + t2 * gz2
+                    w0[q0 + i] += (gx0 * mx + gy0 * my + gz0 * mz) * (sa0 * ia)
+                    w1[q1 + i] += (gx1 * mx + gy1 * my + gz1 * mz) * (sa1 * ia)
+                    w2[q2 + i] += (gx2 * mx + gy2 * my + gz2 * mz) * (sa2 * ia)
+                    gx0, gy0, gz0 = g[ob0 + i], g[ob0 + L + i], g[ob0 + 2 * L + i]
+                    gx1, gy1, gz1 = g[ob1 + i], g[ob1 + L + i], g[ob1 + 2 * L + i]
+                    gx2, gy2, gz2 = g[ob2 + i], g[ob2 + L + i], g[ob2 + 2 * L + i]
+                    t0 = sb0 * g[ob0 + 3 * L + i]
+                    t1 = sb1 * g[ob1 + 3 * L + i]
+                    t2 = sb2 * g[ob2 + 3 * L + i]
+                    mx = t0 * gx0 + t1 * gx1 + t2 * gx2
+                    my = t0 * gy0 + t1 * gy1 + t2 * gy2
+                    mz = t0 * gz0 + t1 * gz1 + t2 * gz2
+                    w0[q3 + i] += (gx0 * mx + gy0 * my + gz0 * mz) * (sb0 * ib)
+                    w1[q4 + i] += (gx1 * mx + gy1 * my + gz1 * mz) * (sb1 * ib)
+                    w2[q5 + i] += (gx2 * mx + gy2 * my + gz2 * mz) * (sb2 * ib)
+                    bad[i] |= (abs(da) <= near_a) | (abs(db) <= near_b)
+            for i in range(C * L):
+                w[i] = w0[i] + w1[i] + w2[i]
+                w0[i] = 0.0
+                w1[i] = 0.0
+                w2[i] = 0.0
+            for i in range((R + 1) * L):
+                acc[i] = 0.0
+            for j in range(nonzero_row.shape[0]):  # the last row of rows is ones: the total weight
+                oc = max(nonzero_row[j], 0) * L
+                oa = max(nonzero_column[j], 0) * L
+                v = nonzero_value[j]
+                for i in range(M):
+                    acc[oa + i] += w[oc + i] * v
+            for i in range(n):
+                j = chunk + order[start + i]
+                t = acc[R * L + i]
+                flags[j] = bad[i] | (not np.isfinite(t)) | (t == 0.0)
+                inv = 1.0 / t
+                for r in range(R):
+                    out[j, r] = acc[r * L + i] * inv
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -581,9 +597,11 @@ class _Cage:
         )
 
     def scratch(self, r: int) -> tuple:
-        """One thread's work arrays: xs, g, bad, w, w0, w1, w2, acc (w0, w1, w2 zero: the kernel leaves them so)."""
+        """One thread's work arrays: xs, g, lane_dot, lane_narrow, bad, w, w0, w1, w2, acc (w0, w1, w2 zero: the
+        kernel leaves them so)."""
         L = _LANES
-        return (np.empty(3 * L), np.empty(8 * self.slots * L), np.empty(L, dtype=bool), np.empty(self.C * L),
+        return (np.empty(3 * L), np.empty(8 * self.slots * L), np.empty(2 * L), np.empty(L, dtype=bool),
+                np.empty(L, dtype=bool), np.empty(self.C * L),
                 *[np.zeros(self.C * L) for _ in range(3)], np.empty((r + 1) * L))
 
 
@@ -647,9 +665,9 @@ def mvc_project(points: Any, cage_vertices: Any, cage_faces: Any, rows: Any, *, 
     if threads == 1:
         run(0, n)
     else:
-        # whole blocks per thread, as equal as they come
-        blocks = -(-n // _LANES)
-        bounds = [min(n, (blocks * i // threads) * _LANES) for i in range(threads + 1)]
+        # whole chunks per thread, as equal as they come (the result does not depend on the split)
+        chunks = -(-n // _CHUNK)
+        bounds = [min(n, (chunks * i // threads) * _CHUNK) for i in range(threads + 1)]
         with ThreadPoolExecutor(threads) as pool:
             list(pool.map(run, bounds[:-1], bounds[1:]))
     index = np.flatnonzero(flags)

@@ -137,6 +137,22 @@ def test_projection_equals_the_weights_times_the_rows_for_any_thread_count():
     assert mvc_project(np.zeros((0, 3)), v, f, rows).shape == (0, 12)
 
 
+def test_each_row_depends_on_its_point_alone():
+    # the kernel orders points in space and takes 32 at a time, some seeing an edge under a wide angle and some not;
+    # each row is computed the same way whatever its neighbours, so coincident points get equal rows
+    v, f = icosphere(2, 1.4)
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-1.3, 1.3, (6000, 3))
+    x[:500] *= 3.0  # outside too
+    x[-20:] = x[:20]  # the same positions twice
+    rows = rng.normal(size=(len(v), 4))
+    whole = mvc_project(x, v, f, rows)
+    np.testing.assert_array_equal(whole[-20:], whole[:20])
+    order = rng.permutation(len(x))
+    np.testing.assert_array_equal(mvc_project(x[order], v, f, rows), whole[order])
+    np.testing.assert_array_equal(mvc_project(x[::7], v, f, rows, threads=1), whole[::7])
+
+
 def test_projection_rejects_bad_rows_and_buffers():
     v, f = TEMPLATE
     x = np.zeros((5, 3))
