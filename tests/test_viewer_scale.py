@@ -247,8 +247,8 @@ def test_kpd_view_ends_with_the_bindings_error_in_one_line(tmp_path):
 @pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
 def test_a_window_frame_of_the_visible_triangles_is_the_picture_on_the_screen(dense_chair, tmp_path, monkeypatch):
     """On the screen a window is multisampled (Mesa's software renderer gives Open3D the four samples it asks for):
-    frames culled at the window's sample points (WINDOW_SAMPLES) show the same pixels as whole frames, read from the
-    Xvfb screen; culled at the pixel centres alone they would not (the test can fail)."""
+    frames culled at the sample points the window's OpenGL context reports show the same pixels as whole frames,
+    read from the Xvfb screen; culled at the pixel centres alone they would not (the test can fail)."""
     import os
     import time
 
@@ -262,6 +262,7 @@ def test_a_window_frame_of_the_visible_triangles_is_the_picture_on_the_screen(de
         monkeypatch.setenv("DISPLAY", display)
         view = GLView(width, height, visible=True, left=0, top=0)
         try:
+            assert view.viewport(camera_pose(mesh.vertices, ViewSettings())).samples.shape == (4, 2)
             shaded = ShadedMesh(mesh)
             view.set_box(mesh.vertices)
 

@@ -826,8 +826,9 @@ class EditorApp:
             self._shots += 1
             path = base.with_name(f"{base.stem}_{self._shots:03d}{base.suffix or '.png'}")
         self._apply_pending()
-        self._show(mesh=True)
+        self.drawing.show(self._frame(), self.camera, capture=True)
         image = self.view.capture()
+        self._changed()  # the window samples its pixels otherwise: its next frame is drawn anew
         try:
             write_png(path, image)
         except KpdError as exc:

@@ -247,11 +247,10 @@ def shade(albedo: np.ndarray, normals: np.ndarray, camera: Any) -> np.ndarray:
 
 
 # Where a rasteriser samples a pixel, as offsets from its lower-left corner (y up): a frame that is read back
-# (pictures: Open3D draws them into a framebuffer of one sample a pixel) at the centre; a window at the centre, or at
-# the four points of the standard 4x multisampling pattern (Open3D asks for four samples; Mesa's software renderer
-# gives them under Xvfb, at these points, which a test checks against the picture on the screen).
+# (pictures, screenshots: Open3D draws them into a framebuffer of one sample a pixel) at the centre; a window where
+# its OpenGL context says (GLView asks it: Open3D asks for 4 samples, and Mesa's software renderer gives them under
+# Xvfb at the points of the standard pattern).
 PIXEL_CENTRE = np.array([[0.5, 0.5]])
-WINDOW_SAMPLES = np.array([[0.5, 0.5], [0.375, 0.875], [0.875, 0.625], [0.125, 0.375], [0.625, 0.125]])
 
 
 class Viewport:
@@ -831,9 +830,10 @@ class GLView:
         self.camera: Any = None
         self.visible = bool(visible)
         # frames upload only the triangles that show in a pixel (visible_triangles) when OpenGL draws the window's
-        # pixels (not on a display that scales the window)
+        # pixels (not on a display that scales the window), sampled where the window's framebuffer samples them
         intrinsic = self.vis.get_view_control().convert_to_pinhole_camera_parameters().intrinsic
         self._culls = (intrinsic.width, intrinsic.height) == (self.width, self.height)
+        self._samples = _sample_points() if self.visible else PIXEL_CENTRE
 
     # geometry
 
@@ -898,14 +898,15 @@ class GLView:
 
     # camera
 
-    def viewport(self, camera: Any) -> Viewport | None:
+    def viewport(self, camera: Any, *, capture: bool = False) -> Viewport | None:
         """The view's pixels seen through ``camera``, for drawing only the triangles that show in them
-        (:func:`visible_triangles`), sampled as a window may be (:data:`WINDOW_SAMPLES`) when the view is on the
-        screen, at the centres when it is only read back; None when OpenGL draws another number of pixels than the
-        window's."""
-        if not self._culls:
+        (:func:`visible_triangles`): sampled where the window's framebuffer samples them when the view is on the
+        screen, at the centres for ``capture`` (and in a hidden view, only ever read back); None when OpenGL draws
+        another number of pixels than the window's, or its samples are not known."""
+        samples = self._samples if self.visible and not capture else PIXEL_CENTRE
+        if not self._culls or samples is None:
             return None
-        return Viewport(camera, self.width, self.height, WINDOW_SAMPLES if self.visible else PIXEL_CENTRE)
+        return Viewport(camera, self.width, self.height, samples)
 
     def set_camera(self, camera: Any) -> None:
         """Look from ``camera.eye`` at ``camera.center`` with ``camera.up`` and vertical ``camera.fov``."""
@@ -938,6 +939,40 @@ class GLView:
     def close(self) -> None:
         with contextlib.suppress(Exception):
             self.vis.destroy_window()
+
+
+_GL_SAMPLES, _GL_SAMPLE_POSITION = 0x80A9, 0x8E50
+
+
+def _sample_points() -> np.ndarray | None:
+    """(S, 2) where OpenGL samples a pixel of the current context's framebuffer (its multisampling points, from the
+    pixel's lower-left corner; the centre without multisampling), asked through the system's OpenGL library; None
+    when it cannot be asked."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        gl = ctypes.CDLL(ctypes.util.find_library("GL") or "libGL.so.1")
+        get_integer, get_position, get_error = gl.glGetIntegerv, gl.glGetMultisamplefv, gl.glGetError
+    except (OSError, AttributeError):
+        return None
+    get_integer.argtypes = [ctypes.c_uint, ctypes.POINTER(ctypes.c_int)]
+    get_position.argtypes = [ctypes.c_uint, ctypes.c_uint, ctypes.POINTER(ctypes.c_float)]
+    get_error.restype = ctypes.c_uint
+    count = ctypes.c_int(-1)
+    get_integer(_GL_SAMPLES, ctypes.byref(count))
+    if get_error() != 0 or count.value < 0:
+        return None
+    if count.value <= 1:
+        return PIXEL_CENTRE
+    points = np.empty((count.value, 2))
+    position = (ctypes.c_float * 2)()
+    for i in range(count.value):
+        get_position(_GL_SAMPLE_POSITION, i, position)
+        points[i] = position[0], position[1]
+    if get_error() != 0 or not ((points >= 0) & (points <= 1)).all():
+        return None
+    return points
 
 
 # --- markers, lines, digits ----------------------------------------------------------------------------------------
@@ -1138,13 +1173,15 @@ class RigDrawing:
             self._edges = mesh_edges(self.mesh.triangles)
         return self._edges
 
-    def show(self, frame: Any, camera: Any, *, mesh: bool = True, fast: bool = False, prepared: list | None = None
-             ) -> None:
+    def show(self, frame: Any, camera: Any, *, mesh: bool = True, fast: bool = False, prepared: list | None = None,
+             capture: bool = False) -> None:
         """Put ``frame`` (a kpd.viewer.render.Frame) in the view as ``camera`` sees it.
 
         ``fast``: a frame during a gesture; a mesh with a stand-in (:meth:`set_stand_in`) is then drawn by it, and in
         full again by the next frame that is not fast. ``prepared``: the whole mesh's
         :meth:`ShadedMesh.prepare` of ``frame.vertices`` for ``camera`` (made on another thread), uploaded as it is.
+        ``capture``: the frame is to be read back (:meth:`GLView.capture`), not shown on the screen (the two sample
+        pixels differently: the next frame on the screen must be drawn anew).
         """
         import open3d as o3d
 
@@ -1152,14 +1189,14 @@ class RigDrawing:
         view.camera = camera
         moved = self._camera is None or not _same_camera(camera, self._camera)
         use_proxy = fast and self.proxy is not None
-        if mesh or moved or self.frame is None or use_proxy != self._proxy_shown:
+        if mesh or moved or self.frame is None or use_proxy != self._proxy_shown or capture:
             shown, hidden = (self.proxy, self.shaded) if use_proxy else (self.shaded, self.proxy)
             if prepared is not None and not use_proxy:
                 shown.upload(prepared)
             else:
                 shown.set_vertices(frame.vertices[self._kept] if use_proxy else frame.vertices, camera,
-                                   view.viewport(camera))
-            self._camera = camera
+                                   view.viewport(camera, capture=capture))
+            self._camera = None if capture else camera
             prefix, other = ("proxy", "mesh") if use_proxy else ("mesh", "proxy")
             for i, part in enumerate(shown.geometries):
                 view.put(f"{prefix}:{i}", part, show=not s.xray)

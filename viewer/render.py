@@ -107,7 +107,7 @@ def _render_gl(rig: Any, frames: list[Frame], settings: ViewSettings, camera: Ca
         view.set_box([f.vertices for f in frames] + [f.keypoints for f in frames])
         images = []
         for frame in frames:
-            drawing.show(frame, camera)
+            drawing.show(frame, camera, capture=True)
             image = view.capture()
             if settings.show_labels and settings.show_keypoints:
                 image = label_image_at(image, frame.keypoints, drawing.marker_radius, camera)
