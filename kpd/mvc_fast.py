@@ -1,26 +1,30 @@
 """Compiled mean value coordinates, projected onto what edits need while they are computed.
 
-The same coordinates as :func:`kpd.mvc.mvc_weights` (the same formula, docs/scale.md says how it was measured), as
-a numba kernel: for a block of points it computes the per-edge quantities ``G = (p_a - x) × (p_b - x)`` and
-``θ / |G|`` once per cage edge, the face sums ``m = Σ_k θ_k G_k / |G_k|`` and the corner weights
-``w_k = G_k · m / D``, sums them per cage vertex, normalises them and multiplies them at once by a (C, R) matrix of
-rows, so that a caller who needs ``weights @ rows`` (an edit basis ``MVC · Wᵀ``, R = K) never holds the (N, C)
-weights.
+The same coordinates as :func:`kpd.mvc.mvc_weights` (the same formula), as a numba kernel: for a block of points it
+computes the per-edge quantities ``G = (p_a - x) × (p_b - x)`` and ``θ / |G|`` once per cage edge, the face sums
+``m = Σ_k θ_k G_k / |G_k|`` and the corner weights ``w_k = G_k · m / D``, sums them per cage vertex, normalises them
+and multiplies them at once by a (C, R) matrix of rows, so that a caller who needs ``weights @ rows`` (an edit basis
+``MVC · Wᵀ``, R = K) never holds the (N, C) weights. docs/scale.md has the measurements.
 
-The points are the vector lanes: every loop over a block's points is branch-free and compiles to SIMD code (512 bits
-wide where the processor has them). The faces are visited in an order that keeps each edge's two faces close
-(:func:`_schedule`), so an edge's quantities live in a few kilobytes from when they are computed until their second
-face has used them, and the corner weights are summed into the cage vertices as they come. The arctangent is a
-polynomial on a reduced argument, written without branches (:func:`theta_over`); the divisions, the kernel's
-slowest instructions after the square roots, are shared by pairs of edges and pairs of faces
-(``1/a = b / (ab)``, ``1/b = a / (ab)``).
+* **Lanes.** 32 points at a time are the vector lanes: every loop over them is branch-free and compiles to SIMD
+  code, 512 bits wide where the processor has them (:func:`_tune`). Points are taken 4096 at a time in Z-curve
+  order (:func:`_near_first`), so the 32 of a block are close together.
+* **Faces in a strip.** The faces are visited in an order that keeps each edge's two faces close
+  (:func:`_schedule`): an edge's quantities live in a few kilobytes from when they are computed until its second face
+  has used them, and the corner weights go to the cage vertices as they come.
+* **Arctangents without square roots.** An edge seen under at most π/4 (``0 < |G| <= a·b``, most edges from most
+  points) gets ``θ / |G| = P(z) / (Q(z) a·b)`` with ``z = |G|² / (a·b)²``, a rational fit; only when some lane of a
+  block sees it wider does the block also take the general way, a polynomial on a reduced argument after a square
+  root (:func:`theta_over`); each lane keeps its own result, so a row depends on its point alone.
+* **Divisions in pairs.** Divisions, the slowest instructions after square roots, are shared by the two edges or two
+  faces computed together: ``1/a = b / (ab)``, ``1/b = a / (ab)``.
 
 Points the vectorised formula cannot handle (within ``1e-6`` of some face's plane, on a cage vertex, more than
-``1e6`` cage sizes away, or with a non-finite total) are flagged by the kernel and redone with :mod:`kpd.mvc`'s
-careful per-point rules, so every result equals :func:`kpd.mvc.mvc_weights` to rounding. The kernel works in the
-cage's frame (centred on its centroid, in units of its size), where the products of pairs stay far from overflow.
-It is compiled once per machine and cached next to this file (numba's ``cache=True``); the first call in a fresh
-installation compiles it (a few seconds).
+``1e6`` cage sizes away, or with a non-finite total) are flagged by the kernel and redone by the careful per-point
+rules of :func:`kpd.mvc._careful_row`, compiled (:func:`_careful_rows`, which sums in the same order), so every result
+equals :func:`kpd.mvc.mvc_weights` to rounding. The kernel works in the cage's frame (centred on its centroid, in
+units of its size), where the products of pairs stay far from overflow. It is compiled once per machine and cached
+next to this file (numba's ``cache=True``); the first call in a fresh installation compiles it (a few seconds).
 """
 
 from __future__ import annotations
@@ -180,20 +184,10 @@ def theta_over(y: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _spread(q):  # pragma: no cover - compiled
-    """The 10 low bits of q spread to every third bit (bit k to bit 3k)."""
-    q &= 0x3FF
-    q = (q | (q << 16)) & 0x30000FF
-    q = (q | (q << 8)) & 0x300F00F
-    q = (q | (q << 4)) & 0x30C30C3
-    return (q | (q << 2)) & 0x9249249
-
-
-@numba.njit(cache=True, nogil=True)
 def _near_first(points, lo, m):  # pragma: no cover - compiled
-    """``(m,)`` an order of points[lo:lo + m] along a Z curve (Morton order) in their bounding cube, so that the
-    kernel's blocks of consecutive points are small in space: an edge is then seen under a narrow angle from all
-    the points of a block more often, and the block goes the narrow way."""
+    """``(m,)`` an order of points[lo:lo + m] along a Z curve (Morton order) over 16³ cells of their bounding cube,
+    points in a cell in their order, so that the kernel's blocks of consecutive points are small in space: an edge is
+    then seen under a narrow angle from all the points of a block more often. A counting sort, O(m)."""
     low = np.empty(3)
     size = 0.0
     for k in range(3):
@@ -203,29 +197,38 @@ def _near_first(points, lo, m):  # pragma: no cover - compiled
             low[k] = min(low[k], points[i, k])
             high = max(high, points[i, k])
         size = max(size, high - low[k])
-    step = 1023.0 / size if size > 0.0 else 0.0
-    keys = np.empty(m, dtype=np.int64)
+    step = 15.999 / size if size > 0.0 else 0.0
+    cells = np.empty(m, dtype=np.int64)
+    start = np.zeros(4097, dtype=np.int64)
     for i in range(m):
-        key = 0
+        cell = 0
         for k in range(3):
-            key |= _spread(int((points[lo + i, k] - low[k]) * step)) << k
-        keys[i] = key
-    return np.argsort(keys, kind="mergesort")
+            q = int((points[lo + i, k] - low[k]) * step)  # 0..15: its 4 bits go to bits k, k + 3, k + 6, k + 9
+            cell |= ((q & 1) | (q & 2) << 2 | (q & 4) << 4 | (q & 8) << 6) << k
+        cells[i] = cell
+        start[cell + 1] += 1
+    for c in range(4096):
+        start[c + 1] += start[c]
+    order = np.empty(m, dtype=np.int64)
+    for i in range(m):
+        order[start[cells[i]]] = i
+        start[cells[i]] += 1
+    return order
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b, edge_slot, step_edges, face_slot,
                    face_sign, corner_vertex, nx, ny, nz, offset, near, nonzero_row, nonzero_column, nonzero_value, R,
-                   out, flags, xs, g, lane_dot, lane_narrow, bad, w, w0, w1, w2, acc):  # pragma: no cover
+                   out, flags, xs, g, lane_dot, lane_narrow, bad, w, w0, w1, acc):  # pragma: no cover
     """``out[lo:hi] = normalised MVC weights of points[lo:hi] @ rows``; ``flags[lo:hi]`` marks points to redo.
 
     The cage is in its own frame (``(p - center) * inv_size``). Step s computes the edge pairs
     ``step_edges[s]:step_edges[s + 1]`` (edges ``2k`` and ``2k + 1``, into the pair slot ``edge_slot[k]`` of g),
     then faces ``2s`` and ``2s + 1`` (in schedule order), whose corner k uses the rows of g from
-    ``face_slot[f, k]`` times ``face_sign[f, k]`` and adds its weight to cage vertex ``corner_vertex[3f + k]`` in
-    w<k>. ``rows`` (C, R + 1), the last column ones, comes as its non-zero entries. Every array is flat with the lanes
-    last and the lane count a constant, so that each loop over the lanes reads and writes at fixed offsets from a few
-    bases; the arguments from xs on are the thread's scratch."""
+    ``face_slot[f, k]`` times ``face_sign[f, k]`` and adds its weight to cage vertex ``corner_vertex[3f + k]`` (in w0
+    for the first face, w1 for the second). ``rows`` (C, R + 1), the last column ones for the total, comes as its
+    non-zero entries. Every array is flat with the lanes last and the lane count a constant, so that each loop over
+    the lanes reads and writes at fixed offsets from a few bases; the arguments from xs on are the thread's scratch."""
     _tune()
     L = _LANES
     C = px.shape[0]
@@ -310,7 +313,7 @@ def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b,
                 sb0, sb1, sb2 = face_sign[fb, 0], face_sign[fb, 1], face_sign[fb, 2]
                 nxa, nya, nza, da0, near_a = nx[fa], ny[fa], nz[fa], offset[fa], near[fa]
                 nxb, nyb, nzb, db0, near_b = nx[fb], ny[fb], nz[fb], offset[fb], near[fb]
-                # corner k of both faces adds to w<k> (they never share a vertex at the same k: _Cage turns them)
+                # the first face's corners add to w0, the second's to w1 (a face's three corners are distinct)
                 cv = corner_vertex[6 * s:6 * s + 6]
                 q0, q1, q2 = max(cv[0], 0) * L, max(cv[1], 0) * L, max(cv[2], 0) * L
                 q3, q4, q5 = max(cv[3], 0) * L, max(cv[4], 0) * L, max(cv[5], 0) * L
@@ -333,8 +336,8 @@ def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b,
                     my = t0 * gy0 + t1 * gy1 + t2 * gy2
                     mz = t0 * gz0 + t1 * gz1 + t2 * gz2
                     w0[q0 + i] += (gx0 * mx + gy0 * my + gz0 * mz) * (sa0 * ia)
-                    w1[q1 + i] += (gx1 * mx + gy1 * my + gz1 * mz) * (sa1 * ia)
-                    w2[q2 + i] += (gx2 * mx + gy2 * my + gz2 * mz) * (sa2 * ia)
+                    w0[q1 + i] += (gx1 * mx + gy1 * my + gz1 * mz) * (sa1 * ia)
+                    w0[q2 + i] += (gx2 * mx + gy2 * my + gz2 * mz) * (sa2 * ia)
                     gx0, gy0, gz0 = g[ob0 + i], g[ob0 + L + i], g[ob0 + 2 * L + i]
                     gx1, gy1, gz1 = g[ob1 + i], g[ob1 + L + i], g[ob1 + 2 * L + i]
                     gx2, gy2, gz2 = g[ob2 + i], g[ob2 + L + i], g[ob2 + 2 * L + i]
@@ -344,15 +347,14 @@ def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b,
                     mx = t0 * gx0 + t1 * gx1 + t2 * gx2
                     my = t0 * gy0 + t1 * gy1 + t2 * gy2
                     mz = t0 * gz0 + t1 * gz1 + t2 * gz2
-                    w0[q3 + i] += (gx0 * mx + gy0 * my + gz0 * mz) * (sb0 * ib)
+                    w1[q3 + i] += (gx0 * mx + gy0 * my + gz0 * mz) * (sb0 * ib)
                     w1[q4 + i] += (gx1 * mx + gy1 * my + gz1 * mz) * (sb1 * ib)
-                    w2[q5 + i] += (gx2 * mx + gy2 * my + gz2 * mz) * (sb2 * ib)
+                    w1[q5 + i] += (gx2 * mx + gy2 * my + gz2 * mz) * (sb2 * ib)
                     bad[i] |= (abs(da) <= near_a) | (abs(db) <= near_b)
             for i in range(C * L):
-                w[i] = w0[i] + w1[i] + w2[i]
+                w[i] = w0[i] + w1[i]
                 w0[i] = 0.0
                 w1[i] = 0.0
-                w2[i] = 0.0
             for i in range((R + 1) * L):
                 acc[i] = 0.0
             for j in range(nonzero_row.shape[0]):  # the last row of rows is ones: the total weight
@@ -573,16 +575,6 @@ class _Cage:
         self.slots, self.C = slots, t.C
         faces = t.faces[order]
         sign = np.where(rows[order] >= t.E, -1.0, 1.0)  # (F, 3)
-        # the second face of each pair turned so that no vertex is corner k of both (the kernel's w<k>); a turn
-        # relabels a face's corners and leaves its weights as they are
-        turn = np.zeros(t.F, dtype=np.int64)
-        for f in range(1, t.F, 2):
-            for r in range(3):
-                if (faces[f - 1] != np.roll(faces[f], -r)).all():
-                    turn[f] = r
-                    break
-        index = (np.arange(3)[None, :] + turn[:, None]) % 3  # (F, 3)
-        faces, sign, face_row = (np.take_along_axis(a, index, axis=1) for a in (faces, sign, face_row))
         p0, p1, p2 = v[faces[:, 0]], v[faces[:, 1]], v[faces[:, 2]]
         n2 = np.cross(p1 - p0, p2 - p0)  # (F, 3) twice the area times the unit normal
         offset = np.einsum("fi,fi->f", n2, p0)  # D = offset - n2 . x
@@ -597,12 +589,12 @@ class _Cage:
         )
 
     def scratch(self, r: int) -> tuple:
-        """One thread's work arrays: xs, g, lane_dot, lane_narrow, bad, w, w0, w1, w2, acc (w0, w1, w2 zero: the
-        kernel leaves them so)."""
+        """One thread's work arrays: xs, g, lane_dot, lane_narrow, bad, w, w0, w1, acc (w0 and w1 zero: the kernel
+        leaves them so)."""
         L = _LANES
         return (np.empty(3 * L), np.empty(8 * self.slots * L), np.empty(2 * L), np.empty(L, dtype=bool),
                 np.empty(L, dtype=bool), np.empty(self.C * L),
-                *[np.zeros(self.C * L) for _ in range(3)], np.empty((r + 1) * L))
+                np.zeros(self.C * L), np.zeros(self.C * L), np.empty((r + 1) * L))
 
 
 def _check_threads(threads: Any) -> int:
