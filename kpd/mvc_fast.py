@@ -45,6 +45,7 @@ __all__ = ["mvc_project", "mvc_weights_compiled", "theta_over"]
 
 _LANES = 32  # points per block: the vector lanes of every inner loop
 _CHUNK = 4096  # points ordered along a Z curve together (a multiple of _LANES)
+_CHUNKS_PER_TASK = 8  # chunks a thread takes at a time
 _MAX_THREADS = 2
 _MIN_POINTS_PER_THREAD = 4096  # below this a second thread costs more than it saves
 _FAR = 1e6  # points farther than this many cage sizes from the cage's centroid go to the careful path
@@ -642,12 +643,8 @@ def mvc_project(points: Any, cage_vertices: Any, cage_faces: Any, rows: Any, *, 
     flags = np.zeros(n, dtype=bool)
     points = np.ascontiguousarray(points)
 
-    # the kernel is told that its arrays do not overlap (_tune)
-    if np.may_share_memory(points, out):
+    if np.may_share_memory(points, out):  # the kernel is told that its arrays do not overlap (_tune)
         points = points.copy()
-    if np.may_share_memory(rows, out):
-        rows = rows.copy()
-
     rows_and_ones = np.concatenate([rows, np.ones((t.C, 1))], axis=1)  # (C, R + 1)
     nonzero = [np.ascontiguousarray(a) for a in (*np.nonzero(rows_and_ones), rows_and_ones[rows_and_ones != 0])]
 
@@ -656,10 +653,8 @@ def mvc_project(points: Any, cage_vertices: Any, cage_faces: Any, rows: Any, *, 
 
     if threads == 1:
         run(0, n)
-    else:
-        # whole chunks per thread, as equal as they come (the result does not depend on the split)
-        chunks = -(-n // _CHUNK)
-        bounds = [min(n, (chunks * i // threads) * _CHUNK) for i in range(threads + 1)]
+    else:  # pieces of a few chunks, taken by whichever thread is free (a row does not depend on the split)
+        bounds = list(range(0, n, _CHUNKS_PER_TASK * _CHUNK)) + [n]
         with ThreadPoolExecutor(threads) as pool:
             list(pool.map(run, bounds[:-1], bounds[1:]))
     index = np.flatnonzero(flags)

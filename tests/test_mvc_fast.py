@@ -125,14 +125,15 @@ def test_compiled_weights_match_the_reference_inside_and_outside():
 def test_projection_equals_the_weights_times_the_rows_for_any_thread_count():
     v, f = icosphere(2, 1.4)
     rng = np.random.default_rng(4)
-    x = rng.uniform(-1.3, 1.3, (9000, 3))  # more than a block per thread, a short last block
+    x = rng.uniform(-1.3, 1.3, (70_000, 3))  # more than a piece per thread, a short last piece and block
     x[:3] = v[:3]  # rows that go through the careful path
     rows = rng.normal(size=(len(v), 12))
     one = mvc_project(x, v, f, rows, threads=1)
-    assert one.shape == (9000, 12) and one.dtype == np.float64
+    assert one.shape == (70_000, 12) and one.dtype == np.float64
     np.testing.assert_array_equal(mvc_project(x, v, f, rows, threads=2), one)
-    np.testing.assert_allclose(one, mvc_weights(x, v, f) @ rows, rtol=0, atol=1e-10)
-    out = np.empty((9000, 12))
+    np.testing.assert_array_equal(mvc_project(x, v, f, rows, threads=3), one)
+    np.testing.assert_allclose(one[:9000], mvc_weights(x[:9000], v, f) @ rows, rtol=0, atol=1e-10)
+    out = np.empty((70_000, 12))
     assert mvc_project(x, v, f, rows, out=out) is out
     assert mvc_project(np.zeros((0, 3)), v, f, rows).shape == (0, 12)
 
