@@ -286,3 +286,28 @@ def test_a_window_frame_of_the_visible_triangles_is_the_picture_on_the_screen(de
                     assert (centres != whole).any(axis=2).sum() > 100
         finally:
             view.close()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
+def test_kpd_view_applies_a_saved_session_once_the_rig_is_bound(data_dir, tmp_path):
+    """kpd view MODEL SHAPE --load-session: the session (checked before the window opens) is applied to the rig
+    bound on the worker thread, so the keypoints it shows first are the session's; a bad session file ends before."""
+    import os
+
+    from kpd.runtime import Model
+    from kpd.viewer.render import private_display
+    from kpd.viewer.session import EditSession
+    from test_viewer import kpd
+
+    shape = data_dir / "modelnet10" / "chair" / "test" / "chair_0956.ply"
+    rest = Model.load("chair").rig(shape).keypoints
+    session = EditSession(rest)
+    session.move([3], [0.0, 0.0, 2.5])
+    session.save(tmp_path / "session.json")
+    (tmp_path / "bad.json").write_text("{not json")
+    done = kpd("view", "chair", shape, "--load-session", tmp_path / "bad.json", env=dict(os.environ, DISPLAY=":404"))
+    assert done.returncode == 2 and "not a JSON edit session" in done.stderr
+    with _editor_window(tmp_path, "chair", shape, "--load-session", tmp_path / "session.json") as win:
+        np.testing.assert_allclose(win.ready["keypoints"], session.keypoints, atol=1e-9)
+        assert win.ready["undo"] == 1

@@ -193,11 +193,10 @@ class EditorApp:
                 stand_in = self._stand_in()
                 if stand_in is not None:
                     self.post_to_main_thread(lambda: self.drawing.set_stand_in(*stand_in))
-                if binding is not None:
-                    started = time.perf_counter()
-                    rig = binding.bind()
-                    log.info("bound the mesh in %.1f s", time.perf_counter() - started)
-                    self.post_to_main_thread(lambda: self._on_bound(rig))
+                started = time.perf_counter()
+                rig = binding.bind()
+                log.info("bound the mesh in %.1f s", time.perf_counter() - started)
+                self.post_to_main_thread(lambda: self._on_bound(rig))
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which ends with it
                 self.post_to_main_thread(lambda failure=exc: self._on_worker_failed(failure))
 

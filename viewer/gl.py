@@ -7,9 +7,12 @@ a frame and its first frame about 0.4 s after start, where a Filament frame take
 24-38 s (shader compilation) when another process holds a core (``benchmarks/bench_viewer.py``).
 
 * :class:`ShadedMesh` -- a mesh ready to draw (one legacy ``TriangleMesh`` per texture). Its normals are recomputed
-  after every edit by :func:`shading_normals`: from welded positions (unwelded copies of a vertex shade alike) and with
-  each triangle turned towards the camera before averaging, i.e. two-sided lighting, so double-sided and flipped
-  triangles of CAD meshes come out cleanly shaded instead of in black and white blotches.
+  after every edit (:func:`shading_normals`, :class:`_Normals`): from welded positions (unwelded copies of a vertex
+  shade alike) and with each triangle turned towards the camera before averaging, i.e. two-sided lighting, so
+  double-sided and flipped triangles of CAD meshes come out cleanly shaded instead of in black and white blotches.
+  A frame of a large mesh uploads only the triangles that show in a pixel (:func:`visible_triangles`: the same
+  picture; a scan-sized mesh has several triangles a pixel), and can be prepared on another thread
+  (:meth:`ShadedMesh.prepare`) while the main thread takes input.
 * :class:`GLView` -- one window (visible for the editor, hidden for pictures) with named geometries that are updated
   in place, a look-at camera (:class:`kpd.viewer.render.Camera`) and ``capture`` to an (H, W, 3) uint8 image.
 * :class:`RigDrawing` -- the geometries of one rig in a view: mesh, keypoint markers (selected ones larger), cage
@@ -52,7 +55,7 @@ class NoWindowError(KpdError):
 class _Welding:
     """Vertices grouped by position (``inverse`` (V,): the group of each vertex; ``groups``: how many)."""
 
-    def __init__(self, vertices: np.ndarray, triangles: np.ndarray | None = None) -> None:
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray | None = None) -> None:  # triangles: not needed
         from kpd.grouping import merge_coincident
 
         self.inverse = merge_coincident(np.asarray(vertices, dtype=np.float64))[1]  # (V,) group of each vertex
