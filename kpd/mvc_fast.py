@@ -22,9 +22,10 @@ and multiplies them at once by a (C, R) matrix of rows, so that a caller who nee
 Points the vectorised formula cannot handle (within ``1e-6`` of some face's plane, on a cage vertex, more than
 ``1e6`` cage sizes away, or with a non-finite total) are flagged by the kernel and redone by the careful per-point
 rules of :func:`kpd.mvc._careful_row`, compiled (:func:`_careful_rows`, which sums in the same order), so every result
-equals :func:`kpd.mvc.mvc_weights` to rounding. The kernel works in the cage's frame (centred on its centroid, in
-units of its size), where the products of pairs stay far from overflow. It is compiled once per machine and cached
-next to this file (numba's ``cache=True``); the first call in a fresh installation compiles it (a few seconds).
+equals :func:`kpd.mvc.mvc_weights` to rounding. The kernel scales coordinates by a power of two near the cage's size
+(exactly, so it rounds as in the caller's units), which keeps the products of pairs far from overflow. It is compiled
+once per machine and cached next to this file (numba's ``cache=True``); the first call in a fresh installation
+compiles it (a few seconds).
 """
 
 from __future__ import annotations
@@ -223,13 +224,14 @@ def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b,
                    out, flags, xs, g, lane_dot, lane_narrow, bad, w, w0, w1, acc):  # pragma: no cover
     """``out[lo:hi] = normalised MVC weights of points[lo:hi] @ rows``; ``flags[lo:hi]`` marks points to redo.
 
-    The cage is in its own frame (``(p - center) * inv_size``). Step s computes the edge pairs
-    ``step_edges[s]:step_edges[s + 1]`` (edges ``2k`` and ``2k + 1``, into the pair slot ``edge_slot[k]`` of g),
-    then faces ``2s`` and ``2s + 1`` (in schedule order), whose corner k uses the rows of g from
-    ``face_slot[f, k]`` times ``face_sign[f, k]`` and adds its weight to cage vertex ``corner_vertex[3f + k]`` (in w0
-    for the first face, w1 for the second). ``rows`` (C, R + 1), the last column ones for the total, comes as its
-    non-zero entries. Every array is flat with the lanes last and the lane count a constant, so that each loop over
-    the lanes reads and writes at fixed offsets from a few bases; the arguments from xs on are the thread's scratch."""
+    Coordinates are scaled by ``inv_size``, a power of two; ``center`` is the cage's centroid so scaled. Step s
+    computes the edge pairs ``step_edges[s]:step_edges[s + 1]`` (edges ``2k`` and ``2k + 1``, into the pair slot
+    ``edge_slot[k]`` of g), then faces ``2s`` and ``2s + 1`` (in schedule order), whose corner k uses the rows of g
+    from ``face_slot[f, k]`` times ``face_sign[f, k]`` and adds its weight to cage vertex ``corner_vertex[3f + k]``
+    (in w0 for the first face, w1 for the second). ``rows`` (C, R + 1), the last column ones for the total, comes as
+    its non-zero entries. Every array is flat with the lanes last and the lane count a constant, so that each loop
+    over the lanes reads and writes at fixed offsets from a few bases; the arguments from xs on are the thread's
+    scratch."""
     _tune()
     L = _LANES
     C = px.shape[0]
@@ -243,11 +245,11 @@ def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b,
             n = min(L, m - start)
             for i in range(L):  # a short last block repeats its last point
                 j = chunk + order[start + min(i, n - 1)]
-                xs[i] = (points[j, 0] - c0) * inv_size
-                xs[L + i] = (points[j, 1] - c1) * inv_size
-                xs[2 * L + i] = (points[j, 2] - c2) * inv_size
+                xs[i] = points[j, 0] * inv_size
+                xs[L + i] = points[j, 1] * inv_size
+                xs[2 * L + i] = points[j, 2] * inv_size
             for i in range(L):
-                bad[i] = max(abs(xs[i]), abs(xs[L + i]), abs(xs[2 * L + i])) > _FAR
+                bad[i] = max(abs(xs[i] - c0), abs(xs[L + i] - c1), abs(xs[2 * L + i] - c2)) > _FAR
             for s in range(S):
                 for k in range(step_edges[s], step_edges[s + 1]):
                     e0 = 2 * k
@@ -568,9 +570,9 @@ class _Cage:
 
     def __init__(self, t) -> None:
         v = t.vertices
+        self.inv_size = 2.0 ** -np.ceil(np.log2(t.scale))  # a power of two: exact
+        v = v * self.inv_size  # (C, 3) in the cage's frame
         self.center = v.mean(axis=0)
-        self.inv_size = 1.0 / t.scale
-        v = (v - self.center) * self.inv_size  # (C, 3) in the cage's frame
         rows = np.stack(t.rows, axis=1)  # (F, 3): edge row per corner, + E when the edge runs backwards
         order, edges, step_edges, pair_slot, face_row, slots = _schedule(t.faces, rows % t.E, t.E)
         self.slots, self.C = slots, t.C
