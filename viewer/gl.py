@@ -388,8 +388,8 @@ def _fronts(lo, hi, triangles, screen, width, height, samples, delta, depth):  #
         j0, j1 = max(math.floor(y0), 0), min(math.floor(y1), height - 1)
         if i0 > i1 or j0 > j1 or (i1 - i0 + 1) * (j1 - j0 + 1) > 4096:
             continue
-        if not _any_sample(x0, x1, y0, y1, i0, i1, j0, j1, samples):
-            continue  # most triangles of a dense mesh: between the sample points
+        if not _any_sample(x0 + delta, x1 - delta, y0 + delta, y1 - delta, i0, i1, j0, j1, samples):
+            continue  # most triangles of a dense mesh: no sample point inside by the margin
         area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)  # twice the signed area
         sign = 1.0 if area > 0.0 else -1.0
         reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + 2.0 * delta
