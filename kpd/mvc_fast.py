@@ -570,7 +570,7 @@ class _Cage:
 
     def __init__(self, t) -> None:
         v = t.vertices
-        self.inv_size = 2.0 ** -np.ceil(np.log2(t.scale))  # a power of two: exact
+        self.inv_size = float(np.ldexp(1.0, -np.frexp(t.scale)[1]))  # a power of two, so scaling is exact
         v = v * self.inv_size  # (C, 3) in the cage's frame
         self.center = v.mean(axis=0)
         rows = np.stack(t.rows, axis=1)  # (F, 3): edge row per corner, + E when the edge runs backwards
@@ -613,7 +613,8 @@ def mvc_project(points: Any, cage_vertices: Any, cage_faces: Any, rows: Any, *, 
     """Mean value coordinates of points times a matrix, without the (N, C) coordinates.
 
     ``mvc_project(x, v, f, rows) == mvc_weights(x, v, f) @ rows`` to rounding; with ``rows = influence.T`` this is
-    a rig's edit basis (:class:`kpd.rig.Rig`). Work memory is a few tens of kilobytes per thread, whatever N.
+    a rig's edit basis (:class:`kpd.rig.Rig`). Work memory is a few hundred kilobytes per thread, whatever N; a
+    row depends on its point alone (not on the other points, nor on the threads).
 
     Parameters
     ----------
@@ -622,7 +623,7 @@ def mvc_project(points: Any, cage_vertices: Any, cage_faces: Any, rows: Any, *, 
     cage_faces : (F, 3) int, outward-oriented, closed.
     rows : (C, R) float64, what each cage vertex carries.
     out : optional (N, R) float64 C-contiguous buffer to write into.
-    threads : worker threads; ``min(2, cpu count)`` when ``None``. The result does not depend on it.
+    threads : worker threads; ``min(2, cpu count)`` when ``None``.
 
     Returns
     -------

@@ -154,6 +154,17 @@ def test_each_row_depends_on_its_point_alone():
     np.testing.assert_array_equal(mvc_project(x[::7], v, f, rows, threads=1), whole[::7])
 
 
+def test_the_weights_do_not_depend_on_the_units():
+    rng = np.random.default_rng(8)
+    v, f = star_cage(rng.uniform(0.5, 1.5, 42))
+    x = np.concatenate([awkward_points(v, f, rng, 1e-7), rng.uniform(-2.0, 2.0, (200, 3))])
+    w = mvc_weights_compiled(x, v, f)
+    for k in (-200, 200):  # pairs of products of lengths would overflow past 1e308 in these units without scaling
+        np.testing.assert_array_equal(mvc_weights_compiled(np.ldexp(x, k), np.ldexp(v, k), f), w)
+    # a cage a million times larger, ten million units from the origin
+    np.testing.assert_allclose(mvc_weights_compiled(x * 1e6 + 1e7, v * 1e6 + 1e7, f), w, rtol=0, atol=1e-9)
+
+
 def test_projection_rejects_bad_rows_and_buffers():
     v, f = TEMPLATE
     x = np.zeros((5, 3))
