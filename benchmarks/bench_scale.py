@@ -225,7 +225,8 @@ def main() -> None:
                 level = max(paths)
                 path, out = paths[level], Path(tmp)
                 record["cli"] = {"level": level}
-                for command, target in (("deform", f"{mesh_name}_deformed.ply"), ("render", f"{mesh_name}_render.png")):
+                for command, target in (("deform", f"{mesh_name}_deformed.ply"),
+                                        ("render", f"{mesh_name}_render.png")):
                     record["cli"][command] = run_cli([command, model, str(path), "--move", "0:0,0.05,0", "--out",
                                                       str(out / target)])
                     if args.busy:

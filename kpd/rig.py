@@ -589,7 +589,7 @@ def _check_straighten(basis: Any, vertices: Any, triangles: Any, thinness: float
 
 _SOLVE_BATCH = 1 << 17  # merged points per sparse factorisation: small connected pieces are solved together
 _MAX_SOLVE_THREADS = 2
-_FOLD_MOVE = 1.0  # a sliver that a move this large (half the model box) of every keypoint would turn over is straightened
+_FOLD_MOVE = 1.0  # a sliver that a move this large (half the model box) of every keypoint would turn over: straightened
 _WHOLE_PIECE = 0.5  # a connected piece whose points the region covers more than this share of is solved whole
 _FIRST_RINGS = 2  # the region first reaches this many edges from the slivers to straighten, then doubles where needed
 
@@ -839,7 +839,8 @@ def _sliver_terms(points, tri, indptr, indices, thinness, inverse_reach2, ends_w
         if not height < thinness * longest:
             continue
         corner, start, end = v[k], v[(k + 1) % 3], v[(k + 2) % 3]
-        ex, ey, ez = points[end, 0] - points[start, 0], points[end, 1] - points[start, 1], points[end, 2] - points[start, 2]
+        ex, ey = points[end, 0] - points[start, 0], points[end, 1] - points[start, 1]
+        ez = points[end, 2] - points[start, 2]
         dot = ((points[corner, 0] - points[start, 0]) * ex + (points[corner, 1] - points[start, 1]) * ey
                + (points[corner, 2] - points[start, 2]) * ez)
         s = min(max(dot / (ex * ex + ey * ey + ez * ez), 0.0), 1.0)
@@ -1278,9 +1279,12 @@ def _has_sliver(points, tri, thinness):  # pragma: no cover - compiled
     """Whether any triangle's height is below ``thinness`` times its longest edge (:func:`_thin_triangles`)."""
     for t in range(tri.shape[0]):
         a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
-        l0 = (points[c, 0] - points[b, 0]) ** 2 + (points[c, 1] - points[b, 1]) ** 2 + (points[c, 2] - points[b, 2]) ** 2
-        l1 = (points[a, 0] - points[c, 0]) ** 2 + (points[a, 1] - points[c, 1]) ** 2 + (points[a, 2] - points[c, 2]) ** 2
-        l2 = (points[b, 0] - points[a, 0]) ** 2 + (points[b, 1] - points[a, 1]) ** 2 + (points[b, 2] - points[a, 2]) ** 2
+        l0 = ((points[c, 0] - points[b, 0]) ** 2 + (points[c, 1] - points[b, 1]) ** 2
+              + (points[c, 2] - points[b, 2]) ** 2)
+        l1 = ((points[a, 0] - points[c, 0]) ** 2 + (points[a, 1] - points[c, 1]) ** 2
+              + (points[a, 2] - points[c, 2]) ** 2)
+        l2 = ((points[b, 0] - points[a, 0]) ** 2 + (points[b, 1] - points[a, 1]) ** 2
+              + (points[b, 2] - points[a, 2]) ** 2)
         longest = np.sqrt(max(l0, l1, l2))
         ux, uy, uz = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1], points[b, 2] - points[a, 2]
         vx, vy, vz = points[c, 0] - points[a, 0], points[c, 1] - points[a, 1], points[c, 2] - points[a, 2]
