@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+import kpd.io.ply
 from kpd.errors import InputError, KpdError
 from kpd.io import (
     Mesh,
@@ -562,10 +563,16 @@ def test_failed_mesh_write_leaves_existing_files_untouched(ext, tmp_path, monkey
             fh.write(data[: len(data) // 2])
         raise OSError(errno.ENOSPC, "No space left on device", str(self))
 
+    def fail_ply(p, mesh):  # kpd's own PLY writer: the disk fills up after the header
+        with open(p, "wb") as fh:
+            fh.write(b"ply\nformat binary_little_endian 1.0\n")
+        raise OSError(errno.ENOSPC, "No space left on device", str(p))
+
     monkeypatch.setattr(o3d.io, "write_triangle_mesh", fail_write)
     monkeypatch.setattr(o3d.io, "write_image", fail_write)
     monkeypatch.setattr(Path, "write_bytes", fail_bytes)
-    reason = "the disk is full|no space left" if ext in ("gltf", "obj") else "Open3D failed"
+    monkeypatch.setattr(kpd.io.ply, "write_mesh", fail_ply)
+    reason = "the disk is full|no space left" if ext in ("gltf", "obj", "ply") else "Open3D failed"
     with pytest.raises(KpdError, match=rf"cannot write .*({reason})"):
         write_mesh(tmp_path / f"chair.{ext}", mesh.with_vertices(mesh.vertices + 1))
     assert {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path)} == before

@@ -61,12 +61,22 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
         return obj.read(p, os.fspath(path))
     if ext in (".gltf", ".glb"):
         return gltf.read(p, os.fspath(path))
+    if ext == ".ply":  # a binary PLY through numpy, as Open3D reads it; the rest by Open3D
+        ply.check_complete(p)
+        mesh = ply.read_mesh(p, os.fspath(path)) if _has_faces(p) else None
+        if mesh is not None:
+            return mesh
     m = _read_open3d_mesh(p, ext)
     if len(m.triangles) == 0:
         raise InputError(
             f"{p}: has {len(m.vertices)} vertices but no triangles (a point cloud? use read_points or read_shape)"
         )
     return Mesh.from_open3d(m, path=os.fspath(path))
+
+
+def _has_faces(p: Path) -> bool:
+    """Whether a PLY's header declares a non-empty ``face`` element."""
+    return any(element.name == "face" and element.count > 0 for element in ply.read_header(p).elements)
 
 
 def read_points(path: str | os.PathLike, *, drop_nonfinite: bool = False) -> PointSet:
@@ -273,6 +283,10 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh) -> None:
         return
     if ext == ".obj":
         obj.write(p, mesh)
+        return
+    if ext == ".ply":  # through numpy, byte for byte what Open3D writes
+        with atomic_output(p, verify=lambda tmp: _verify_mesh_file(p, tmp, mesh, ext)) as target:
+            ply.write_mesh(target, mesh)
         return
     m = mesh.to_open3d()
     if ext == ".stl":
