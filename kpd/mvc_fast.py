@@ -85,8 +85,10 @@ def _tune(typingctx):  # pragma: no cover - compiled
     def codegen(context, builder, signature, args):
         function = builder.function
         attribute = '"prefer-vector-width"="512"'
-        function.attributes._known = function.attributes._known | {attribute}
-        function.attributes.add(attribute)
+        known = getattr(function.attributes, "_known", None)
+        if known is not None:  # llvmlite's private list of names; without it the kernel is only narrower
+            function.attributes._known = known | {attribute}
+            function.attributes.add(attribute)
         for argument in function.args:
             if argument.name.startswith("arg.") and argument.name.endswith(".4"):
                 argument.add_attribute("noalias")
