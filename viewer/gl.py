@@ -66,6 +66,10 @@ def shading_normals(vertices: np.ndarray, triangles: np.ndarray, eye: np.ndarray
                     welding: _Welding | None = None) -> np.ndarray:
     """(V, 3) float32 unit vertex normals for drawing.
 
+    Each vertex's normal is the sum of its position's triangles' ``(b - a) x (c - a)`` (area-weighted), in one
+    compiled pass over the triangles (a few tens of milliseconds per million triangles). :class:`ShadedMesh` computes
+    the same sums, bit for bit, on two threads (:class:`_Normals`).
+
     Parameters
     ----------
     vertices : (V, 3) float64.
@@ -73,10 +77,6 @@ def shading_normals(vertices: np.ndarray, triangles: np.ndarray, eye: np.ndarray
     eye : (3,) the camera position: each triangle's normal is turned towards it before averaging (two-sided lighting),
         so a surface shades the same whichever way its triangles wind. None keeps the winding.
     welding : the vertex groups of these triangles (computed when not given): vertices at one position share a normal.
-
-    Each vertex's normal is the sum of its position's triangles' ``(b - a) x (c - a)`` (area-weighted), in one
-    compiled pass over the triangles (a few tens of milliseconds per million triangles). :class:`ShadedMesh` computes
-    the same sums, bit for bit, on two threads (:class:`_Normals`).
     """
     triangles = np.ascontiguousarray(triangles, dtype=np.int64)
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
