@@ -89,19 +89,26 @@ def shading_normals(vertices: np.ndarray, triangles: np.ndarray, eye: np.ndarray
     return out
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _turned_normal(vertices, a, b, c, eye, towards):  # pragma: no cover - compiled
+    """A triangle's ``(b - a) x (c - a)``, turned towards ``eye`` when ``towards`` (two-sided lighting)."""
+    ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
+    ux, uy, uz = vertices[b, 0] - ax, vertices[b, 1] - ay, vertices[b, 2] - az
+    vx, vy, vz = vertices[c, 0] - ax, vertices[c, 1] - ay, vertices[c, 2] - az
+    nx = uy * vz - uz * vy
+    ny = uz * vx - ux * vz
+    nz = ux * vy - uy * vx
+    if towards and nx * (eye[0] - ax) + ny * (eye[1] - ay) + nz * (eye[2] - az) < 0:
+        return -nx, -ny, -nz  # the eye is on the other side of the triangle's plane
+    return nx, ny, nz
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _welded_normals(vertices, triangles, inverse, groups, eye, towards, out):  # pragma: no cover - compiled
     acc = np.zeros((groups, 3))
     for t in range(triangles.shape[0]):
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
-        ux, uy, uz = vertices[b, 0] - ax, vertices[b, 1] - ay, vertices[b, 2] - az
-        vx, vy, vz = vertices[c, 0] - ax, vertices[c, 1] - ay, vertices[c, 2] - az
-        nx = uy * vz - uz * vy
-        ny = uz * vx - ux * vz
-        nz = ux * vy - uy * vx
-        if towards and nx * (eye[0] - ax) + ny * (eye[1] - ay) + nz * (eye[2] - az) < 0:
-            nx, ny, nz = -nx, -ny, -nz  # the eye is on the other side of the triangle's plane
+        nx, ny, nz = _turned_normal(vertices, a, b, c, eye, towards)
         for corner in (a, b, c):
             g = inverse[corner]
             acc[g, 0] += nx
@@ -168,15 +175,7 @@ def _corner_lists(triangles, inverse, starts, entries):  # pragma: no cover - co
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _turned_faces(lo, hi, vertices, triangles, eye, towards, out):  # pragma: no cover - compiled
     for t in range(lo, hi):
-        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
-        ux, uy, uz = vertices[b, 0] - ax, vertices[b, 1] - ay, vertices[b, 2] - az
-        vx, vy, vz = vertices[c, 0] - ax, vertices[c, 1] - ay, vertices[c, 2] - az
-        nx = uy * vz - uz * vy
-        ny = uz * vx - ux * vz
-        nz = ux * vy - uy * vx
-        if towards and nx * (eye[0] - ax) + ny * (eye[1] - ay) + nz * (eye[2] - az) < 0:
-            nx, ny, nz = -nx, -ny, -nz
+        nx, ny, nz = _turned_normal(vertices, triangles[t, 0], triangles[t, 1], triangles[t, 2], eye, towards)
         out[t, 0] = nx
         out[t, 1] = ny
         out[t, 2] = nz
