@@ -591,7 +591,9 @@ _SOLVE_BATCH = 1 << 17  # merged points per sparse factorisation: small connecte
 _MAX_SOLVE_THREADS = 2
 _FOLD_MOVE = 1.0  # a sliver that a move this large (half the model box) of every keypoint would turn over: straightened
 _WHOLE_PIECE = 0.5  # a connected piece whose points the region covers more than this share of is solved whole
-_FIRST_RINGS = 2  # the region first reaches this many edges from the slivers to straighten, then doubles where needed
+_FIRST_RINGS = 2  # the region first reaches this many edges from the slivers to straighten
+_GROW_RINGS = 2  # then grows by this many edges where the correction just outside it is above the tolerance
+_PATCH_RINGS = 4  # a growth is solved with the region's points this many edges around it, the rest held
 
 
 class _StraightenSystem:
@@ -605,10 +607,12 @@ class _StraightenSystem:
     :meth:`solve` solves on a region (:func:`straighten_basis`): the points within two edges of the slivers that
     are bent by more than ``tolerance`` or that a large edit would turn over, with no correction beyond it; where
     the points just outside would still move by more than ``tolerance`` (one Jacobi step from the region's
-    correction), the region grows from them by twice as many edges, and its parts that grew are solved again. The
-    region's connected parts are factorised on their own (small ones a few at a time), two at a time, in SuperLU's
-    symmetric mode with a minimum-degree ordering of AᵀA + A; a connected piece of the mesh that the region covers
-    more than half of is taken whole.
+    correction), the region grows from them by two edges, and a patch of the region four edges around the growth
+    is solved with the correction elsewhere held (a block Gauss-Seidel step: the growth moves the points farther
+    inside by less than the tolerance), until nothing beyond the rim is above it. The first region's connected
+    parts are factorised on their own (small ones a few at a time), two at a time, in SuperLU's symmetric mode with
+    a minimum-degree ordering of AᵀA + A; a connected piece of the mesh that the first region covers more than half
+    of is taken whole.
     """
 
     def __init__(self, points: np.ndarray, tri: np.ndarray, thinness: float, reach: float) -> None:
@@ -649,25 +653,52 @@ class _StraightenSystem:
         correction = np.zeros(merged.shape)  # untouched pages stay unmapped
         inside = np.zeros(self.n, dtype=bool)
         piece_size = np.bincount(self.label, minlength=self.pieces)
-        frontier, rings = seeds, _FIRST_RINGS
+        frontier, rings, first = seeds, _FIRST_RINGS, True
         while len(frontier):
             reached = _rings(self.indptr, self.indices, frontier, rings)
-            # a piece the region covers mostly is taken whole: solving it whole costs little more than solving
-            # that part, and a rim there could make the part grow and be factorised again
-            covered = np.bincount(self.label, weights=inside | reached, minlength=self.pieces)
-            reached |= (covered > _WHOLE_PIECE * piece_size)[self.label]
-            added = reached & ~inside
-            inside |= reached
-            del reached
-            rim = self._solve_region(inside, added, merged, correction)
+            if first:
+                # a piece the region covers mostly is taken whole: solving it whole costs little more than solving
+                # that part, and a rim there could make the part grow
+                covered = np.bincount(self.label, weights=reached, minlength=self.pieces)
+                reached |= (covered > _WHOLE_PIECE * piece_size)[self.label]
+                inside |= reached
+                del reached
+                rim = self._solve_region(inside, inside, merged, correction)
+            else:
+                # the region grows by a few points: solve a patch around them, holding the correction elsewhere (a
+                # block Gauss-Seidel step; the growth's effect on points farther inside is below the tolerance)
+                added = reached & ~inside
+                inside |= reached
+                patch = _rings(self.indptr, self.indices, np.flatnonzero(added), _PATCH_RINGS) & inside
+                del reached, added
+                rim = self._solve_patch(patch, inside, merged, correction)
             # cut off too soon where the points just outside would move by more than the tolerance (one Jacobi step
             # from the region's correction): grow from there
             frontier = _beyond_rim(self.indptr, self.indices, self.points, self.sliver_values, self.anchor, self.floor,
                                    rim, inside, correction, float(tolerance))
             log.debug("straightening: %d seed points, %d rings: %d of %d points solved, %d beyond the rim above %.3g",
                       len(seeds), rings, inside.sum(), self.n, len(frontier), tolerance)
-            rings *= 2
+            rings, first = _GROW_RINGS, False
         return correction
+
+    def _solve_patch(self, patch: np.ndarray, inside: np.ndarray, basis: np.ndarray,
+                     correction: np.ndarray) -> np.ndarray:
+        """Solve, into ``correction`` (n, K), the points ``patch`` (n,) bool of the region ``inside`` with the
+        correction of every other point held as it is. Returns the region's rim within the patch."""
+        import scipy.sparse as sparse
+        from scipy.sparse.linalg import splu
+
+        members = np.flatnonzero(patch)
+        local = np.full(self.n, -1, dtype=np.int64)
+        local[members] = np.arange(len(members))
+        ptr, idx, val = _submatrix(self.indptr, self.indices, members, local, self.points, self.sliver_values,
+                                   self.anchor, self.floor)
+        system = sparse.csc_matrix((val, idx, ptr), shape=(len(members),) * 2)
+        factor = splu(system, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        rhs = _held_rhs(self.indptr, self.indices, self.points, self.sliver_values, self.anchor, self.floor, members,
+                        patch, basis, correction)
+        correction[members] = factor.solve(rhs)
+        return members[_has_outside(self.indptr, self.indices, members, inside)]
 
     def _solve_region(self, inside: np.ndarray, added: np.ndarray, basis: np.ndarray,
                       correction: np.ndarray) -> np.ndarray:
@@ -1015,6 +1046,44 @@ def _beyond_rim(indptr, indices, points, sliver_values, anchor, floor, rim, insi
     return np.array(out, dtype=np.int64)
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _held_rhs(indptr, indices, points, sliver_values, anchor, floor, rows, patch, basis,
+              correction):  # pragma: no cover - compiled
+    """(len(rows), K): the right-hand side of the system's ``rows`` with the points outside ``patch`` (n,) bool
+    held at ``correction``: ``-(Sᵀ W S basis)[rows] - A[rows, outside] correction[outside]``."""
+    k = basis.shape[1]
+    out = np.zeros((len(rows), k))
+    row = np.empty(1)
+    for r in range(len(rows)):
+        i = rows[r]
+        if len(row) < indptr[i + 1] - indptr[i]:
+            row = np.empty(indptr[i + 1] - indptr[i])
+        _row(i, indptr, indices, points, sliver_values, anchor, floor, row)
+        for e in range(indptr[i], indptr[i + 1]):
+            j = indices[e]
+            value = sliver_values[e]
+            if value != 0.0:
+                for c in range(k):
+                    out[r, c] -= value * basis[j, c]
+            if not patch[j]:
+                value = row[e - indptr[i]]
+                for c in range(k):
+                    out[r, c] -= value * correction[j, c]
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _has_outside(indptr, indices, rows, inside):  # pragma: no cover - compiled
+    """(len(rows),) bool: whether each of ``rows`` has a neighbour outside ``inside``."""
+    out = np.zeros(len(rows), dtype=np.bool_)
+    for r in range(len(rows)):
+        for e in range(indptr[rows[r]], indptr[rows[r] + 1]):
+            if not inside[indices[e]]:
+                out[r] = True
+                break
+    return out
+
+
 @numba.njit(cache=True, nogil=True)
 def _rows_times(indptr, indices, data, rows, basis):  # pragma: no cover - compiled
     """(len(rows), K): ``-(M @ basis)[rows]`` for the CSR matrix M (indptr, indices, data)."""
@@ -1166,8 +1235,14 @@ def _edit(basis_t, offsets, rest, out):  # pragma: no cover - compiled
     """``out = rest + basis_t.T @ offsets`` with float64 sums: (K, V) basis of float32 or float64, (K, 3) offsets.
 
     Blocks of vertices, each keypoint's row of the block in order: the loops over the block are SIMD code (one pass
-    at 1.37M vertices takes about 10 ms; a vertex at a time, 12 dependent sums, took 27 ms)."""
-    k = offsets.shape[0]
+    at 1.37M vertices takes about 10 ms; a vertex at a time, 12 dependent sums, took 27 ms). The rows of keypoints
+    that did not move are not read: a drag of one keypoint reads one row of the basis, not K."""
+    moved = np.zeros(offsets.shape[0], dtype=np.int64)
+    k = 0
+    for j in range(offsets.shape[0]):
+        if offsets[j, 0] != 0.0 or offsets[j, 1] != 0.0 or offsets[j, 2] != 0.0:
+            moved[k] = j
+            k += 1
     n_all = rest.shape[0]
     x = np.empty(_EDIT_LANES)
     y = np.empty(_EDIT_LANES)
@@ -1178,7 +1253,8 @@ def _edit(basis_t, offsets, rest, out):  # pragma: no cover - compiled
             x[i] = rest[start + i, 0]
             y[i] = rest[start + i, 1]
             z[i] = rest[start + i, 2]
-        for j in range(k):
+        for m in range(k):
+            j = moved[m]
             o0 = offsets[j, 0]
             o1 = offsets[j, 1]
             o2 = offsets[j, 2]
