@@ -790,7 +790,9 @@ def _graph_pattern(tri, n):  # pragma: no cover - compiled
     size = 0
     for i in range(n):
         lo, hi = count[i], count[i + 1]
-        for j in range(lo + 1, hi):  # insertion sort: rows are short
+        if hi - lo > 64:  # a fan's centre: a real sort
+            other[lo:hi] = np.sort(other[lo:hi])
+        for j in range(lo + 1, hi):  # insertion sort: rows are short (a no-op after the sort)
             value = other[j]
             k = j - 1
             while k >= lo and other[k] > value:

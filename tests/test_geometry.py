@@ -206,3 +206,30 @@ def test_chamfer_known_value_and_kdtree_path():
     rng = np.random.default_rng(0)
     big_a, big_b = rng.normal(size=(3000, 3)), rng.normal(size=(2500, 3))
     assert chamfer(big_a, big_b) == pytest.approx(chamfer_naive(big_a, big_b), rel=1e-9)
+
+
+# --- closed pieces ---------------------------------------------------------------------------------------------
+
+def test_closed_pieces_at_once_equal_the_check_of_each_piece(data_dir):
+    """The one-pass closedness of every piece (edges bucketed by corner) against the sort per piece, on real convex
+    decompositions (mostly closed pieces), a real scan (open), a fan whose centre has hundreds of edges, and a
+    degenerate triangle."""
+    from kpd.geometry import _closed_pieces, _is_closed, mesh_pieces
+    from kpd.io import read_mesh
+
+    shoes = sorted((data_dir / "gso_shoes").glob("*/*.obj"))[:4]
+    assert shoes
+    n = 300
+    fan = np.array([[0, 1 + i, 1 + (i + 1) % n] for i in range(n)]
+                   + [[n + 1, 1 + (i + 1) % n, 1 + i] for i in range(n)])  # two cones: closed
+    cases = [np.asarray(read_mesh(path).triangles) for path in [*shoes, data_dir / "scans" / "sneaker.ply"]]
+    cases += [fan, fan[:-1], np.concatenate([fan, [[0, 0, 5]]]), np.concatenate([fan, fan + n + 2])]
+    closed_somewhere = 0
+    for triangles in cases:
+        triangles = np.ascontiguousarray(triangles, dtype=np.int64)
+        labels = mesh_pieces(triangles)
+        pieces = int(labels.max()) + 1
+        each = np.array([_is_closed(triangles[labels == p]) for p in range(pieces)])
+        np.testing.assert_array_equal(_closed_pieces(triangles, labels, pieces, int(triangles.max()) + 1), each)
+        closed_somewhere += int(each.sum())
+    assert closed_somewhere > 10  # the shoes' pieces and the fans are closed; the open ones are told apart
