@@ -383,8 +383,6 @@ class _InteriorTest:
     """
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray, offset: float = 2e-3) -> None:
-        import open3d as o3d
-
         self.labels = mesh_pieces(triangles)
         extent = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
         self.offset = offset * extent
@@ -406,6 +404,8 @@ class _InteriorTest:
             if volume == 0.0:
                 continue
             self.outward[mask] = np.sign(volume)
+            import open3d as o3d  # only for a closed piece: a scan of open pieces reads and binds without Open3D
+
             scene = o3d.t.geometry.RaycastingScene()
             used, local = np.unique(tri, return_inverse=True)
             scene.add_triangles(o3d.core.Tensor(vertices[used].astype(np.float32)),
