@@ -58,7 +58,8 @@ log = logging.getLogger(__name__)
 PANEL_WIDTH = 300  # pixels
 _PICK_PIXELS = 14.0  # a click this close to a marker's centre picks it
 _MAX_SLIDERS = 8
-_PREPARE_AFTER = 0.2  # s without input before a large mesh's whole frame is prepared on the frame thread
+_PREPARE_AFTER = 0.1  # s without input before a large mesh's whole frame is prepared on the frame thread (an input
+# stops the preparation within a few milliseconds, see kpd.viewer.gl.visible_triangles)
 _REFINE_AFTER = 0.3  # s without input before a large mesh's stand-in is replaced by the whole mesh
 _LEFT, _TOP = 0, 0  # where the 3D view opens on the screen; the panel opens to its right
 
@@ -429,7 +430,8 @@ class EditorApp:
             try:
                 started = time.perf_counter()
                 vertices = mesh.vertices if rig is None else rig.deform(keypoints)
-                uploads = drawing.shaded.prepare(vertices, camera, drawing.view.viewport(camera), stale=stale)
+                uploads = None if stale() else drawing.shaded.prepare(vertices, camera, drawing.view.viewport(camera),
+                                                                      stale=stale)
                 milliseconds = round(1000 * (time.perf_counter() - started), 3)
                 self.post_to_main_thread(lambda: self._on_prepared(state, vertices, uploads, milliseconds))
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which ends with it

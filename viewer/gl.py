@@ -43,6 +43,7 @@ log = logging.getLogger(__name__)
 
 PROXY_TRIANGLES = 50000  # larger meshes are drawn by a coarse stand-in while a gesture is in progress
 CULL_TRIANGLES = 100_000  # a mesh part with more triangles uploads only those that cover a pixel centre, each frame
+CULL_CHUNK = 1 << 18  # triangles a culling pass takes between two looks at whether its frame is still wanted
 
 
 class NoWindowError(KpdError):
@@ -201,20 +202,21 @@ def _summed_groups(lo, hi, face, starts, entries, out):  # pragma: no cover - co
 _POOL: Any = None
 
 
-def _halves(kernel: Any, n: int, *args: Any) -> None:
-    """``kernel(lo, hi, *args)`` over [0, n): in two halves on two threads (compiled kernels that release the GIL)
-    when the machine has two cores and ``n`` is large, else at once."""
+def _halves(kernel: Any, n: int, *args: Any, start: int = 0) -> None:
+    """``kernel(lo, hi, *args)`` over [start, n): in two halves on two threads (compiled kernels that release the
+    GIL) when the machine has two cores and the range is large, else at once; the calling thread takes the half
+    from ``start``."""
     global _POOL
-    if n < 200_000 or (os.cpu_count() or 1) < 2:
-        kernel(0, n, *args)
+    if n - start < 200_000 or (os.cpu_count() or 1) < 2:
+        kernel(start, n, *args)
         return
     if _POOL is None:
         from concurrent.futures import ThreadPoolExecutor
 
         _POOL = ThreadPoolExecutor(2, thread_name_prefix="kpd-draw")  # two callers at once each get one
-    half = n // 2
+    half = (start + n) // 2
     other = _POOL.submit(kernel, half, n, *args)
-    kernel(0, half, *args)
+    kernel(start, half, *args)
     other.result()
 
 
@@ -303,7 +305,8 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
     viewport : Viewport.
     scratch : the arrays of an earlier call with as many vertices and triangles and the same viewport size, reused
         (fresh memory costs as much as the work here); a dict, filled on the first call.
-    stale : asked between the passes; when it returns True the work stops and None is returned.
+    stale : asked after every :data:`CULL_CHUNK` triangles of a pass; when it returns True the work stops and None is
+        returned (a frame no longer wanted gives the cores back within a few milliseconds).
     """
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
     triangles = np.ascontiguousarray(triangles)
@@ -319,12 +322,19 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
     delta = _margin(vertices, viewport)
     depth = scratch["depth"]  # (2, H W S) per sample point, one row per thread
     depth.fill(np.inf)
-    _halves(_fronts, len(triangles), triangles, screen, w, h, samples, delta, depth)
-    if stale is not None and stale():
-        return None
+    t = len(triangles)
+    for start in range(0, t, CULL_CHUNK):
+        _halves(_fronts, min(t, start + CULL_CHUNK), start, triangles, screen, w, h, samples, delta, depth,
+                start=start)
+        if stale is not None and stale():
+            return None
     front = np.minimum(depth[0], depth[1], out=scratch["front"])  # (H W S,)
     keep = scratch["keep"]
-    _halves(_showing, len(triangles), triangles, screen, w, h, samples, delta, front, DEPTH_SLACK, keep)
+    for start in range(0, t, CULL_CHUNK):
+        _halves(_showing, min(t, start + CULL_CHUNK), triangles, screen, w, h, samples, delta, front, DEPTH_SLACK,
+                keep, start=start)
+        if stale is not None and stale():
+            return None
     return keep
 
 
@@ -372,10 +382,10 @@ def _any_sample(x0, x1, y0, y1, i0, i1, j0, j1, samples):  # pragma: no cover - 
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _fronts(lo, hi, triangles, screen, width, height, samples, delta, depth):  # pragma: no cover - compiled
-    """Pass 1 of :func:`visible_triangles`, into ``depth[0]`` for a range from 0 and ``depth[1]`` for the other
-    (:func:`_halves`' second thread)."""
-    out = depth[0] if lo == 0 else depth[1]
+def _fronts(lo, hi, first, triangles, screen, width, height, samples, delta, depth):  # pragma: no cover
+    """Pass 1 of :func:`visible_triangles`, into ``depth[0]`` for a range from ``first`` (the calling thread's half)
+    and ``depth[1]`` for the other (:func:`_halves`' second thread)."""
+    out = depth[0] if lo == first else depth[1]
     count = samples.shape[0]
     for t in range(lo, hi):
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
@@ -582,7 +592,7 @@ class ShadedMesh:
         abandons the work (returns None) once the frame is no longer wanted."""
         vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         with self._lock:
-            normals = self._normals(vertices, camera.eye) if any(p.albedo is not None for p in self.parts) else None
+            normals: list = []  # the shading normals, once the first part that needs them has its triangles
             uploads = []
             for part in self.parts:
                 if stale is not None and stale():
@@ -593,7 +603,7 @@ class ShadedMesh:
                 uploads.append(upload)
             return uploads
 
-    def _prepare_part(self, part: _Part, vertices: np.ndarray, normals: np.ndarray | None, camera: Any,
+    def _prepare_part(self, part: _Part, vertices: np.ndarray, normals: list, camera: Any,
                       viewport: Viewport | None, stale: Any = None) -> _Upload | None:
         layout = part.layout
         triangles = uvs = None
@@ -615,8 +625,12 @@ class ShadedMesh:
             uvs = part.uvs[keep].reshape(-1, 2)
         colors = None
         if part.albedo is not None:
+            if not normals:  # after the culling, which a newer frame may cut short
+                if stale is not None and stale():
+                    return None
+                normals.append(self._normals(vertices, camera.eye))
             albedo = part.albedo if part.albedo.ndim == 1 else part.albedo[used]
-            colors = shade(albedo, normals[self.welding.inverse[used]], camera).astype(np.float64)
+            colors = shade(albedo, normals[0][self.welding.inverse[used]], camera).astype(np.float64)
         return _Upload(vertices[used], triangles, colors, uvs)
 
     def upload(self, uploads: list) -> None:
