@@ -408,6 +408,7 @@ class ScanRig:
         self.cage = aligned.cage
         self.normalizer = _ScanFrameNormalizer(scan, aligned.normalizer)
         self._rest = scan.to_original(aligned.keypoints)
+        self._aligned_out: np.ndarray | None = None  # (V, 3) deform(rows=)'s rows in the aligned frame
 
     @property
     def num_keypoints(self) -> int:
@@ -417,19 +418,33 @@ class ScanRig:
     def keypoints(self) -> np.ndarray:
         return self._rest.copy()
 
-    def deform(self, keypoints: Any, *, out: np.ndarray | None = None) -> np.ndarray:
-        """(V, 3) the scan's vertices, in its own frame, with the keypoints (K, 3) moved to ``keypoints``."""
+    def deform(self, keypoints: Any, *, out: np.ndarray | None = None, rows: Any = None) -> np.ndarray:
+        """(V, 3) the scan's vertices, in its own frame, with the keypoints (K, 3) moved to ``keypoints``.
+
+        ``out``: a (V, 3) float64 array to write into. ``rows``: (P,) vertex indices, as for
+        :meth:`kpd.rig.Rig.deform`: only these rows of ``out`` are computed and written (the editor's coarse
+        stand-in of a large scan needs only its own vertices).
+        """
         from kpd.errors import InputError
 
         keypoints = np.asarray(keypoints, dtype=np.float64)
         if keypoints.shape != self._rest.shape:
             raise InputError(f"keypoints must have shape ({self.num_keypoints}, 3); got {keypoints.shape}")
-        offsets = self.aligned.deform(self.scan.to_aligned(keypoints)) - self.aligned.mesh.vertices  # (V, 3)
-        result = self.mesh.vertices + self.scan.vector_to_original(offsets)
-        if out is not None:
-            out[...] = result
-            return out
-        return result
+        if rows is None:
+            offsets = self.aligned.deform(self.scan.to_aligned(keypoints)) - self.aligned.mesh.vertices  # (V, 3)
+            result = self.mesh.vertices + self.scan.vector_to_original(offsets)
+            if out is not None:
+                out[...] = result
+                return out
+            return result
+        if self._aligned_out is None:
+            self._aligned_out = np.empty_like(self.aligned.mesh.vertices)
+        self.aligned.deform(self.scan.to_aligned(keypoints), out=self._aligned_out, rows=rows)  # checks rows
+        rows = np.asarray(rows)
+        offsets = self._aligned_out[rows] - self.aligned.mesh.vertices[rows]  # (P, 3)
+        out = np.empty_like(self.mesh.vertices) if out is None else out
+        out[rows] = self.mesh.vertices[rows] + self.scan.vector_to_original(offsets)
+        return out
 
     def deform_cage(self, keypoints: Any) -> np.ndarray:
         return self.scan.to_original(self.aligned.deform_cage(self.scan.to_aligned(np.asarray(keypoints))))

@@ -267,6 +267,30 @@ def test_stand_in_of_a_large_mesh_is_coarse_and_made_of_its_vertices():
     np.testing.assert_allclose(radii, 1.0, atol=1e-9)  # original vertices: the deformed mesh's rows give its stand-in
 
 
+def test_a_scan_rig_deforms_the_rows_of_a_stand_in_alone(data_dir):
+    """kpd view --scan: a drag drawn by the stand-in deforms its vertices only (ScanRig.deform(rows=)), the same
+    rows as the whole deformation, the other rows of the buffer left as they were."""
+    from kpd.frame import ScanFrame, ScanRig
+    from kpd.io import read_mesh
+    from kpd.runtime import Model
+
+    model = Model.load("chair")
+    mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0956.ply")
+    frame = ScanFrame(model, mesh, "z")
+    rig = ScanRig(model.rig(mesh.with_vertices(frame.to_aligned(mesh.vertices))), mesh, frame)
+    keypoints = rig.keypoints
+    keypoints[2] += [0.0, 0.0, 0.05 * np.ptp(mesh.vertices)]
+    whole = rig.deform(keypoints)
+    rows = np.arange(0, len(mesh.vertices), 7)
+    out = np.full_like(mesh.vertices, np.nan)
+    assert rig.deform(keypoints, out=out, rows=rows) is out
+    np.testing.assert_allclose(out[rows], whole[rows], rtol=0, atol=1e-12 * np.ptp(mesh.vertices))
+    assert np.isnan(np.delete(out, rows, axis=0)).all()
+    assert np.abs(whole[rows] - mesh.vertices[rows]).max() > 1e-3 * np.ptp(mesh.vertices)  # it moved
+    with pytest.raises(InputError, match="rows"):
+        rig.deform(keypoints, out=out, rows=np.array([len(mesh.vertices)]))
+
+
 def test_open3d_plotly_helpers_load_on_first_use():
     code = ("import sys, kpd, open3d, numpy as np\n"
             "assert 'dash' not in sys.modules and 'plotly' not in sys.modules\n"

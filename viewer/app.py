@@ -35,6 +35,7 @@ the sliders', ``input`` for each mouse or key event received,
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import math
@@ -154,12 +155,15 @@ class EditorApp:
         """Open the windows and run until the 3D view or the panel is closed; returns 0.
 
         BLAS runs on one thread meanwhile: the editor's products are small ((V, K) by (K, 3)), and a multi-threaded
-        BLAS waiting for a core that another process holds makes each of them up to 100 times slower.
+        BLAS waiting for a core that another process holds makes each of them up to 100 times slower. The objects
+        made before the first frame (the libraries', the windows') are left out of Python's garbage collection: a
+        full collection of them takes 15-40 ms, and would land in a frame.
         """
         from threadpoolctl import threadpool_limits
 
         with threadpool_limits(1, user_api="blas"):
             self._build()
+            gc.freeze()
             try:
                 self._loop()
             finally:
@@ -210,6 +214,7 @@ class EditorApp:
                            f"mesh shown has {len(self.mesh.vertices)} and {self.num_keypoints} were expected")
         self.rig = rig
         self._binding = None
+        gc.freeze()  # the rig's objects live as long as the editor (see run)
         self._start_session()
         self.drawing.set_keypoints(rig.num_keypoints, rig.cage.faces)
         self._changed()
@@ -465,15 +470,10 @@ class EditorApp:
     def _frame(self, rows: np.ndarray | None = None) -> Frame:
         """The current state; with ``rows``, only those vertices are deformed (the others keep older positions).
         Before the rig is ready: the rest mesh, no keypoints."""
-        from kpd.rig import Rig
-
         if self.rig is None:
             return Frame(self.mesh.vertices, np.zeros((0, 3)), None, ())
         keypoints = self.session.keypoints
-        if rows is not None and isinstance(self.rig, Rig):
-            vertices = self.rig.deform(keypoints, out=self._buffer, rows=rows)
-        else:
-            vertices = self.rig.deform(keypoints, out=self._buffer)
+        vertices = self.rig.deform(keypoints, out=self._buffer, rows=rows)
         return Frame(vertices, keypoints, self.rig.deform_cage(keypoints), tuple(self.selection))
 
     def _show(self, *, mesh: bool = True, fast: bool = False) -> None:
