@@ -59,7 +59,7 @@ log = logging.getLogger(__name__)
 PANEL_WIDTH = 300  # pixels
 _PICK_PIXELS = 14.0  # a click this close to a marker's centre picks it
 _MAX_SLIDERS = 8
-_PREPARE_AFTER = 0.1  # s without input before a large mesh's whole frame is prepared on the frame thread (an input
+_PREPARE_AFTER = 0.05  # s without input before a large mesh's whole frame is prepared on the frame thread (an input
 # stops the preparation within a few milliseconds, see kpd.viewer.gl.visible_triangles)
 _REFINE_AFTER = 0.3  # s without input before a large mesh's stand-in is replaced by the whole mesh
 _LEFT, _TOP = 0, 0  # where the 3D view opens on the screen; the panel opens to its right
@@ -139,6 +139,7 @@ class EditorApp:
         self._frames_thread: Any = None  # prepares a large mesh's whole frame (ShadedMesh.prepare)
         self._preparing: tuple | None = None  # the state being prepared there
         self._whole: tuple | None = None  # (state, vertices, uploads, milliseconds) of a prepared whole frame
+        self._spares: list[np.ndarray] = []  # (V, 3) buffers for the frame thread's deformations, none in use
         self._inputs = 0  # input events received
         self._last_input = -math.inf  # time.monotonic() of the newest one
         self._dirty_mesh = True
@@ -406,6 +407,7 @@ class EditorApp:
         keypoints = np.zeros((0, 3)) if self.session is None else self.session.keypoints
         cage = None if self.rig is None else self.rig.deform_cage(keypoints)
         self.drawing.show(Frame(vertices, keypoints, cage, tuple(self.selection)), self.camera, prepared=uploads)
+        self._spare(vertices)  # the geometries hold their own copies now
         self.view.draw()
         self._frames += 1
         self._emit("frame", serial=serial, draw_ms=round(1000 * (time.perf_counter() - started), 3),
@@ -427,6 +429,8 @@ class EditorApp:
         rig, mesh, drawing, camera = self.rig, self.mesh, self.drawing, self.camera
         keypoints = None if self.session is None else self.session.keypoints
         inputs = self._inputs
+        # a buffer the main thread hands out and takes back: fresh memory for 1.3M vertices costs tens of ms to touch
+        out = None if rig is None else (self._spares.pop() if self._spares else np.empty_like(mesh.vertices))
 
         def stale() -> bool:  # an input came: the frame may no longer be the one wanted (a newer one will be)
             return self._inputs != inputs
@@ -434,7 +438,7 @@ class EditorApp:
         def work() -> None:
             try:
                 started = time.perf_counter()
-                vertices = mesh.vertices if rig is None else rig.deform(keypoints)
+                vertices = mesh.vertices if rig is None else rig.deform(keypoints, out=out)
                 uploads = None if stale() else drawing.shaded.prepare(vertices, camera, drawing.view.viewport(camera),
                                                                       stale=stale)
                 milliseconds = round(1000 * (time.perf_counter() - started), 3)
@@ -447,8 +451,17 @@ class EditorApp:
     def _on_prepared(self, state: tuple, vertices: np.ndarray, uploads: list | None, milliseconds: float) -> None:
         if self._preparing == state:
             self._preparing = None
-        if uploads is not None:
-            self._whole = (state, vertices, uploads, milliseconds)
+        if uploads is None:
+            self._spare(vertices)
+            return
+        if self._whole is not None:
+            self._spare(self._whole[1])
+        self._whole = (state, vertices, uploads, milliseconds)
+
+    def _spare(self, vertices: np.ndarray) -> None:
+        """Take back a deformation buffer of the frame thread (not the rest mesh's vertices)."""
+        if vertices is not self.mesh.vertices:
+            self._spares.append(vertices)
 
     def _close(self) -> None:
         self._emit("close")

@@ -443,11 +443,9 @@ def _showing(lo, hi, triangles, screen, width, height, samples, delta, front, sl
         if (i1 - i0 + 1) * (j1 - j0 + 1) > 25:
             keep[t] = True
             continue
-        reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2)  # the box's diagonal, with the margin
-        m0 = delta * (reach + math.sqrt((bx - ax) ** 2 + (by - ay) ** 2))
-        m1 = delta * (reach + math.sqrt((cx - bx) ** 2 + (cy - by) ** 2))
-        m2 = delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
         near = min(za, zb, zc) / (1.0 + slack)  # nothing of the triangle lies before its nearest corner
+        m0 = -1.0  # the edges' margins, worked out at the first sample point in reach and not behind (most hidden
+        m1 = m2 = 0.0  # triangles have none)
         shows = False
         for i in range(i0, i1 + 1):
             for j in range(j0, j1 + 1):
@@ -456,6 +454,11 @@ def _showing(lo, hi, triangles, screen, width, height, samples, delta, front, sl
                     sx, sy = i + samples[k, 0], j + samples[k, 1]
                     if sx < x0 or sx > x1 or sy < y0 or sy > y1 or near > front[base + k]:
                         continue  # out of reach, or behind what surely covers this point
+                    if m0 < 0.0:
+                        reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2)  # the box's diagonal, with margin
+                        m0 = delta * (reach + math.sqrt((bx - ax) ** 2 + (by - ay) ** 2))
+                        m1 = delta * (reach + math.sqrt((cx - bx) ** 2 + (cy - by) ** 2))
+                        m2 = delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
                     e0 = (bx - ax) * (sy - ay) - (by - ay) * (sx - ax)
                     e1 = (cx - bx) * (sy - by) - (cy - by) * (sx - bx)
                     e2 = (ax - cx) * (sy - cy) - (ay - cy) * (sx - cx)
