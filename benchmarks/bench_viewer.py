@@ -2,12 +2,15 @@
 CPU-bound process running: what a user without a GPU sees.
 
 Figures, for a 10k-vertex and a 100k-vertex chair (ModelNet10 ``chair_0956``, and ``chair_0961`` subdivided), and
-with ``--sizes shapenet,1.3M`` an unseen ShapeNet chair of few vertices and many triangles (9,848 and 40,504) and a
-ShapeNet chair subdivided to 1.37M vertices (5.5M triangles), with the shipped chair model, at 960x720:
+with ``--sizes shapenet,1.3M,scan`` an unseen ShapeNet chair of few vertices and many triangles (9,848 and 40,504), a
+ShapeNet chair subdivided to 1.37M vertices (5.5M triangles, a CAD mesh), all with the shipped chair model, and the
+real sneaker scan (``scans/sneaker.ply``) subdivided 3 times to 1.28M vertices (2.5M triangles) with the shipped shoe
+model (``kpd view shoe MESH``, as ``benchmarks/bench_scale.py`` and ``kpd deform`` take it: the scan is in the
+model's frame, so without ``--scan``), at 960x720:
 
-* ``render_wall_s``: ``kpd render chair MESH --move ... --out v.png`` in a fresh process, wall time (median of
+* ``render_wall_s``: ``kpd render MODEL MESH --move ... --out v.png`` in a fresh process, wall time (median of
   ``--runs``; target <= 3 s for 10k vertices).
-* ``first_frame_s``: ``kpd view chair MESH`` from process start to its first frame on the screen (the mesh; target
+* ``first_frame_s``: ``kpd view MODEL MESH`` from process start to its first frame on the screen (the mesh; target
   <= 5 s, <= 8 s at 1.3M vertices); ``first_whole_s`` to the first frame of the whole mesh (not its coarse stand-in);
   ``ready_after_s`` to the keypoints (the rig is bound on a worker thread meanwhile).
 * ``drag_step_ms``: the time the editor takes to show one drag step (deform + upload + draw + swap), from the
@@ -36,6 +39,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -48,6 +52,7 @@ BIG = DATA / "modelnet10" / "chair" / "test" / "chair_0961.ply"  # 25,387 vertic
 SHAPENET = DATA / "keypointnet" / "models" / "03001627"
 FEW_VERTICES = SHAPENET / "eaf231f17fccb96d81dff5c2e57ad46e" / "model.obj"  # 9,848 vertices, 40,504 triangles
 SCAN_SIZED = SHAPENET / "fe6b3c001a86d844d5767a0de8dd037e" / "model.obj"  # 5,358 vertices, subdivided 4 times
+SCAN = DATA / "scans" / "sneaker.ply"  # 22,043 vertices, subdivided 3 times
 
 
 def _subdivided(path: Path, folder: Path, name: str, *, at_least: int = 0, times: int = 0) -> Path:
@@ -68,15 +73,27 @@ def _subdivided(path: Path, folder: Path, name: str, *, at_least: int = 0, times
     return out
 
 
-def _meshes(folder: Path, sizes: list[str]) -> dict[str, Path]:
+class Case(NamedTuple):
+    """A mesh to open, the shipped model to open it with and the move of ``kpd render`` (in the mesh's units)."""
+
+    mesh: Path
+    model: str
+    move: tuple[str, ...]
+
+
+def _meshes(folder: Path, sizes: list[str]) -> dict[str, Case]:
     """Each size asked for: ``10k`` (ModelNet10 chair_0956), ``100k`` (a 25k-vertex chair subdivided to over 100k),
     ``shapenet`` (an unseen ShapeNet chair of few vertices and many triangles, as ShapeNet's are), ``1.3M`` (a
-    ShapeNet chair subdivided 4 times: 1.37M vertices, 5.5M triangles, the size of a real scan)."""
+    ShapeNet chair subdivided 4 times: 1.37M vertices, 5.5M triangles, a CAD mesh the size of a real scan), ``scan``
+    (the real sneaker scan subdivided 3 times: 1.28M vertices, 2.5M triangles, with the shoe model)."""
+    chair = ("--move", "8:0,0,8", "--move", "9:0,0,8")  # ModelNet units
+    unit = ("--move", "0:0,0.05,0")  # ShapeNet's and the scan's units: about 1 across
     makers = {
-        "10k": lambda: CHAIR,
-        "100k": lambda: _subdivided(BIG, folder, "chair_100k", at_least=100000),
-        "shapenet": lambda: FEW_VERTICES,
-        "1.3M": lambda: _subdivided(SCAN_SIZED, folder, "chair_1.3M", times=4),
+        "10k": lambda: Case(CHAIR, "chair", chair),
+        "100k": lambda: Case(_subdivided(BIG, folder, "chair_100k", at_least=100000), "chair", chair),
+        "shapenet": lambda: Case(FEW_VERTICES, "chair", unit),
+        "1.3M": lambda: Case(_subdivided(SCAN_SIZED, folder, "chair_1.3M", times=4), "chair", unit),
+        "scan": lambda: Case(_subdivided(SCAN, folder, "sneaker_x3", times=3), "shoe", unit),
     }
     return {size: makers[size]() for size in sizes}
 
@@ -89,15 +106,15 @@ def _kpd(*args: str, env: dict | None = None) -> list[str]:
     return [sys.executable, "-m", "kpd.cli", *args]
 
 
-def bench_render(mesh: Path, runs: int, folder: Path) -> dict:
+def bench_render(case: Case, runs: int, folder: Path) -> dict:
     """Fresh ``kpd render`` processes; no display: the default backend starts its own Xvfb."""
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    out = folder / "render.png"
+    out = folder / f"render_{case.mesh.stem}.png"
     walls = []
     for _ in range(runs):
         started = time.perf_counter()
-        subprocess.run(_kpd("render", "chair", str(mesh), "--move", "8:0,0,8", "--move", "9:0,0,8", "--out", str(out),
-                            "--force"), env=env, check=True, capture_output=True)
+        subprocess.run(_kpd("render", case.model, str(case.mesh), *case.move, "--out", str(out), "--force"), env=env,
+                       check=True, capture_output=True)
         walls.append(time.perf_counter() - started)
     return {"runs": runs, "median": round(statistics.median(walls), 3), "min": round(min(walls), 3),
             "max": round(max(walls), 3)}
@@ -107,7 +124,7 @@ def bench_render(mesh: Path, runs: int, folder: Path) -> dict:
 
 
 
-def bench_editor(mesh: Path, drags: int, folder: Path) -> dict:
+def bench_editor(case: Case, drags: int, folder: Path) -> dict:
     from kpd.viewer.app import read_events, wait_for
     from kpd.viewer.render import private_display, project
 
@@ -116,7 +133,8 @@ def bench_editor(mesh: Path, drags: int, folder: Path) -> dict:
     with private_display(1400, 900) as display:
         env = dict(os.environ, DISPLAY=display)
         launched = time.time()
-        window = subprocess.Popen(_kpd("view", "chair", str(mesh), "--events", str(events), "--size", "960x720"),
+        window = subprocess.Popen(_kpd("view", case.model, str(case.mesh), "--events", str(events), "--size",
+                                       "960x720"),
                                   env=env, cwd=folder, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         try:
             ready = wait_for(lambda: [e for e in read_events(events) if e["event"] == "ready"], 900, "the editor")[0]
@@ -223,7 +241,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=5, help="fresh kpd render processes per case")
     parser.add_argument("--drags", type=int, default=8, help="drags per editor session (8 drags: 74 inputs)")
-    parser.add_argument("--sizes", default="10k,100k", help="10k, 100k, shapenet (few vertices, many triangles), 1.3M")
+    parser.add_argument("--sizes", default="10k,100k", help="10k, 100k, shapenet (few vertices, many triangles), 1.3M "
+                                                             "(a CAD chair), scan (a real scan, 1.28M vertices)")
     parser.add_argument("--loads", default="quiet,loaded")
     args = parser.parse_args()
     from kpd.io import read_mesh
@@ -237,12 +256,12 @@ def main() -> None:
             try:
                 time.sleep(0.5 if burner else 0)
                 for size in args.sizes.split(","):
-                    mesh = meshes[size]
-                    editor = bench_editor(mesh, args.drags, folder)
-                    editor["vertices"] = len(read_mesh(mesh).vertices)
-                    results.append({"load": load, "mesh": size, "vertices": editor.pop("vertices"),
+                    case = meshes[size]
+                    editor = bench_editor(case, args.drags, folder)
+                    editor["vertices"] = len(read_mesh(case.mesh).vertices)
+                    results.append({"load": load, "mesh": size, "model": case.model, "vertices": editor.pop("vertices"),
                                     "load_average_1min": round(os.getloadavg()[0], 2),
-                                    "render_wall_s": bench_render(mesh, args.runs, folder), **editor})
+                                    "render_wall_s": bench_render(case, args.runs, folder), **editor})
                     print(json.dumps(results[-1]), file=sys.stderr)
             finally:
                 if burner is not None:
