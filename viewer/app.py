@@ -138,6 +138,7 @@ class EditorApp:
         self._failure: BaseException | None = None
         self._frames_thread: Any = None  # prepares a large mesh's whole frame (ShadedMesh.prepare)
         self._preparing: tuple | None = None  # the state being prepared there
+        self._stop = np.zeros(1, np.uint8)  # (1,) set to abandon the preparation on the frame thread
         self._whole: tuple | None = None  # (state, vertices, uploads, milliseconds) of a prepared whole frame
         self._spares: list[np.ndarray] = []  # (V, 3) buffers for the frame thread's deformations, none in use
         self._inputs = 0  # input events received
@@ -353,6 +354,7 @@ class EditorApp:
     def _input_then(self, action: Any) -> None:
         self._inputs += 1
         self._last_input = time.monotonic()
+        self._stop[0] = 1
         self._emit("input", kind="panel")
         action()
 
@@ -428,19 +430,16 @@ class EditorApp:
         self._preparing = state
         rig, mesh, drawing, camera = self.rig, self.mesh, self.drawing, self.camera
         keypoints = None if self.session is None else self.session.keypoints
-        inputs = self._inputs
+        self._stop = stop = np.zeros(1, np.uint8)  # set by the next input (_count_input): the frame is not wanted
         # a buffer the main thread hands out and takes back: fresh memory for 1.3M vertices costs tens of ms to touch
         out = None if rig is None else (self._spares.pop() if self._spares else np.empty_like(mesh.vertices))
-
-        def stale() -> bool:  # an input came: the frame may no longer be the one wanted (a newer one will be)
-            return self._inputs != inputs
 
         def work() -> None:
             try:
                 started = time.perf_counter()
                 vertices = mesh.vertices if rig is None else rig.deform(keypoints, out=out)
-                uploads = None if stale() else drawing.shaded.prepare(vertices, camera, drawing.view.viewport(camera),
-                                                                      stale=stale)
+                uploads = None if stop[0] else drawing.shaded.prepare(vertices, camera, drawing.view.viewport(camera),
+                                                                      stop=stop)
                 milliseconds = round(1000 * (time.perf_counter() - started), 3)
                 self.post_to_main_thread(lambda: self._on_prepared(state, vertices, uploads, milliseconds))
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which ends with it
@@ -592,6 +591,7 @@ class EditorApp:
     def _count_input(self, kind: str, **data: Any) -> None:
         self._inputs += 1
         self._last_input = time.monotonic()
+        self._stop[0] = 1  # a whole frame being prepared may no longer be the one wanted (a newer one will be)
         self._emit("input", kind=kind, **data)
 
     def pick(self, x: float, y: float) -> int | None:

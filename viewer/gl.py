@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 
 PROXY_TRIANGLES = 50000  # larger meshes are drawn by a coarse stand-in while a gesture is in progress
 CULL_TRIANGLES = 100_000  # a mesh part with more triangles uploads only those that cover a pixel centre, each frame
-CULL_CHUNK = 1 << 18  # triangles a culling pass takes between two looks at whether its frame is still wanted
+_LOOK_EVERY = 1 << 16  # triangles a culling pass takes between two looks at whether it is to stop
 
 
 class NoWindowError(KpdError):
@@ -202,21 +202,20 @@ def _summed_groups(lo, hi, face, starts, entries, out):  # pragma: no cover - co
 _POOL: Any = None
 
 
-def _halves(kernel: Any, n: int, *args: Any, start: int = 0) -> None:
-    """``kernel(lo, hi, *args)`` over [start, n): in two halves on two threads (compiled kernels that release the
-    GIL) when the machine has two cores and the range is large, else at once; the calling thread takes the half
-    from ``start``."""
+def _halves(kernel: Any, n: int, *args: Any) -> None:
+    """``kernel(lo, hi, *args)`` over [0, n): in two halves on two threads (compiled kernels that release the GIL)
+    when the machine has two cores and ``n`` is large, else at once."""
     global _POOL
-    if n - start < 200_000 or (os.cpu_count() or 1) < 2:
-        kernel(start, n, *args)
+    if n < 200_000 or (os.cpu_count() or 1) < 2:
+        kernel(0, n, *args)
         return
     if _POOL is None:
         from concurrent.futures import ThreadPoolExecutor
 
         _POOL = ThreadPoolExecutor(2, thread_name_prefix="kpd-draw")  # two callers at once each get one
-    half = (start + n) // 2
+    half = n // 2
     other = _POOL.submit(kernel, half, n, *args)
-    kernel(start, half, *args)
+    kernel(0, half, *args)
     other.result()
 
 
@@ -278,7 +277,7 @@ DEPTH_SLACK = 3e-3
 
 
 def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Viewport, *,
-                      scratch: dict | None = None, stale: Any = None) -> np.ndarray | None:
+                      scratch: dict | None = None, stop: np.ndarray | None = None) -> np.ndarray | None:
     """(T,) bool: the triangles that may show in a pixel of the viewport; a frame drawn without the others is the
     same picture.
 
@@ -305,8 +304,8 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
     viewport : Viewport.
     scratch : the arrays of an earlier call with as many vertices and triangles and the same viewport size, reused
         (fresh memory costs as much as the work here); a dict, filled on the first call.
-    stale : asked after every :data:`CULL_CHUNK` triangles of a pass; when it returns True the work stops and None is
-        returned (a frame no longer wanted gives the cores back within a few milliseconds).
+    stop : (1,) uint8, set non-zero by another thread to abandon the work: the passes look at it every 65,536
+        triangles and None is returned (a frame no longer wanted gives the cores back within a few milliseconds).
     """
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
     triangles = np.ascontiguousarray(triangles)
@@ -322,20 +321,14 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
     delta = _margin(vertices, viewport)
     depth = scratch["depth"]  # (2, H W S) per sample point, one row per thread
     depth.fill(np.inf)
-    t = len(triangles)
-    for start in range(0, t, CULL_CHUNK):
-        _halves(_fronts, min(t, start + CULL_CHUNK), start, triangles, screen, w, h, samples, delta, depth,
-                start=start)
-        if stale is not None and stale():
-            return None
+    stop = np.zeros(1, np.uint8) if stop is None else stop
+    _halves(_fronts, len(triangles), triangles, screen, w, h, samples, delta, depth, stop)
+    if stop[0]:
+        return None
     front = np.minimum(depth[0], depth[1], out=scratch["front"])  # (H W S,)
     keep = scratch["keep"]
-    for start in range(0, t, CULL_CHUNK):
-        _halves(_showing, min(t, start + CULL_CHUNK), triangles, screen, w, h, samples, delta, front, DEPTH_SLACK,
-                keep, start=start)
-        if stale is not None and stale():
-            return None
-    return keep
+    _halves(_showing, len(triangles), triangles, screen, w, h, samples, delta, front, DEPTH_SLACK, keep, stop)
+    return None if stop[0] else keep
 
 
 def _margin(vertices: np.ndarray, viewport: Viewport) -> float:
@@ -382,12 +375,14 @@ def _any_sample(x0, x1, y0, y1, i0, i1, j0, j1, samples):  # pragma: no cover - 
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _fronts(lo, hi, first, triangles, screen, width, height, samples, delta, depth):  # pragma: no cover
-    """Pass 1 of :func:`visible_triangles`, into ``depth[0]`` for a range from ``first`` (the calling thread's half)
-    and ``depth[1]`` for the other (:func:`_halves`' second thread)."""
-    out = depth[0] if lo == first else depth[1]
+def _fronts(lo, hi, triangles, screen, width, height, samples, delta, depth, stop):  # pragma: no cover - compiled
+    """Pass 1 of :func:`visible_triangles`, into ``depth[0]`` for a range from 0 and ``depth[1]`` for the other
+    (:func:`_halves`' second thread); returns early once ``stop[0]`` is set."""
+    out = depth[0] if lo == 0 else depth[1]
     count = samples.shape[0]
     for t in range(lo, hi):
+        if (t - lo) % _LOOK_EVERY == 0 and stop[0] != 0:
+            return
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         za, zb, zc = screen[a, 2], screen[b, 2], screen[c, 2]
         if not (za > 0.0 and zb > 0.0 and zc > 0.0):
@@ -422,10 +417,12 @@ def _fronts(lo, hi, first, triangles, screen, width, height, samples, delta, dep
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _showing(lo, hi, triangles, screen, width, height, samples, delta, front, slack, keep):  # pragma: no cover
-    """Pass 2 of :func:`visible_triangles`."""
+def _showing(lo, hi, triangles, screen, width, height, samples, delta, front, slack, keep, stop):  # pragma: no cover
+    """Pass 2 of :func:`visible_triangles`; returns early once ``stop[0]`` is set."""
     count = samples.shape[0]
     for t in range(lo, hi):
+        if (t - lo) % _LOOK_EVERY == 0 and stop[0] != 0:
+            return
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         za, zb, zc = screen[a, 2], screen[b, 2], screen[c, 2]
         if not (za > 0.0 and zb > 0.0 and zc > 0.0):
@@ -589,30 +586,30 @@ class ShadedMesh:
         self.upload(self.prepare(vertices, camera, viewport))
 
     def prepare(self, vertices: np.ndarray, camera: Any, viewport: Viewport | None = None, *,
-                stale: Any = None) -> list | None:
+                stop: np.ndarray | None = None) -> list | None:
         """What :meth:`set_vertices` uploads, worked out without touching the geometries: a thread may prepare a
-        frame while the main thread draws others (one preparation at a time). ``stale()``, asked between the steps,
-        abandons the work (returns None) once the frame is no longer wanted."""
+        frame while the main thread draws others (one preparation at a time). ``stop`` (1,) uint8, set non-zero by
+        another thread once the frame is no longer wanted, abandons the work (returns None) within milliseconds."""
         vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         with self._lock:
             normals: list = []  # the shading normals, once the first part that needs them has its triangles
             uploads = []
             for part in self.parts:
-                if stale is not None and stale():
+                if stop is not None and stop[0]:
                     return None
-                upload = self._prepare_part(part, vertices, normals, camera, viewport, stale)
+                upload = self._prepare_part(part, vertices, normals, camera, viewport, stop)
                 if upload is None:
                     return None
                 uploads.append(upload)
             return uploads
 
     def _prepare_part(self, part: _Part, vertices: np.ndarray, normals: list, camera: Any,
-                      viewport: Viewport | None, stale: Any = None) -> _Upload | None:
+                      viewport: Viewport | None, stop: np.ndarray | None = None) -> _Upload | None:
         layout = part.layout
         triangles = uvs = None
         if viewport is not None and len(part.triangles) > CULL_TRIANGLES:
-            keep = visible_triangles(vertices, part.triangles, viewport, scratch=part.scratch, stale=stale)
-            if keep is None or (stale is not None and stale()):
+            keep = visible_triangles(vertices, part.triangles, viewport, scratch=part.scratch, stop=stop)
+            if keep is None:
                 return None
             n, m = _compact(part.triangles, keep, self._remap, self._used, self._local)
             used, triangles = self._used[:n], self._local[:m].copy()
@@ -629,7 +626,7 @@ class ShadedMesh:
         colors = None
         if part.albedo is not None:
             if not normals:  # after the culling, which a newer frame may cut short
-                if stale is not None and stale():
+                if stop is not None and stop[0]:
                     return None
                 normals.append(self._normals(vertices, camera.eye))
             albedo = part.albedo if part.albedo.ndim == 1 else part.albedo[used]
