@@ -37,7 +37,7 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", default=None, metavar="WxH", help="size of the 3D view in pixels (default 960x720)")
     parser.add_argument("--view-up", default=None, metavar="AXIS",
                         help="the shape's up axis for the camera (default: the axis --scan decided or --up gave, "
-                             "+y for .gltf/.glb files as glTF defines, else +z as ModelNet)")
+                             "+y for .gltf/.glb files as glTF defines, else the model's: +z for chair, +y for shoe)")
     parser.add_argument("--azimuth", type=float, default=30.0, help="camera degrees around the up axis (default 30)")
     parser.add_argument("--elevation", type=float, default=20.0, help="camera degrees above the horizon (default 20)")
     parser.add_argument("--zoom", type=float, default=1.0, help="> 1 moves the camera closer")
@@ -72,7 +72,7 @@ def view_settings(args: argparse.Namespace, up: str | None = None, **extra: Any)
 
 class Source:
     """The rig to show and, when a model is known, its category prior; ``up`` is the shape's up axis when known
-    (the one ``--scan`` decided or ``--up`` gave, +y for glTF), else None."""
+    (the one ``--scan`` decided or ``--up`` gave, +y for glTF, else the model's own), else None."""
 
     def __init__(self, rig: Any, prior: Any, name: str, up: str | None = None) -> None:
         self.rig, self.prior, self.name, self.up = rig, prior, name, up
@@ -155,8 +155,10 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bo
     def bind():
         return rig_checked(model, mesh, args.seed, args.shape)
 
+    # without --scan the mesh is taken in the model's frame, so the model's up axis is the shape's (unless the
+    # file's format defines one)
     return Source(_later(mesh, model, bind) if later else bind(), model.prior, Path(args.shape).name,
-                  file_up(args.shape))
+                  file_up(args.shape) or model.up)
 
 
 def _later(mesh: Any, model: Any, bind: Any) -> Any:
