@@ -533,8 +533,8 @@ def straighten_basis(
     (:class:`_StraightenSystem`). On a real scan only a few percent of the triangles are slivers, and this solves
     a sixth of the points (a 324k-vertex shoe scan: 0.29 s on a quiet machine, against 3.0 s for every piece);
     the result differs from the solve over every piece with a sliver (``tolerance=0``, as kpd did before) by at
-    most 1.6e-5 there and 4e-7 on the test chairs (the many slivers left out, each moving the correction by less than ``tolerance``, and the
-    region's growth solved as patches with the rest held, add up to that).
+    most 1.6e-5 there and 4e-7 on the test chairs (the many slivers left out, each moving the correction by less
+    than ``tolerance``, and the region's growth solved as patches with the rest held, add up to that).
     On a CAD mesh nearly every triangle is near a sliver and the region is the whole mesh.
 
     Parameters
