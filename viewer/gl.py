@@ -155,6 +155,16 @@ class _Normals:
         _halves(_summed_groups, len(self._groups), self._face, self.starts, self.entries, self._groups)
         return self._groups
 
+    def of(self, vertices: np.ndarray, eye: np.ndarray | None, used: np.ndarray) -> np.ndarray:
+        """(n, 3) float32: ``self(vertices, eye)[welding.inverse[used]]``, bit for bit, summed for the vertices
+        ``used`` (n,) alone (a frame of a large mesh shows a third of its vertices or fewer)."""
+        vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+        eye_point = np.zeros(3) if eye is None else np.asarray(eye, dtype=np.float64).reshape(3)
+        _halves(_turned_faces, len(self.triangles), vertices, self.triangles, eye_point, eye is not None, self._face)
+        out = np.empty((len(used), 3), dtype=np.float32)
+        _halves(_summed_used, len(used), self._face, self.starts, self.entries, self.welding.inverse, used, out)
+        return out
+
 
 @numba.njit(cache=True, nogil=True)
 def _corner_lists(triangles, inverse, starts, entries):  # pragma: no cover - compiled
@@ -197,6 +207,25 @@ def _summed_groups(lo, hi, face, starts, entries, out):  # pragma: no cover - co
         out[g, 0] = x / length
         out[g, 1] = y / length
         out[g, 2] = z / length
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _summed_used(lo, hi, face, starts, entries, inverse, used, out):  # pragma: no cover - compiled
+    """:func:`_summed_groups` of the groups of the vertices ``used[lo:hi]``, into ``out[lo:hi]``."""
+    for n in range(lo, hi):
+        g = inverse[used[n]]
+        x = y = z = 0.0
+        for i in range(starts[g], starts[g + 1]):
+            t = entries[i]
+            x += face[t, 0]
+            y += face[t, 1]
+            z += face[t, 2]
+        length = np.sqrt(x ** 2 + y ** 2 + z ** 2)
+        if length == 0.0:
+            length = 1.0
+        out[n, 0] = x / length
+        out[n, 1] = y / length
+        out[n, 2] = z / length
 
 
 _POOL: Any = None
@@ -277,7 +306,8 @@ DEPTH_SLACK = 3e-3
 
 
 def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Viewport, *,
-                      scratch: dict | None = None, stop: np.ndarray | None = None) -> np.ndarray | None:
+                      scratch: dict | None = None, stop: np.ndarray | None = None,
+                      neighbours: np.ndarray | None = None) -> np.ndarray | None:
     """(T,) bool: the triangles that may show in a pixel of the viewport; a frame drawn without the others is the
     same picture.
 
@@ -291,9 +321,13 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
     passes:
 
     1. at each sample point, the depth behind which nothing of the triangles that surely cover it (inside by that
-       bound) lies: the smallest of their farthest corners' depths;
-    2. a triangle is kept if it may cover a sample point (within that bound, either winding) where its nearest corner
-       is not behind that depth by more than :data:`DEPTH_SLACK` of it.
+       bound) lies: the smallest of their farthest corners' depths. A point too near a triangle's edge to be sure
+       is surely covered by the triangle or its neighbour across that edge (``neighbours``) when the two surely
+       lie either side of the edge and the point is surely inside their four other edges: a rasteriser fills the
+       edge two triangles share once, with no gap (12% fewer triangles kept of a 1.37M-vertex chair, 23% of a
+       scan). The triangles with a sample point in reach are listed for pass 2;
+    2. a listed triangle is kept if it may cover a sample point (within that bound, either winding) where its
+       nearest corner is not behind that depth by more than :data:`DEPTH_SLACK` of it.
 
     A triangle with a corner behind the camera or over more than 25 pixels is kept untested.
 
@@ -306,28 +340,40 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
         (fresh memory costs as much as the work here); a dict, filled on the first call.
     stop : (1,) uint8, set non-zero by another thread to abandon the work: the passes look at it every 65,536
         triangles and None is returned (a frame no longer wanted gives the cores back within a few milliseconds).
+    neighbours : (T, 3) int32 :func:`edge_neighbours` of ``triangles``, or None to judge each triangle alone.
     """
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
     triangles = np.ascontiguousarray(triangles)
     w, h, samples = viewport.width, viewport.height, viewport.samples
     points = h * w * len(samples)
+    if len(samples) > 64:  # more than the kernels' bit masks hold: every triangle
+        return np.ones(len(triangles), dtype=np.bool_)
     scratch = {} if scratch is None else scratch
     if scratch.get("sizes") != (len(vertices), len(triangles), points):
         scratch.update(sizes=(len(vertices), len(triangles), points), screen=np.empty((len(vertices), 3)),
                        depth=np.empty((2, points), np.float32), front=np.empty(points, np.float32),
-                       keep=np.empty(len(triangles), np.bool_))
+                       keep=np.empty(len(triangles), np.bool_), listed=np.empty(len(triangles), np.int32),
+                       listed_count=np.zeros(2, np.int64))
     screen = scratch["screen"]  # (V, 3) window x, y (y up) and the depth along the view axis
     _halves(_project, len(vertices), vertices, viewport.view, viewport.focal, w / 2, h / 2, screen)
     delta = _margin(vertices, viewport)
     depth = scratch["depth"]  # (2, H W S) per sample point, one row per thread
     depth.fill(np.inf)
     stop = np.zeros(1, np.uint8) if stop is None else stop
-    _halves(_fronts, len(triangles), triangles, screen, w, h, samples, delta, depth, stop)
+    listed, listed_count = scratch["listed"], scratch["listed_count"]  # (T,) int32, (2,): pass 1's candidates
+    listed_count.fill(0)
+    ox, oy = np.ascontiguousarray(samples[:, 0]), np.ascontiguousarray(samples[:, 1])  # (S,) each
+    if neighbours is None:
+        neighbours = np.full((len(triangles), 3), -1, dtype=np.int32)
+    _halves(_fronts, len(triangles), triangles, neighbours, screen, w, h, ox, oy, delta, depth, listed, listed_count,
+            stop)
     if stop[0]:
         return None
     front = np.minimum(depth[0], depth[1], out=scratch["front"])  # (H W S,)
     keep = scratch["keep"]
-    _halves(_showing, len(triangles), triangles, screen, w, h, samples, delta, front, DEPTH_SLACK, keep, stop)
+    keep.fill(False)
+    _halves(_showing, len(triangles), triangles, screen, w, h, ox, oy, delta, front, DEPTH_SLACK, listed,
+            listed_count, keep, stop)
     return None if stop[0] else keep
 
 
@@ -363,66 +409,144 @@ def _project(lo, hi, vertices, view, focal, half_width, half_height, screen):  #
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _any_sample(x0, x1, y0, y1, i0, i1, j0, j1, samples):  # pragma: no cover - compiled
-    """Whether a sample point of the pixels [i0, i1] x [j0, j1] lies in the box [x0, x1] x [y0, y1]."""
-    for i in range(i0, i1 + 1):
-        for j in range(j0, j1 + 1):
-            for k in range(samples.shape[0]):
-                sx, sy = i + samples[k, 0], j + samples[k, 1]
-                if x0 <= sx <= x1 and y0 <= sy <= y1:
-                    return True
-    return False
+def _offsets_in(lo, hi, offsets):  # pragma: no cover - compiled
+    """Bit k set for each of the samples' offsets (S,) in [lo, hi] (S <= 64): the samples of a pixel column (row)
+    whose x (y) lies in a box's span, found without branches."""
+    mask = 0
+    for k in range(offsets.shape[0]):
+        mask |= (1 << k) if lo <= offsets[k] <= hi else 0
+    return mask
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _fronts(lo, hi, triangles, screen, width, height, samples, delta, depth, stop):  # pragma: no cover - compiled
+def _pair_far(sx, sy, screen, p0, p1, q, d, delta):  # pragma: no cover - compiled
+    """The depth behind which nothing of the triangles (p0, p1, q) and (p1, p0, d) lies when, wherever their corners
+    land within ``delta``, they lie either side of their shared edge and the point (sx, sy) is inside their other
+    four edges: then one of them covers it (a rasteriser fills the shared edge of two triangles once, without a
+    gap); infinity when not sure."""
+    ax, ay, za = screen[p0, 0], screen[p0, 1], screen[p0, 2]
+    bx, by, zb = screen[p1, 0], screen[p1, 1], screen[p1, 2]
+    cx, cy, zc = screen[q, 0], screen[q, 1], screen[q, 2]
+    dx, dy, zd = screen[d, 0], screen[d, 1], screen[d, 2]
+    if not zd > 0.0:
+        return np.float32(np.inf)
+    x0, x1 = min(ax, bx, cx, dx, sx), max(ax, bx, cx, dx, sx)
+    y0, y1 = min(ay, by, cy, dy, sy), max(ay, by, cy, dy, sy)
+    reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + 2.0 * delta  # bounds twice any distance here
+    shared = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)  # q's side of the shared edge
+    other = (bx - ax) * (dy - ay) - (by - ay) * (dx - ax)  # d's side
+    sign = 1.0 if shared > 0.0 else -1.0
+    m = delta * (reach + math.sqrt((bx - ax) ** 2 + (by - ay) ** 2))
+    if not (sign * shared >= m and sign * other <= -m):
+        return np.float32(np.inf)
+    e_bq = sign * ((cx - bx) * (sy - by) - (cy - by) * (sx - bx))  # the other four edges, inside positive
+    e_qa = sign * ((ax - cx) * (sy - cy) - (ay - cy) * (sx - cx))
+    e_ad = sign * ((dx - ax) * (sy - ay) - (dy - ay) * (sx - ax))
+    e_db = sign * ((bx - dx) * (sy - dy) - (by - dy) * (sx - dx))
+    if (e_bq >= delta * (reach + math.sqrt((cx - bx) ** 2 + (cy - by) ** 2))
+            and e_qa >= delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
+            and e_ad >= delta * (reach + math.sqrt((dx - ax) ** 2 + (dy - ay) ** 2))
+            and e_db >= delta * (reach + math.sqrt((bx - dx) ** 2 + (by - dy) ** 2))):
+        return np.float32(max(za, zb, zc, zd))
+    return np.float32(np.inf)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _fronts(lo, hi, triangles, neighbours, screen, width, height, ox, oy, delta, depth, listed, listed_count,
+            stop):  # pragma: no cover - compiled
     """Pass 1 of :func:`visible_triangles`, into ``depth[0]`` for a range from 0 and ``depth[1]`` for the other
-    (:func:`_halves`' second thread); returns early once ``stop[0]`` is set."""
-    out = depth[0] if lo == 0 else depth[1]
-    count = samples.shape[0]
+    (:func:`_halves`' second thread); the range's triangles with a sample point in reach (or a corner not in front of
+    the camera) are listed for pass 2 in ``listed[lo:lo + listed_count[0 or 1]]``. Returns early once ``stop[0]`` is
+    set. A sample point is at ``(i + ox[k], j + oy[k])`` in pixel (i, j)."""
+    half = 0 if lo == 0 else 1
+    out = depth[half]
+    count = ox.shape[0]
+    found = lo  # the candidates go to listed[lo:found]
     for t in range(lo, hi):
         if (t - lo) % _LOOK_EVERY == 0 and stop[0] != 0:
             return
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         za, zb, zc = screen[a, 2], screen[b, 2], screen[c, 2]
         if not (za > 0.0 and zb > 0.0 and zc > 0.0):
+            listed[found] = t  # kept by pass 2
+            found += 1
             continue
         ax, ay, bx, by, cx, cy = screen[a, 0], screen[a, 1], screen[b, 0], screen[b, 1], screen[c, 0], screen[c, 1]
         x0, x1, y0, y1 = min(ax, bx, cx), max(ax, bx, cx), min(ay, by, cy), max(ay, by, cy)
-        i0, i1 = max(math.floor(x0), 0), min(math.floor(x1), width - 1)  # the pixels the box touches
-        j0, j1 = max(math.floor(y0), 0), min(math.floor(y1), height - 1)
-        if i0 > i1 or j0 > j1 or (i1 - i0 + 1) * (j1 - j0 + 1) > 4096:
+        i0, i1 = max(math.floor(x0 - delta), 0), min(math.floor(x1 + delta), width - 1)  # the pixels in reach
+        j0, j1 = max(math.floor(y0 - delta), 0), min(math.floor(y1 + delta), height - 1)
+        if i0 > i1 or j0 > j1:
             continue
-        if not _any_sample(x0 + delta, x1 - delta, y0 + delta, y1 - delta, i0, i1, j0, j1, samples):
-            continue  # most triangles of a dense mesh: no sample point inside by the margin
+        reached = False  # a sample point in reach (the box grown by delta): most triangles of a dense mesh have
+        for i in range(i0, i1 + 1):  # none and are left out
+            column = _offsets_in(x0 - delta - i, x1 + delta - i, ox)
+            if column == 0:
+                continue
+            for j in range(j0, j1 + 1):
+                if column & _offsets_in(y0 - delta - j, y1 + delta - j, oy):
+                    reached = True
+                    break
+            if reached:
+                break
+        if not reached:
+            continue
+        listed[found] = t
+        found += 1
+        # the sample points it surely covers lie in its box shrunk by delta (farther than that from its edges)
+        if x1 - x0 < 2.0 * delta or y1 - y0 < 2.0 * delta or (i1 - i0 + 1) * (j1 - j0 + 1) > 4096:
+            continue
         area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)  # twice the signed area
         sign = 1.0 if area > 0.0 else -1.0
         reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + 2.0 * delta
-        m0 = delta * (reach + math.sqrt((bx - ax) ** 2 + (by - ay) ** 2))
-        m1 = delta * (reach + math.sqrt((cx - bx) ** 2 + (cy - by) ** 2))
-        m2 = delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
-        far = max(za, zb, zc)  # nothing of the triangle lies behind its farthest corner
+        m0 = -1.0  # the edges' margins, worked out at the first sample point inside the shrunk box
+        m1 = m2 = 0.0
+        far = np.float32(max(za, zb, zc))  # nothing of the triangle lies behind its farthest corner
         for i in range(i0, i1 + 1):
+            column = _offsets_in(x0 + delta - i, x1 - delta - i, ox)
+            if column == 0:
+                continue
             for j in range(j0, j1 + 1):
+                inside = column & _offsets_in(y0 + delta - j, y1 - delta - j, oy)
+                if inside == 0:
+                    continue
+                if m0 < 0.0:
+                    m0 = delta * (reach + math.sqrt((bx - ax) ** 2 + (by - ay) ** 2))
+                    m1 = delta * (reach + math.sqrt((cx - bx) ** 2 + (cy - by) ** 2))
+                    m2 = delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
                 base = (j * width + i) * count
-                for k in range(count):
-                    sx, sy = i + samples[k, 0], j + samples[k, 1]
-                    if sx < x0 or sx > x1 or sy < y0 or sy > y1:
-                        continue
+                for k in range(count):  # few branches: whether a sample point is inside is a coin toss
+                    sx, sy = i + ox[k], j + oy[k]
                     e0 = sign * ((bx - ax) * (sy - ay) - (by - ay) * (sx - ax))
                     e1 = sign * ((cx - bx) * (sy - by) - (cy - by) * (sx - bx))
                     e2 = sign * ((ax - cx) * (sy - cy) - (ay - cy) * (sx - cx))
-                    if e0 >= m0 and e1 >= m1 and e2 >= m2 and far < out[base + k]:  # surely inside, nearer
-                        out[base + k] = far
+                    held = out[base + k]
+                    ok0, ok1, ok2 = e0 >= m0, e1 >= m1, e2 >= m2
+                    bit = (inside >> k) & 1 != 0
+                    out[base + k] = far if bit & ok0 & ok1 & ok2 & (far < held) else held  # surely inside, nearer
+                    # too near one edge to be sure: covered by the triangle or its neighbour across the edge if the
+                    # two lie either side of it (a rare branch)
+                    near0, near1, near2 = abs(e0) < m0, abs(e1) < m1, abs(e2) < m2
+                    if bit & (far < held) & ((near0 & ok1 & ok2) | (ok0 & near1 & ok2) | (ok0 & ok1 & near2)):
+                        edge = 0 if near0 else 1 if near1 else 2
+                        d = neighbours[t, edge]
+                        if d >= 0:
+                            p0, p1, q = (a, b, c) if edge == 0 else (b, c, a) if edge == 1 else (c, a, b)
+                            paired = _pair_far(sx, sy, screen, p0, p1, q, d, delta)
+                            if paired < out[base + k]:
+                                out[base + k] = paired
+    listed_count[half] = found - lo
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _showing(lo, hi, triangles, screen, width, height, samples, delta, front, slack, keep, stop):  # pragma: no cover
-    """Pass 2 of :func:`visible_triangles`; returns early once ``stop[0]`` is set."""
-    count = samples.shape[0]
-    for t in range(lo, hi):
-        if (t - lo) % _LOOK_EVERY == 0 and stop[0] != 0:
+def _showing(lo, hi, triangles, screen, width, height, ox, oy, delta, front, slack, listed, listed_count, keep,
+             stop):  # pragma: no cover - compiled
+    """Pass 2 of :func:`visible_triangles` over the triangles pass 1 listed in the range (``keep`` holds False for
+    the others); returns early once ``stop[0]`` is set."""
+    count = ox.shape[0]
+    for n in range(lo, lo + listed_count[0 if lo == 0 else 1]):
+        if (n - lo) % _LOOK_EVERY == 0 and stop[0] != 0:
             return
+        t = listed[n]
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         za, zb, zc = screen[a, 2], screen[b, 2], screen[c, 2]
         if not (za > 0.0 and zb > 0.0 and zc > 0.0):
@@ -432,11 +556,8 @@ def _showing(lo, hi, triangles, screen, width, height, samples, delta, front, sl
         # the sample points the triangle may cover lie within delta of its box
         x0, x1 = min(ax, bx, cx) - delta, max(ax, bx, cx) + delta
         y0, y1 = min(ay, by, cy) - delta, max(ay, by, cy) + delta
-        i0, i1 = max(math.floor(x0), 0), min(math.floor(x1), width - 1)
+        i0, i1 = max(math.floor(x0), 0), min(math.floor(x1), width - 1)  # with a sample point (pass 1)
         j0, j1 = max(math.floor(y0), 0), min(math.floor(y1), height - 1)
-        if i0 > i1 or j0 > j1 or not _any_sample(x0, x1, y0, y1, i0, i1, j0, j1, samples):
-            keep[t] = False
-            continue
         if (i1 - i0 + 1) * (j1 - j0 + 1) > 25:
             keep[t] = True
             continue
@@ -445,23 +566,28 @@ def _showing(lo, hi, triangles, screen, width, height, samples, delta, front, sl
         m1 = m2 = 0.0  # triangles have none)
         shows = False
         for i in range(i0, i1 + 1):
+            column = _offsets_in(x0 - i, x1 - i, ox)
+            if column == 0:
+                continue
             for j in range(j0, j1 + 1):
+                reached = column & _offsets_in(y0 - j, y1 - j, oy)
                 base = (j * width + i) * count
-                for k in range(count):
-                    sx, sy = i + samples[k, 0], j + samples[k, 1]
-                    if sx < x0 or sx > x1 or sy < y0 or sy > y1 or near > front[base + k]:
-                        continue  # out of reach, or behind what surely covers this point
-                    if m0 < 0.0:
-                        reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2)  # the box's diagonal, with margin
-                        m0 = delta * (reach + math.sqrt((bx - ax) ** 2 + (by - ay) ** 2))
-                        m1 = delta * (reach + math.sqrt((cx - bx) ** 2 + (cy - by) ** 2))
-                        m2 = delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
+                for k in range(count):  # out of reach, or behind what surely covers the point: left out
+                    reached &= ~((near > front[base + k]) << k)
+                if reached == 0:
+                    continue
+                if m0 < 0.0:
+                    reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2)  # the box's diagonal, with margin
+                    m0 = delta * (reach + math.sqrt((bx - ax) ** 2 + (by - ay) ** 2))
+                    m1 = delta * (reach + math.sqrt((cx - bx) ** 2 + (cy - by) ** 2))
+                    m2 = delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
+                for k in range(count):  # without branches: whether a sample point is inside is a coin toss
+                    sx, sy = i + ox[k], j + oy[k]
                     e0 = (bx - ax) * (sy - ay) - (by - ay) * (sx - ax)
                     e1 = (cx - bx) * (sy - by) - (cy - by) * (sx - bx)
                     e2 = (ax - cx) * (sy - cy) - (ay - cy) * (sx - cx)
-                    if (e0 >= -m0 and e1 >= -m1 and e2 >= -m2) or (e0 <= m0 and e1 <= m1 and e2 <= m2):
-                        shows = True
-                        break
+                    shows |= ((reached >> k) & 1 != 0) & (((e0 >= -m0) & (e1 >= -m1) & (e2 >= -m2))
+                                                          | ((e0 <= m0) & (e1 <= m1) & (e2 <= m2)))
                 if shows:
                     break
             if shows:
@@ -491,6 +617,39 @@ def _compact(triangles, keep, remap, used, local):  # pragma: no cover - compile
     return n, m
 
 
+def edge_neighbours(triangles: np.ndarray, num_vertices: int) -> np.ndarray:
+    """(T, 3) int32: for each triangle (a, b, c) and each of its edges ab, bc, ca, the third corner of another
+    triangle with that edge (the same two vertices), -1 for none."""
+    triangles = np.ascontiguousarray(triangles)
+    out = np.full((len(triangles), 3), -1, dtype=np.int32)
+    starts = np.zeros(num_vertices + 1, dtype=np.int64)
+    _neighbours(triangles, starts, np.empty(3 * len(triangles), dtype=np.int32), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _neighbours(triangles, starts, entries, out):  # pragma: no cover - compiled
+    for t in range(triangles.shape[0]):  # the triangles at each vertex (counting sort)
+        for k in range(3):
+            starts[triangles[t, k] + 1] += 1
+    for v in range(1, starts.shape[0]):
+        starts[v] += starts[v - 1]
+    fill = starts[:-1].copy()
+    for t in range(triangles.shape[0]):
+        for k in range(3):
+            v = triangles[t, k]
+            entries[fill[v]] = t
+            fill[v] += 1
+    for t in range(triangles.shape[0]):
+        for k in range(3):
+            p0, p1 = triangles[t, k], triangles[t, (k + 1) % 3]
+            for i in range(starts[p0], starts[p0 + 1]):
+                u = entries[i]
+                if u != t and (triangles[u, 0] == p1 or triangles[u, 1] == p1 or triangles[u, 2] == p1):
+                    out[t, k] = triangles[u, 0] + triangles[u, 1] + triangles[u, 2] - p0 - p1
+                    break
+
+
 # --- meshes to draw ---------------------------------------------------------------------------------------------------
 
 
@@ -502,6 +661,9 @@ class _Part:
         self.geometry, self.triangles, self.albedo, self.uvs = geometry, triangles, albedo, uvs
         self.layout: tuple[np.ndarray, np.ndarray] | None = None  # (used, local) of all triangles, once uploaded
         self.scratch: dict = {}  # visible_triangles' arrays, reused frame after frame
+        # (Tp, 3) edge_neighbours of the triangles where a frame draws only those that show
+        self.neighbours = edge_neighbours(triangles, int(triangles.max()) + 1) if len(triangles) > CULL_TRIANGLES \
+            else None
 
 
 class ShadedMesh:
@@ -608,7 +770,8 @@ class ShadedMesh:
         layout = part.layout
         triangles = uvs = None
         if viewport is not None and len(part.triangles) > CULL_TRIANGLES:
-            keep = visible_triangles(vertices, part.triangles, viewport, scratch=part.scratch, stop=stop)
+            keep = visible_triangles(vertices, part.triangles, viewport, scratch=part.scratch, stop=stop,
+                                     neighbours=part.neighbours)
             if keep is None:
                 return None
             n, m = _compact(part.triangles, keep, self._remap, self._used, self._local)
@@ -625,12 +788,16 @@ class ShadedMesh:
             uvs = part.uvs[keep].reshape(-1, 2)
         colors = None
         if part.albedo is not None:
-            if not normals:  # after the culling, which a newer frame may cut short
-                if stop is not None and stop[0]:
-                    return None
-                normals.append(self._normals(vertices, camera.eye))
+            if stop is not None and stop[0]:  # after the culling, which a newer frame may cut short
+                return None
+            if len(self.parts) == 1 and len(used) < len(self.welding.inverse) // 2:  # the normals it shows alone
+                shading = self._normals.of(vertices, camera.eye, used)
+            else:
+                if not normals:
+                    normals.append(self._normals(vertices, camera.eye))
+                shading = normals[0][self.welding.inverse[used]]
             albedo = part.albedo if part.albedo.ndim == 1 else part.albedo[used]
-            colors = shade(albedo, normals[0][self.welding.inverse[used]], camera).astype(np.float64)
+            colors = shade(albedo, shading, camera).astype(np.float64)
         return _Upload(vertices[used], triangles, colors, uvs)
 
     def upload(self, uploads: list) -> None:
