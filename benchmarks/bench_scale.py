@@ -21,8 +21,8 @@ Each size runs in fresh subprocesses:
    every keypoint; ``Rig.save`` and ``Rig.load`` of the rig and the file's size. Targets: ``Model.rig`` <= 0.3 s at 100k, <= 1 s at 330k, <= 3 s at 1.3M; time(1.3M) /
    time(330k) <= 4.4; one edit at 1.3M <= 15 ms; a saved rig loads in <= 1 s.
 3. The ``time`` run again beside one busy CPU-bound process (``--busy``).
-4. ``kpd deform`` and ``kpd render`` end to end at the largest size (``--cli``), wall time of the command.
-   Target: <= 6 s each.
+4. ``kpd deform`` and ``kpd render`` end to end at the largest size (``--cli``), wall time of the command, and for
+   the scan also with ``--scan`` (cleaned, oriented and normalised first). Target: <= 6 s each.
 
 Usage: ``.venv/bin/python benchmarks/bench_scale.py --busy --cli > benchmarks/results/scale.json``
 (``--meshes scan --levels 1,2`` for a quicker run).
@@ -233,16 +233,20 @@ def main() -> None:
                 level = max(paths)
                 path, out = paths[level], Path(tmp)
                 record["cli"] = {"level": level}
-                for command, target in (("deform", f"{mesh_name}_deformed.ply"),
-                                        ("render", f"{mesh_name}_render.png")):
-                    record["cli"][command] = run_cli([command, model, str(path), "--move", "0:0,0.05,0", "--out",
-                                                      str(out / target)])
+                # as the model's frame, and for the scan also with --scan (cleaned, oriented and normalised first,
+                # as a user runs a raw scan)
+                variants = [("deform", [], "deformed.ply"), ("render", [], "render.png")]
+                if mesh_name == "scan":
+                    variants += [("deform", ["--scan"], "deformed.ply"), ("render", ["--scan"], "render.png")]
+                for command, extra, target in variants:
+                    name = command + "".join(f"_{flag.strip('-')}" for flag in extra)
+                    line = [command, model, str(path), *extra, "--move", "0:0,0.05,0", "--out",
+                            str(out / f"{mesh_name}_{target}"), "--force"]
+                    record["cli"][name] = run_cli(line)
                     if args.busy:
                         busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
                         try:
-                            record["cli"][f"{command}_beside_busy"] = run_cli(
-                                [command, model, str(path), "--move", "0:0,0.05,0", "--out", str(out / target),
-                                 "--force"])
+                            record["cli"][f"{name}_beside_busy"] = run_cli(line)
                         finally:
                             busy.kill()
                             busy.wait()
