@@ -192,40 +192,34 @@ def _turned_faces(lo, hi, vertices, triangles, eye, towards, out):  # pragma: no
         out[t, 2] = nz
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _group_normal(g, face, starts, entries, out, n):  # pragma: no cover - compiled
+    """``out[n]``: the unit sum of group ``g``'s face vectors (zero when they cancel)."""
+    x = y = z = 0.0
+    for i in range(starts[g], starts[g + 1]):
+        t = entries[i]
+        x += face[t, 0]
+        y += face[t, 1]
+        z += face[t, 2]
+    length = np.sqrt(x ** 2 + y ** 2 + z ** 2)
+    if length == 0.0:
+        length = 1.0
+    out[n, 0] = x / length
+    out[n, 1] = y / length
+    out[n, 2] = z / length
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _summed_groups(lo, hi, face, starts, entries, out):  # pragma: no cover - compiled
     for g in range(lo, hi):
-        x = y = z = 0.0
-        for i in range(starts[g], starts[g + 1]):
-            t = entries[i]
-            x += face[t, 0]
-            y += face[t, 1]
-            z += face[t, 2]
-        length = np.sqrt(x ** 2 + y ** 2 + z ** 2)
-        if length == 0.0:
-            length = 1.0
-        out[g, 0] = x / length
-        out[g, 1] = y / length
-        out[g, 2] = z / length
+        _group_normal(g, face, starts, entries, out, g)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _summed_used(lo, hi, face, starts, entries, inverse, used, out):  # pragma: no cover - compiled
     """:func:`_summed_groups` of the groups of the vertices ``used[lo:hi]``, into ``out[lo:hi]``."""
     for n in range(lo, hi):
-        g = inverse[used[n]]
-        x = y = z = 0.0
-        for i in range(starts[g], starts[g + 1]):
-            t = entries[i]
-            x += face[t, 0]
-            y += face[t, 1]
-            z += face[t, 2]
-        length = np.sqrt(x ** 2 + y ** 2 + z ** 2)
-        if length == 0.0:
-            length = 1.0
-        out[n, 0] = x / length
-        out[n, 1] = y / length
-        out[n, 2] = z / length
+        _group_normal(inverse[used[n]], face, starts, entries, out, n)
 
 
 _POOL: Any = None
