@@ -76,6 +76,32 @@ def test_shapenet_pictures_show_their_materials(data_dir, tmp_path):
     assert ((r > b + 50) & (g > b + 20) & (r > 120)).sum() > 1500  # the light wood map (a flat bench)
 
 
+def test_a_face_with_two_materials_shows_the_side_that_faces_the_camera(tmp_path):
+    """A box stored twice, green facing out and white facing in (as ShapeNet stores a cup's label over its inside):
+    the outside is green, whichever material is listed first; an inside-out copy shows white. Never the renderer's
+    order of geometries, which changes from run to run."""
+    from kpd.io.images import read_png
+    from kpd.viewer.pictures import render_sheet
+
+    box = tall_box(2)
+    t = len(box.triangles)
+    textures = [np.full((1, 1, 3), 235, np.uint8), np.array([[[40, 200, 40]]], np.uint8)]  # white, green
+    outward = np.cross(*(box.vertices[box.triangles[:, k]] - box.vertices[box.triangles[:, 0]] for k in (1, 2)))
+    out = np.where(((outward * box.vertices[box.triangles].mean(axis=1)).sum(axis=1) > 0)[:, None],
+                   box.triangles, box.triangles[:, ::-1])  # every triangle wound to face out
+    for first, green_out in ((0, True), (1, True), (0, False)):
+        faces = (out, out[:, ::-1]) if green_out else (out[:, ::-1], out)  # (green's, white's)
+        stacked = np.vstack(faces if first else faces[::-1])
+        ids = np.repeat([1, 0] if first else [0, 1], t)
+        doubled = Mesh(box.vertices, stacked, triangle_uvs=np.zeros((6 * t, 2)), textures=textures,
+                       triangle_material_ids=ids)
+        render_sheet([doubled], tmp_path / "box.png", cell=2.0)
+        r, g, b = np.moveaxis(read_png(tmp_path / "box.png").astype(int), 2, 0)
+        green = ((g > r + 60) & (g > b + 60)).sum()
+        drawn = (np.abs(g - 255) + np.abs(r - 255) > 30).sum()
+        assert drawn > 2000 and (green > 0.9 * drawn if green_out else green < 0.01 * drawn), (first, green, drawn)
+
+
 def test_gltf_draws_y_up_unless_view_up_says_otherwise(tmp_path, capsys):
     from kpd.io.images import read_png
 

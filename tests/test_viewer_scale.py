@@ -63,6 +63,26 @@ def test_distinct_triangles_drop_a_triangle_stored_again_either_way_round():
     assert distinct_triangles(np.zeros((0, 3), np.int64)).shape == (0,)
 
 
+def test_two_materials_over_one_face_are_its_two_sides_or_painted_over():
+    from kpd.viewer.gl import _Welding, material_sides
+
+    # over the corners of 0-1-2 (also as 3-4-5, at the same places): material 0 one way round, material 1 the
+    # other way (the face's two sides), then material 2 the first way again (painted over material 0)
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0], [1, 0, 0], [0, 0, 0], [1, 1, 0]], float)
+    triangles = np.array([[0, 1, 2], [3, 4, 5], [1, 2, 0], [1, 6, 2], [4, 6, 3]])
+    ids = np.array([0, 1, 2, 0, 0])
+    hidden, sided = material_sides(triangles, ids, _Welding(vertices))
+    np.testing.assert_array_equal(hidden, [True, False, False, False, False])  # 3 and 4 alike: one material
+    np.testing.assert_array_equal(sided, [False, True, True, False, False])
+    ids = np.array([0, 1, 0, 0, 1])  # 0 and 2 alike in one material; 1-6-2 has material 1 on the other side
+    triangles[4] = triangles[4, ::-1]
+    hidden, sided = material_sides(triangles, ids, _Welding(vertices))
+    np.testing.assert_array_equal(hidden, [False, False, False, False, False])
+    np.testing.assert_array_equal(sided, [True, True, True, True, True])
+    empty = material_sides(np.zeros((0, 3), np.int64), np.zeros(0, np.int64), _Welding(vertices))
+    assert empty[0].shape == empty[1].shape == (0,)
+
+
 def test_distinct_triangles_is_its_sorting_twin_on_any_triangles():
     from hypothesis import given, settings
     from hypothesis import strategies as st

@@ -655,6 +655,7 @@ class _Part:
         self.geometry, self.triangles, self.albedo, self.uvs = geometry, triangles, albedo, uvs
         self.layout: tuple[np.ndarray, np.ndarray] | None = None  # (used, local) of all triangles, once uploaded
         self.scratch: dict = {}  # visible_triangles' arrays, reused frame after frame
+        self.sided: np.ndarray | None = None  # of the triangles, those drawn only from the front (material_sides)
         # (Tp, 3) edge_neighbours of the triangles where a frame draws only those that show
         self.neighbours = edge_neighbours(triangles, int(triangles.max()) + 1) if len(triangles) > CULL_TRIANGLES \
             else None
@@ -684,8 +685,12 @@ class ShadedMesh:
         textured = bool(mesh.textures) and mesh.triangle_uvs is not None and not override
         ids = (mesh.triangle_material_ids if mesh.triangle_material_ids is not None else np.zeros(t, np.int64)) \
             if textured else np.zeros(t, np.int64)
-        for material in np.unique(ids) if textured and t else [0]:
-            chosen = np.flatnonzero(ids == material) if textured else None  # None: every triangle
+        materials = np.unique(ids) if textured and t else [0]
+        # two materials over the same corners: the two sides of a face, or one painted over the other
+        hidden, sided = material_sides(triangles, ids, self.welding) if len(materials) > 1 else (None, None)
+        for material in materials:
+            chosen = (np.flatnonzero(ids == material) if hidden is None else
+                      np.flatnonzero((ids == material) & ~hidden)) if textured else None  # None: every triangle
             part = o3d.geometry.TriangleMesh()
             texture = mesh.textures[int(material)] if textured and 0 <= material < len(mesh.textures) else None
             if texture is None or texture.shape[0] * texture.shape[1] == 1:
@@ -719,6 +724,8 @@ class ShadedMesh:
             else:
                 albedo = np.asarray(color, dtype=np.float32)[:3]  # (3,)
             self.parts.append(_Part(part, triangles[chosen], albedo, uvs))
+            if sided is not None and chosen is not None and sided[chosen].any():
+                self.parts[-1].sided = np.flatnonzero(sided[chosen])
         drawn = (self.parts[0].triangles if len(self.parts) == 1 else np.concatenate([p.triangles for p in self.parts])
                  ) if self.parts else np.zeros((0, 3), np.int64)
         self._normals = _Normals(drawn, self.welding)  # shading normals from the triangles drawn
@@ -762,12 +769,19 @@ class ShadedMesh:
     def _prepare_part(self, part: _Part, vertices: np.ndarray, normals: list, camera: Any,
                       viewport: Viewport | None, stop: np.ndarray | None = None) -> _Upload | None:
         layout = part.layout
-        triangles = uvs = None
+        triangles = uvs = keep = None
         if viewport is not None and len(part.triangles) > CULL_TRIANGLES:
             keep = visible_triangles(vertices, part.triangles, viewport, scratch=part.scratch, stop=stop,
                                      neighbours=part.neighbours)
             if keep is None:
                 return None
+        if part.sided is not None:  # one side of a face with two materials: drawn when its front faces the camera
+            corners = vertices[part.triangles[part.sided]]  # (S, 3, 3)
+            front = np.einsum("ij,ij->i", np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]),
+                              np.asarray(camera.eye, dtype=np.float64) - corners[:, 0])
+            keep = np.ones(len(part.triangles), dtype=np.bool_) if keep is None else keep.copy()
+            keep[part.sided[front < 0]] = False
+        if keep is not None:
             n, m = _compact(part.triangles, keep, self._remap, self._used, self._local)
             used, triangles = self._used[:n], self._local[:m].copy()
             part.layout = None
@@ -827,16 +841,17 @@ def distinct_triangles(triangles: np.ndarray) -> np.ndarray:
     if not len(triangles):
         return np.zeros(0, dtype=np.int64)
     top = int(triangles.max()) + 1
-    keep = np.zeros(len(triangles), dtype=np.bool_)
-    _first_distinct(triangles, np.arange(top, dtype=np.int64), top, False, keep)
-    return np.flatnonzero(keep)
+    same = np.empty(len(triangles), dtype=np.int64)
+    _first_same(triangles, np.arange(top, dtype=np.int64), top, False, same)
+    return np.flatnonzero(same == np.arange(len(triangles)))
 
 
 @numba.njit(cache=True, nogil=True)
-def _first_distinct(triangles, mapping, top, drop_collapsed, keep):  # pragma: no cover - compiled
-    """``keep[t]``: no earlier triangle has the corners of t, each corner taken through ``mapping`` (into [0, top));
-    with ``drop_collapsed``, triangles with two equal corners are not kept. Triangles are bucketed by their smallest
-    corner (a counting sort, in triangle order), then compared on the other two within a bucket."""
+def _first_same(triangles, mapping, top, drop_collapsed, same):  # pragma: no cover - compiled
+    """``same[t]``: the first triangle with the corners of t (t itself when no earlier one has them), each corner
+    taken through ``mapping`` (into [0, top)); with ``drop_collapsed``, -1 for triangles with two equal corners.
+    Triangles are bucketed by their smallest corner (a counting sort, in triangle order), then compared on the other
+    two within a bucket."""
     n = triangles.shape[0]
     low = np.empty(n, dtype=np.int64)
     rest = np.empty(n, dtype=np.int64)  # the two larger corners as one number
@@ -851,6 +866,7 @@ def _first_distinct(triangles, mapping, top, drop_collapsed, keep):  # pragma: n
             a, b = b, a
         if drop_collapsed and (a == b or b == c):
             low[t] = -1
+            same[t] = -1
             continue
         low[t] = a
         rest[t] = b * top + c
@@ -866,12 +882,40 @@ def _first_distinct(triangles, mapping, top, drop_collapsed, keep):  # pragma: n
     for v in range(top):
         for i in range(starts[v], starts[v + 1]):
             key = rest[order[i]]
-            seen = False
+            same[order[i]] = order[i]
             for j in range(starts[v], i):
                 if rest[order[j]] == key:
-                    seen = True
+                    same[order[i]] = order[j]
                     break
-            keep[order[i]] = not seen
+
+
+def material_sides(triangles: np.ndarray, ids: np.ndarray, welding: _Welding) -> tuple[np.ndarray, np.ndarray]:
+    """Where triangles of two materials lie over the same corners (by position): ``(hidden, sided)``, (T,) bool each.
+
+    Wound the other way round, they are the two sides of one face (SketchUp exports a face's front and back
+    materials so: a cup's label outside, its white inside): each is ``sided``, drawn only when its front faces the
+    camera. Wound the same way, the one later in the file is drawn, as a painter would, and the others are
+    ``hidden``. Which of two coincident surfaces shows is then never left to the renderer's order of geometries.
+    """
+    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
+    count = len(triangles)
+    if not count:
+        return np.zeros(0, dtype=np.bool_), np.zeros(0, dtype=np.bool_)
+    corners = welding.inverse.astype(np.int64, copy=False)[triangles]  # (T, 3) by position
+    same = np.empty(count, dtype=np.int64)
+    _first_same(corners, np.arange(welding.groups, dtype=np.int64), welding.groups, False, same)
+    # the winding against the first triangle over the same corners: the corner after the smallest, in each
+    low = corners.argmin(axis=1)
+    after = corners[np.arange(count), (low + 1) % 3]
+    flipped = (after != after[same]).astype(np.int64)
+    key = 2 * same + flipped  # (T,) one number per set of corners and winding
+    last = np.full(2 * count, -1, dtype=np.int64)
+    np.maximum.at(last, key, np.arange(count))
+    ids = np.asarray(ids)
+    hidden = ids[last[key]] != ids
+    other = last[key ^ 1]  # the last triangle wound the other way over these corners, -1 for none
+    sided = ~hidden & (other >= 0) & (ids[np.maximum(other, 0)] != ids)
+    return hidden, sided
 
 
 def _distinct_triangles_reference(triangles: np.ndarray) -> np.ndarray:
@@ -903,12 +947,12 @@ def proxy_triangles(vertices: np.ndarray, triangles: np.ndarray, limit: int) -> 
     size = extent / math.sqrt(limit)  # about sqrt(limit) cells across the largest side
     cluster = np.empty(len(vertices), dtype=np.int64)  # (V,) the cell of each vertex, numbered as first met
     first = np.empty(len(vertices), dtype=np.int64)
-    keep = np.empty(len(triangles), dtype=np.bool_)
+    same = np.empty(len(triangles), dtype=np.int64)
     for _ in range(12):
         span = np.floor((vertices.max(axis=0) - lo) / size).astype(np.int64) + 1  # cells along each axis
         count = _cells(vertices, lo, size, span, cluster, first)
-        keep[:] = False
-        _first_distinct(triangles, cluster, count, True, keep)
+        _first_same(triangles, cluster, count, True, same)
+        keep = same == np.arange(len(triangles))
         faces = cluster[triangles[keep]]  # (Q, 3)
         if len(faces) <= limit:
             return first[:count].copy(), faces
