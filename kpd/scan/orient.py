@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import math
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -142,6 +143,13 @@ def _umeyama(
     var = float((xc**2).sum())
     scale = trace / var if with_scale and var > 0 else 1.0
     return scale, rot, my - scale * rot @ mx
+
+
+def _two_at_a_time(function: Any, items: Any) -> list:
+    """``[function(item) for item in items]`` on two threads: the orientation hypotheses are independent, and their
+    nearest-neighbour queries (scipy's cKDTree) release the GIL."""
+    with ThreadPoolExecutor(2) as pool:
+        return list(pool.map(function, items))
 
 
 class ScanAligner:
@@ -464,10 +472,11 @@ class ScanAligner:
         starts = self._initial(scan)
 
         # coarse: a short ICP (positions only) on a small subset for every start; keep the best of each cluster
-        coarse = []
-        for rot, source in starts:
-            _, r, _, score = self._icp(scan, rot, self.coarse_iterations, self.coarse_points, normals=False)
-            coarse.append((score, r, source))
+        def first_fit(start: tuple) -> tuple[float, np.ndarray, str]:
+            _, r, _, score = self._icp(scan, start[0], self.coarse_iterations, self.coarse_points, normals=False)
+            return score, r, start[1]
+
+        coarse = _two_at_a_time(first_fit, starts)
         coarse.sort(key=lambda c: c[0])
         chosen: list[tuple[float, np.ndarray, str]] = []
         for score, r, source in coarse:
@@ -498,20 +507,23 @@ class ScanAligner:
                     source += "+support"
             return score, a, r, t, source, ups
 
-        refined = sorted((refine(r0, source) for _, r0, source in chosen), key=lambda c: c[0])
+        refined = sorted(_two_at_a_time(lambda c: refine(c[1], c[2]), chosen), key=lambda c: c[0])
         if standing is not None:
             # With the up axis settled by the support, the quarter turns of the best about it are searched too:
             # many objects (tables, boxes) look alike after such a turn, and a runner-up found there is a genuine
             # alternative that the starts may have missed (it may also win: then it is the better fit)
             _, _, r_best, _, source_best, ups_best = refined[0]
-            for k in (1, 2, 3):
+
+            def turn(k: int) -> tuple:
                 turned = _about(self.reference_up_, k * np.pi / 2) @ r_best
                 source = f"{source_best.split('+')[0]}+turn{k}"
                 if ups_best is None:
-                    refined.append(refine(turned, source))
-                else:  # already standing on its support: only the turn about the up axis is refined
-                    a, r, t, score = self._icp(scan, turned, self.iterations, normals=search_normals, ups=ups_best)
-                    refined.append((score, a, r, t, source + "+support", ups_best))
+                    return refine(turned, source)
+                # already standing on its support: only the turn about the up axis is refined
+                a, r, t, score = self._icp(scan, turned, self.iterations, normals=search_normals, ups=ups_best)
+                return score, a, r, t, source + "+support", ups_best
+
+            refined += _two_at_a_time(turn, (1, 2, 3))
             refined.sort(key=lambda c: c[0])
         unit = self.reference_.radius / self.reference_box_scale_  # working units -> reference box units
         best_score, s, r, t, _, best_ups = refined[0]
