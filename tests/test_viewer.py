@@ -406,12 +406,14 @@ class _Window(NamedTuple):
 
 
 @contextlib.contextmanager
-def _editor_window(tmp_path: Path, *args: object, size: str = "480x400") -> Iterator[_Window]:
-    """``kpd view ARGS --size SIZE --events ...`` in a real window on a private Xvfb, stopped on exit."""
+def _editor_window(tmp_path: Path, *args: object, size: str = "480x400", screen: Path | None = None
+                   ) -> Iterator[_Window]:
+    """``kpd view ARGS --size SIZE --events ...`` in a real window on a private Xvfb, stopped on exit; with ``screen``
+    (a folder) the server keeps its screen there for ``grab_screen``."""
     from kpd.viewer.render import private_display
 
     events = tmp_path / "events.jsonl"
-    with private_display(1400, 900) as display:
+    with private_display(1400, 900, fbdir=screen) as display:
         env = dict(os.environ, DISPLAY=display)
         window = subprocess.Popen(
             [sys.executable, "-m", "kpd.cli", "view", *map(str, args), "--size", size, "--events", str(events)],
@@ -494,6 +496,40 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
         xdo("key", "s")
         wait_for(lambda: _last(events, "save", count), 60, "the second save")
         np.testing.assert_allclose(read_mesh(out).vertices, rig.mesh.vertices, atol=1e-5 * scale)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
+@pytest.mark.parametrize("green_out", [True, False])
+def test_editor_window_shows_the_outer_side_of_faces_with_two_materials(tmp_path, green_out):
+    """A box whose faces are stored twice, wound opposite ways, green on one side and white on the other (as ShapeNet
+    stores a cup's label over its inside), green listed first: the editor's window, read from the Xvfb screen, shows
+    the side facing out. Which coincident face showed was once the renderer's order of geometries."""
+    import time
+
+    import open3d as o3d
+
+    from kpd.io import Mesh, write_mesh
+    from kpd.viewer.display import grab_screen
+
+    box = o3d.geometry.TriangleMesh.create_box(0.4, 0.3, 0.6).subdivide_midpoint(2)
+    vertices, out = np.asarray(box.vertices) - [0.2, 0.15, 0.3], np.asarray(box.triangles)  # wound to face out
+    t = len(out)
+    green, white = (out, out[:, ::-1]) if green_out else (out[:, ::-1], out)
+    write_mesh(tmp_path / "box.obj", Mesh(vertices, np.vstack([green, white]), triangle_uvs=np.zeros((6 * t, 2)),
+                                          textures=[np.array([[[40, 200, 40]]], np.uint8),
+                                                    np.full((1, 1, 3), 235, np.uint8)],
+                                          triangle_material_ids=np.repeat([0, 1], t)))
+    screen = tmp_path / "screen"
+    screen.mkdir()
+    with _editor_window(tmp_path, "chair", tmp_path / "box.obj", screen=screen) as win:
+        time.sleep(1.0)  # ready (the rig bound): its frame is on the screen
+        vx, vy, w, h = (int(round(v)) for v in win.ready["viewport"])
+        x, y = win.origin[0] + vx, win.origin[1] + vy
+        r, g, b = np.moveaxis(grab_screen(screen)[y:y + h, x:x + w].astype(int), 2, 0)
+        shown = (np.abs(r - 255) + np.abs(g - 255) + np.abs(b - 255) > 40).sum()
+        green = ((g > r + 60) & (g > b + 60)).sum()
+        assert shown > 0.1 * w * h and (green > 0.8 * shown if green_out else green < 0.02 * shown), (green, shown)
 
 
 def _drags_with_nudges(win, keypoints: np.ndarray, index: int, count: int, *, timeout: float) -> np.ndarray:
