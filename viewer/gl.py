@@ -948,11 +948,12 @@ def proxy_triangles(vertices: np.ndarray, triangles: np.ndarray, limit: int) -> 
     cluster = np.empty(len(vertices), dtype=np.int64)  # (V,) the cell of each vertex, numbered as first met
     first = np.empty(len(vertices), dtype=np.int64)
     same = np.empty(len(triangles), dtype=np.int64)
+    index = np.arange(len(triangles))
     for _ in range(12):
         span = np.floor((vertices.max(axis=0) - lo) / size).astype(np.int64) + 1  # cells along each axis
         count = _cells(vertices, lo, size, span, cluster, first)
         _first_same(triangles, cluster, count, True, same)
-        keep = same == np.arange(len(triangles))
+        keep = same == index
         faces = cluster[triangles[keep]]  # (Q, 3)
         if len(faces) <= limit:
             return first[:count].copy(), faces
