@@ -76,30 +76,35 @@ def test_shapenet_pictures_show_their_materials(data_dir, tmp_path):
     assert ((r > b + 50) & (g > b + 20) & (r > 120)).sum() > 1500  # the light wood map (a flat bench)
 
 
-def test_a_face_with_two_materials_shows_the_side_that_faces_the_camera(tmp_path):
-    """A box stored twice, green facing out and white facing in (as ShapeNet stores a cup's label over its inside):
-    the outside is green, whichever material is listed first; an inside-out copy shows white. Never the renderer's
-    order of geometries, which changes from run to run."""
-    from kpd.io.images import read_png
-    from kpd.viewer.pictures import render_sheet
-
+def two_sided_box(green_out: bool, green_first: bool) -> Mesh:
+    """``tall_box(2)`` with each face stored twice, once each way round (as ShapeNet stores a cup's label over its
+    inside): green (material 1) on the side facing out when ``green_out`` (else in), white (material 0) on the other;
+    the green copies first in the file when ``green_first``."""
     box = tall_box(2)
     t = len(box.triangles)
-    textures = [np.full((1, 1, 3), 235, np.uint8), np.array([[[40, 200, 40]]], np.uint8)]  # white, green
     outward = np.cross(*(box.vertices[box.triangles[:, k]] - box.vertices[box.triangles[:, 0]] for k in (1, 2)))
     out = np.where(((outward * box.vertices[box.triangles].mean(axis=1)).sum(axis=1) > 0)[:, None],
                    box.triangles, box.triangles[:, ::-1])  # every triangle wound to face out
-    for first, green_out in ((0, True), (1, True), (0, False)):
-        faces = (out, out[:, ::-1]) if green_out else (out[:, ::-1], out)  # (green's, white's)
-        stacked = np.vstack(faces if first else faces[::-1])
-        ids = np.repeat([1, 0] if first else [0, 1], t)
-        doubled = Mesh(box.vertices, stacked, triangle_uvs=np.zeros((6 * t, 2)), textures=textures,
-                       triangle_material_ids=ids)
-        render_sheet([doubled], tmp_path / "box.png", cell=2.0)
+    green, white = (out, out[:, ::-1]) if green_out else (out[:, ::-1], out)
+    textures = [np.full((1, 1, 3), 235, np.uint8), np.array([[[40, 200, 40]]], np.uint8)]  # white, green
+    return Mesh(box.vertices, np.vstack([green, white] if green_first else [white, green]),
+                triangle_uvs=np.zeros((6 * t, 2)), textures=textures,
+                triangle_material_ids=np.repeat([1, 0] if green_first else [0, 1], t))
+
+
+def test_a_face_with_two_materials_shows_the_side_that_faces_the_camera(tmp_path):
+    """A box stored twice, green facing out and white facing in: the outside is green, whichever material is listed
+    first; an inside-out copy shows white. Never the renderer's order of geometries, which changes from run to run."""
+    from kpd.io.images import read_png
+    from kpd.viewer.pictures import render_sheet
+
+    for green_first, green_out in ((False, True), (True, True), (False, False)):
+        render_sheet([two_sided_box(green_out, green_first)], tmp_path / "box.png", cell=2.0)
         r, g, b = np.moveaxis(read_png(tmp_path / "box.png").astype(int), 2, 0)
         green = ((g > r + 60) & (g > b + 60)).sum()
         drawn = (np.abs(g - 255) + np.abs(r - 255) > 30).sum()
-        assert drawn > 2000 and (green > 0.9 * drawn if green_out else green < 0.01 * drawn), (first, green, drawn)
+        assert drawn > 2000 and (green > 0.9 * drawn if green_out else green < 0.01 * drawn), \
+            (green_first, green, drawn)
 
 
 def test_gltf_draws_y_up_unless_view_up_says_otherwise(tmp_path, capsys):

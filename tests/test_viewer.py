@@ -505,21 +505,12 @@ def test_editor_window_shows_the_outer_side_of_faces_with_two_materials(tmp_path
     """A box whose faces are stored twice, wound opposite ways, green on one side and white on the other (as ShapeNet
     stores a cup's label over its inside), green listed first: the editor's window, read from the Xvfb screen, shows
     the side facing out. Which coincident face showed was once the renderer's order of geometries."""
-    import time
+    from test_formats_cli import two_sided_box
 
-    import open3d as o3d
-
-    from kpd.io import Mesh, write_mesh
+    from kpd.io import write_mesh
     from kpd.viewer.display import grab_screen
 
-    box = o3d.geometry.TriangleMesh.create_box(0.4, 0.3, 0.6).subdivide_midpoint(2)
-    vertices, out = np.asarray(box.vertices) - [0.2, 0.15, 0.3], np.asarray(box.triangles)  # wound to face out
-    t = len(out)
-    green, white = (out, out[:, ::-1]) if green_out else (out[:, ::-1], out)
-    write_mesh(tmp_path / "box.obj", Mesh(vertices, np.vstack([green, white]), triangle_uvs=np.zeros((6 * t, 2)),
-                                          textures=[np.array([[[40, 200, 40]]], np.uint8),
-                                                    np.full((1, 1, 3), 235, np.uint8)],
-                                          triangle_material_ids=np.repeat([0, 1], t)))
+    write_mesh(tmp_path / "box.obj", two_sided_box(green_out, green_first=True))
     screen = tmp_path / "screen"
     screen.mkdir()
     with _editor_window(tmp_path, "chair", tmp_path / "box.obj", screen=screen) as win:
