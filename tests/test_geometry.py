@@ -8,6 +8,7 @@ from kpd.errors import InputError, NotFittedError
 from kpd.geometry import (
     Normalizer,
     as_points,
+    bounds,
     chamfer,
     chamfer_naive,
     farthest_point_sampling,
@@ -233,3 +234,17 @@ def test_closed_pieces_at_once_equal_the_check_of_each_piece(data_dir):
         np.testing.assert_array_equal(_closed_pieces(triangles, labels, pieces, int(triangles.max()) + 1), each)
         closed_somewhere += int(each.sum())
     assert closed_somewhere > 10  # the shoes' pieces and the fans are closed; the open ones are told apart
+
+
+def test_bounds_are_the_columns_lowest_and_highest_values():
+    rng = np.random.default_rng(3)
+    for points in (rng.normal(size=(1000, 3)), rng.normal(size=(1, 3)), rng.normal(size=(50, 2)) * 1e300,
+                   np.array([[0.0, -0.0, 5.0], [-0.0, 0.0, -5.0]])):
+        lo, hi = bounds(points)
+        np.testing.assert_array_equal(lo, points.min(axis=0))
+        np.testing.assert_array_equal(hi, points.max(axis=0))
+        assert lo.dtype == hi.dtype == points.dtype
+    with_nan = rng.normal(size=(10, 3))
+    with_nan[4, 1] = np.nan
+    lo, hi = bounds(with_nan)
+    assert np.isnan(lo[1]) and np.isnan(hi[1]) and np.isfinite(lo[[0, 2]]).all() and np.isfinite(hi[[0, 2]]).all()

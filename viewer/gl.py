@@ -942,15 +942,15 @@ def proxy_triangles(vertices: np.ndarray, triangles: np.ndarray, limit: int) -> 
     triangles = np.ascontiguousarray(triangles, dtype=np.int64)
     if len(triangles) <= limit:
         return None
-    lo = vertices.min(axis=0)
-    extent = float(np.ptp(vertices, axis=0).max()) or 1.0
+    lo, hi = box([vertices])
+    extent = float((hi - lo).max()) or 1.0
     size = extent / math.sqrt(limit)  # about sqrt(limit) cells across the largest side
     cluster = np.empty(len(vertices), dtype=np.int64)  # (V,) the cell of each vertex, numbered as first met
     first = np.empty(len(vertices), dtype=np.int64)
     same = np.empty(len(triangles), dtype=np.int64)
     index = np.arange(len(triangles))
     for _ in range(12):
-        span = np.floor((vertices.max(axis=0) - lo) / size).astype(np.int64) + 1  # cells along each axis
+        span = np.floor((hi - lo) / size).astype(np.int64) + 1  # cells along each axis
         count = _cells(vertices, lo, size, span, cluster, first)
         _first_same(triangles, cluster, count, True, same)
         keep = same == index
@@ -1521,7 +1521,7 @@ def render_shots(shots: Sequence[Shot], settings: Any, *, view: GLView | None = 
             camera = shot.camera or camera_pose(points, settings)
             view.set_box(points)
             view.camera = camera
-            diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) or 1.0
+            diagonal = float(np.linalg.norm(np.subtract(*box([points])[::-1]))) or 1.0
             for i, layer in enumerate(shot.layers):
                 if layer.style in ("points", "splats"):
                     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(layer.mesh, np.float64)))

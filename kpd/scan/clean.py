@@ -12,7 +12,7 @@ import open3d as o3d
 from scipy.spatial import ConvexHull
 
 from kpd.errors import InputError
-from kpd.geometry import _double_areas
+from kpd.geometry import _double_areas, bounds
 from kpd.scan.rotations import parse_axis
 from kpd.scan.shapes import _is_mesh, _shape_points, _shape_points_raw, _take_points, _take_triangles
 
@@ -155,7 +155,7 @@ def _small_pieces(
     piece_area = np.bincount(labels, weights=area, minlength=count)  # (pieces,)
     small = piece_area < min_piece * piece_area.max()
     if small.any() and max_gap > 0:
-        gap = max_gap * float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+        gap = max_gap * float(np.linalg.norm(np.subtract(*bounds(vertices)[::-1])))
         used = np.unique(triangles)  # vertices of some triangle, and the piece each belongs to
         used_piece = np.empty(len(vertices), dtype=np.int64)
         used_piece[triangles.reshape(-1)] = np.repeat(labels, 3)
@@ -246,7 +246,7 @@ def clean(
         if len(points) == 0:
             ground_removed, note = 0, "nothing left to search"
         else:
-            diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+            diagonal = float(np.linalg.norm(np.subtract(*bounds(points)[::-1])))
             mask, plane, note = _find_ground(
                 points, distance=ground_distance * diagonal, up=up_vector, min_share=ground_min_share,
                 one_side=0.98, area_ratio=ground_area_ratio, iterations=1000, seed=seed)
