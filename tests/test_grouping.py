@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from kpd.grouping import _merge_coincident_reference, first_occurrence_groups, merge_coincident
+from kpd.grouping import _merge_coincident_reference, coincident_first, first_occurrence_groups, merge_coincident
 
 small = st.sampled_from([-1.5, -0.0, 0.0, 0.25, 2.0])
 
@@ -38,6 +38,8 @@ def test_groupers_agree_and_reproduce_the_rows(rows):
     # the same partition: two rows share a group in one exactly when they do in the other
     assert np.array_equal(index[:, None] == index[None, :], inverse[:, None] == inverse[None, :])
     assert (np.diff(np.lexsort(points.T[::-1])) > 0).all()  # distinct positions in lexicographic order
+    first_at = coincident_first(rows)  # the hash table's answer: each row's first row at its position
+    np.testing.assert_array_equal(first_at, first[index])
 
 
 def rows_with_ties(draw_count, seed, levels):
@@ -99,3 +101,18 @@ def test_importing_modules_with_kernels_compiled_on_first_call_does_not_import_n
     code = ("import sys\nimport kpd.grouping, kpd.geometry, kpd.cage\nassert 'numba' not in sys.modules\n"
             "import numpy as np\nkpd.grouping.merge_coincident(np.zeros((2, 3)))\nassert 'numba' in sys.modules\n")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_coincident_first_on_a_scan_sized_grid_of_repeated_rows():
+    # integer-valued keys, as the scan cleaner welds, many equal in one or two coordinates (the hash must not
+    # confuse them), each distinct row stored three times in a shuffled order
+    rng = np.random.default_rng(5)
+    grid = np.stack(np.meshgrid(np.arange(40.0), np.arange(-20.0, 20.0), np.arange(30.0), indexing="ij"), -1)
+    rows = np.repeat(grid.reshape(-1, 3), 3, axis=0)[rng.permutation(3 * 48_000)]
+    first = coincident_first(rows)
+    _, inverse = merge_coincident(rows)
+    assert (first <= np.arange(len(rows))).all()
+    np.testing.assert_array_equal(rows[first], rows)
+    lowest = np.full(inverse.max() + 1, len(rows))
+    np.minimum.at(lowest, inverse, np.arange(len(rows)))
+    np.testing.assert_array_equal(first, lowest[inverse])

@@ -123,11 +123,11 @@ def _triangle_pieces(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.nd
     if len(triangles) == 0:
         return np.zeros(0, dtype=np.int64), 0
     from kpd.geometry import mesh_pieces
-    from kpd.grouping import merge_coincident
+    from kpd.grouping import coincident_first
 
-    extent = float(np.abs(vertices).max()) or 1.0
+    extent = float(max(vertices.max(), -vertices.min())) or 1.0
     keys = np.round(vertices / (1e-9 * extent))  # integers below 2**53: exact as float64
-    _, welded = merge_coincident(keys)
+    welded = coincident_first(keys)  # (V,) the first vertex at each position
     labels = mesh_pieces(welded[triangles])  # a compiled union-find, one pass
     return labels, int(labels.max()) + 1
 
