@@ -559,7 +559,7 @@ def straighten_basis(
         raise InputError(f"the straightening's tolerance must be a number >= 0; got {tolerance!r}")
     if not len(triangles) or not _has_sliver(np.ascontiguousarray(vertices), triangles, float(thinness)):
         return basis  # no sliver (the cheap test first: merging below does not make new ones)
-    points, inverse = _merge_coincident(vertices)
+    points, inverse = _distinct_in_order(vertices)  # in the mesh's order, as Rig.bind
     first = np.zeros(len(points), dtype=np.int64)
     first[inverse[::-1]] = np.arange(len(vertices))[::-1]  # one vertex per merged point
     merged = np.ascontiguousarray(basis[first])  # coincident vertices have the same basis rows
