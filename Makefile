@@ -38,7 +38,10 @@ $(STAMP): pyproject.toml | $(PY)
 	$(PIP) install -q -e '.[train,dev]'
 	touch $(STAMP)
 
+# The package's bytecode compiled, as pip does when it installs a wheel: an editable install leaves it to the first
+# import, which does not write it where PYTHONDONTWRITEBYTECODE is set (as on CI): 0.2 s of every command's start.
 venv: system $(STAMP)
+	$(PY) -m compileall -q kpd viewer export >/dev/null
 
 $(WEB_STAMP): package.json package-lock.json
 	npm ci --no-audit --no-fund --loglevel=error
