@@ -68,7 +68,15 @@ def first_occurrence_groups(keys: np.ndarray) -> Groups:
     Groups
         ``first`` (G,): the first row of each group, in the order the groups first occur; ``index`` (R,): the group
         of each row, so ``keys[first][index]`` equals ``keys`` (up to the sign of zeros).
+
+    Positions, (R, 3) float64, go through :func:`coincident_first`'s hash table instead of a sort.
     """
+    a = np.asarray(keys)
+    if a.ndim == 2 and a.shape[1] == 3 and a.dtype == np.float64 and len(a):
+        same = coincident_first(a)  # (R,) the first row at each row's position
+        starts = same == np.arange(len(same))
+        rank = np.cumsum(starts) - 1  # (R,) each first row's group, in order of first occurrence
+        return Groups(np.flatnonzero(starts), rank[same])
     rows = _row_keys(keys)
     if len(rows) == 0:
         return Groups(np.zeros(0, np.int64), np.zeros(0, np.int64))

@@ -30,7 +30,7 @@ import numpy as np
 from kpd.cage import Cage, cage_faces_from_vertices, default_m, fit_cage, influence_mask
 from kpd.errors import InputError
 from kpd.geometry import Normalizer, as_points, sample_surface
-from kpd.grouping import coincident_first, merge_coincident
+from kpd.grouping import first_occurrence_groups, merge_coincident
 from kpd.io import Mesh, atomic_output
 from kpd.io.integrity import HASH_KEY, check_hash, content_hash, load_numpy
 from kpd.mvc import mvc_weights
@@ -1471,13 +1471,8 @@ def _merge_coincident(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _distinct_in_order(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distinct positions (n, 3) in order of first occurrence and, per vertex, the index of its position (V,);
     ``vertices`` itself and ``arange(V)`` when no two coincide."""
-    first = coincident_first(vertices)
-    starts = np.flatnonzero(first == np.arange(len(first)))
-    if len(starts) == len(vertices):
-        return vertices, first
-    slot = np.empty(len(vertices), dtype=np.int64)
-    slot[starts] = np.arange(len(starts))
-    return vertices[starts], slot[first]
+    first, index = first_occurrence_groups(vertices)
+    return (vertices if len(first) == len(vertices) else vertices[first]), index
 
 
 def _read_table(path: Path, columns: int | None) -> np.ndarray:

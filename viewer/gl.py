@@ -57,13 +57,11 @@ class _Welding:
     """Vertices grouped by position (``inverse`` (V,): the group of each vertex; ``groups``: how many)."""
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray | None = None) -> None:  # triangles: not needed
-        from kpd.grouping import coincident_first
+        from kpd.grouping import first_occurrence_groups
 
         # groups numbered in order of first occurrence, found through a hash table (a sort took 5x as long)
-        first = coincident_first(np.asarray(vertices, dtype=np.float64))  # (V,) first vertex at each position
-        rank = np.cumsum(first == np.arange(len(first))) - 1  # (V,) each first vertex's group
-        self.inverse = rank[first]  # (V,) group of each vertex
-        self.groups = int(rank[-1]) + 1 if len(vertices) else 0
+        first, self.inverse = first_occurrence_groups(np.asarray(vertices, dtype=np.float64))  # (V,) each one's group
+        self.groups = len(first)
 
 
 def shading_normals(vertices: np.ndarray, triangles: np.ndarray, eye: np.ndarray | None = None, *,
@@ -1524,7 +1522,8 @@ def render_shots(shots: Sequence[Shot], settings: Any, *, view: GLView | None = 
             camera = shot.camera or camera_pose(points, settings)
             view.set_box(points)
             view.camera = camera
-            diagonal = float(np.linalg.norm(np.subtract(*box([points])[::-1]))) or 1.0
+            lo, hi = box([points])
+            diagonal = float(np.linalg.norm(hi - lo)) or 1.0
             for i, layer in enumerate(shot.layers):
                 if layer.style in ("points", "splats"):
                     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(layer.mesh, np.float64)))

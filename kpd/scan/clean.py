@@ -155,7 +155,8 @@ def _small_pieces(
     piece_area = np.bincount(labels, weights=area, minlength=count)  # (pieces,)
     small = piece_area < min_piece * piece_area.max()
     if small.any() and max_gap > 0:
-        gap = max_gap * float(np.linalg.norm(np.subtract(*bounds(vertices)[::-1])))
+        lo, hi = bounds(vertices)
+        gap = max_gap * float(np.linalg.norm(hi - lo))
         used = np.unique(triangles)  # vertices of some triangle, and the piece each belongs to
         used_piece = np.empty(len(vertices), dtype=np.int64)
         used_piece[triangles.reshape(-1)] = np.repeat(labels, 3)
@@ -246,7 +247,8 @@ def clean(
         if len(points) == 0:
             ground_removed, note = 0, "nothing left to search"
         else:
-            diagonal = float(np.linalg.norm(np.subtract(*bounds(points)[::-1])))
+            lo, hi = bounds(points)
+            diagonal = float(np.linalg.norm(hi - lo))
             mask, plane, note = _find_ground(
                 points, distance=ground_distance * diagonal, up=up_vector, min_share=ground_min_share,
                 one_side=0.98, area_ratio=ground_area_ratio, iterations=1000, seed=seed)
