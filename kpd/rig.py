@@ -794,12 +794,11 @@ class _StraightenSystem:
         order = np.argsort(point_batch, kind="stable")  # each batch's points in ascending order
         bounds = np.searchsorted(point_batch[order], np.arange(batches + 1))
         local = np.full(self.n, -1, dtype=np.int64)
-        for b in range(batches):
-            order[bounds[b]:bounds[b + 1]] = self._lexicographic(order[bounds[b]:bounds[b + 1]])
-            local[order[bounds[b]:bounds[b + 1]]] = np.arange(bounds[b + 1] - bounds[b])
 
         def solve_batch(b: int) -> None:
-            members = order[bounds[b]:bounds[b + 1]]
+            # each batch numbers its own points (a point's neighbours in the region are in its part, so its batch)
+            members = self._lexicographic(order[bounds[b]:bounds[b + 1]])
+            local[members] = np.arange(len(members))
             ptr, idx, val = _submatrix(self.indptr, self.indices, members, local, self.points, self.sliver_values,
                                        self.anchor, self.floor)
             system = sparse.csc_matrix((val, idx, ptr), shape=(len(members),) * 2)  # symmetric: CSR rows = columns
