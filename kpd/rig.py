@@ -661,10 +661,10 @@ class _StraightenSystem:
     ``tolerance`` (one Jacobi step from the region's correction), the region grows from them by two edges (twice
     as far each further step, up to eight), and a patch of the region four edges around the growth is solved with
     the correction elsewhere held (a block Gauss-Seidel step: the growth moves the points farther inside by less
-    than the tolerance), until nothing beyond the rim is above it. The first region's connected
-    parts are factorised on their own (small ones a few at a time), two at a time, in SuperLU's symmetric mode with
-    a minimum-degree ordering of AᵀA + A; a connected piece of the mesh that the first region covers more than half
-    of is taken whole.
+    than the tolerance), until nothing beyond the rim is above it. The first region's connected parts are
+    factorised on their own, packed into batches (at least one per thread, the largest parts first), two batches at
+    a time, in SuperLU's symmetric mode with a minimum-degree ordering of AᵀA + A; a connected piece of the mesh
+    that the first region covers more than half of is taken whole.
     """
 
     def __init__(self, points: np.ndarray, tri: np.ndarray, thinness: float, reach: float) -> None:
@@ -1201,13 +1201,13 @@ def _sliver_seeds(merged, points, diagonal, ends, along, height, tolerance, move
         longest = np.sqrt((points[b, 0] - points[a, 0]) ** 2 + (points[b, 1] - points[a, 1]) ** 2
                           + (points[b, 2] - points[a, 2]) ** 2)
         weight = (longest / max(height[s], longest / root_cap)) ** 2  # as _sliver_terms weighs it
-        reach = max(weight / diagonal[c], weight * (1.0 - t) / diagonal[a], weight * t / diagonal[b])
+        step = max(weight / diagonal[c], weight * (1.0 - t) / diagonal[a], weight * t / diagonal[b])
         largest, total = 0.0, 0.0
         for j in range(k):
             off = abs(merged[c, j] - (1.0 - t) * merged[a, j] - t * merged[b, j])
             largest = max(largest, off)
             total += off
-        if largest * reach > tolerance or total * reach * move > height[s]:
+        if largest * step > tolerance or total * step * move > height[s]:
             seed[c] = True
             seed[a] = True
             seed[b] = True
