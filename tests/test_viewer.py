@@ -523,6 +523,35 @@ def test_editor_window_shows_the_outer_side_of_faces_with_two_materials(tmp_path
         assert shown > 0.1 * w * h and (green > 0.8 * shown if green_out else green < 0.02 * shown), (green, shown)
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
+def test_editor_window_shows_the_number_of_every_keypoint_in_view(data_dir, tmp_path):
+    """The real sneaker scan in the editor's window, seen from the model's up axis: most of its keypoints lie behind
+    the surface the camera sees, and each one's number still shows beside where its marker would be, in its colour
+    (as the numbers of ``kpd render`` pictures do). Numbers drawn where the keypoints are were cut off by the
+    surface, or showed only a piece of their white card."""
+    from kpd.viewer.display import grab_screen
+    from kpd.viewer.settings import keypoint_palette
+
+    screen = tmp_path / "screen"
+    screen.mkdir()
+    with _editor_window(tmp_path, "shoe", data_dir / "scans" / "sneaker.ply", size="640x520", screen=screen) as win:
+        time.sleep(1.0)  # ready (the rig bound): its frame is on the screen
+        keypoints = np.array(win.ready["keypoints"])
+        vx, vy, w, h = (int(round(v)) for v in win.ready["viewport"])
+        x, y = win.origin[0] + vx, win.origin[1] + vy
+        image = grab_screen(screen)[y:y + h, x:x + w].astype(int)
+    pixels = _screen_pixels(win, keypoints) - np.array([x, y])
+    ink = np.rint(255 * 0.75 * keypoint_palette(len(keypoints))).astype(int)
+    shown = []
+    for k, (px, py) in enumerate(pixels):
+        if not (20 < px < w - 60 and 40 < py < h - 20):
+            continue  # its number may leave the view
+        around = image[max(int(py) - 40, 0):int(py) + 10, max(int(px) - 10, 0):int(px) + 50]  # up and to the right
+        shown.append(int((np.abs(around - ink[k]).max(axis=2) <= 24).sum()))
+    assert len(shown) >= 8 and min(shown) >= 4, shown  # a "1" in its colour is 10-12 pixels here
+
+
 def _drags_with_nudges(win, keypoints: np.ndarray, index: int, count: int, *, timeout: float) -> np.ndarray:
     """``count`` drags of keypoint ``index`` towards the middle of the view (so it stays in sight), each followed by
     an arrow-key nudge (undone by the next one); returns the keypoints the window reports after the last nudge."""

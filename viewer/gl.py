@@ -1294,8 +1294,9 @@ class Digits:
         white = np.ones((4 * n_cards, 3))
         self.geometry.vertex_colors = o3d.utility.Vector3dVector(np.vstack([ink, white]))
 
-    def set(self, anchors: np.ndarray, camera: Any) -> None:
-        """Place label i's lower-left corner at ``anchors[i]`` (K, 3), facing ``camera``."""
+    def set(self, anchors: np.ndarray, camera: Any, sizes: Any = 1.0) -> None:
+        """Place label i's lower-left corner at ``anchors[i]`` (K, 3), facing ``camera``, ``sizes[i]`` times its
+        height (a label drawn nearer the camera is drawn smaller, so that it looks the same)."""
         import open3d as o3d
 
         forward = camera.center - camera.eye
@@ -1303,19 +1304,19 @@ class Digits:
         right = np.cross(forward, camera.up)
         right /= max(np.linalg.norm(right), 1e-12)
         up = np.cross(right, forward)
-        cell = self.height / 7
-        corners = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float64)  # (4, 2)
         anchors = np.asarray(anchors, dtype=np.float64)
-        toward = -forward * 0.02 * self.height
+        cell = self.height / 7 * np.broadcast_to(np.asarray(sizes, dtype=np.float64), (len(anchors),))  # (K,)
+        corners = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float64)  # (4, 2)
         label, col, row = self._cells.T.astype(np.int64) if len(self._cells) else (np.zeros(0, int),) * 3
         grid = np.stack([col, row], axis=1)[:, None, :] + corners[None]  # (n, 4, 2)
-        ink = anchors[label][:, None, :] + cell * (grid[..., :1] * right + grid[..., 1:] * up) + toward
+        step = cell[label][:, None, None]  # (n, 1, 1)
+        ink = anchors[label][:, None, :] + step * (grid[..., :1] * right + grid[..., 1:] * up - 0.14 * forward)
         k, columns = self._cards[:, 0].astype(np.int64), self._cards[:, 1]
         box = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
         extent = np.stack([columns + 1, np.full_like(columns, 8.0)], axis=1)[:, None, :]  # (c, 1, 2)
         low = np.array([[-1.0, -1.0]])
         card_grid = np.where(box[None] < 0, low[None], extent)  # (c, 4, 2)
-        cards = anchors[k][:, None, :] + cell * (card_grid[..., :1] * right + card_grid[..., 1:] * up)
+        cards = anchors[k][:, None, :] + cell[k][:, None, None] * (card_grid[..., :1] * right + card_grid[..., 1:] * up)
         vertices = np.vstack([ink.reshape(-1, 3), cards.reshape(-1, 3)])
         self.geometry.vertices = o3d.utility.Vector3dVector(vertices)
         self.geometry.vertex_normals = o3d.utility.Vector3dVector(np.tile(-forward, (len(vertices), 1)))
@@ -1344,6 +1345,9 @@ class RigDrawing:
         self.view, self.mesh, self.settings = view, mesh, settings
         lo, hi = box([np.ascontiguousarray(mesh.vertices, dtype=np.float64)])
         self.diagonal = float(np.linalg.norm(hi - lo)) or 1.0
+        reach = 0.5 * self.diagonal  # the rest box grown by this on every side: where edits take the mesh
+        self._reach_corners = np.array([[x, y, z] for x in (lo[0] - reach, hi[0] + reach)
+                                        for y in (lo[1] - reach, hi[1] + reach) for z in (lo[2] - reach, hi[2] + reach)])
         self.shaded = shaded if shaded is not None else ShadedMesh(mesh, settings.mesh_color)
         self.proxy: ShadedMesh | None = None  # the coarse stand-in of a large mesh (set_stand_in)
         self._kept: np.ndarray | None = None  # (P,) the mesh's vertices the stand-in is made of
@@ -1391,6 +1395,22 @@ class RigDrawing:
         up = np.cross(right, forward)
         r = self.marker_radius * np.broadcast_to(np.asarray(scales, dtype=np.float64), (len(keypoints),))[:, None]
         return np.asarray(keypoints) + 1.1 * r * right + 0.9 * r * up
+
+    def labels_in_front(self, anchors: np.ndarray, camera: Any) -> tuple[np.ndarray, np.ndarray]:
+        """``(anchors, sizes)``: the labels' anchors (K, 3) moved along their lines of sight to just in front of
+        where the mesh can be, and the factor (K,) to draw each one smaller by, so that they look as they would
+        where they were and show whatever the mesh hides, as the numbers of ``kpd render`` pictures do (a number
+        behind the surface showed as a piece of its white card cut off by the mesh). The mesh is taken to stay
+        within its rest box grown by half its diagonal; a camera inside that box gets labels a tenth of the
+        diagonal away (in front of the near clipping plane)."""
+        anchors = np.asarray(anchors, dtype=np.float64)
+        eye = np.asarray(camera.eye, dtype=np.float64)
+        forward = np.asarray(camera.center, dtype=np.float64) - eye
+        forward = forward / (np.linalg.norm(forward) or 1.0)
+        depth = (anchors - eye) @ forward  # (K,)
+        front = max(0.98 * float(((self._reach_corners - eye) @ forward).min()), 0.1 * self.diagonal)
+        sizes = np.where(depth > front, front / np.maximum(depth, 1e-300), 1.0)
+        return eye + (anchors - eye) * sizes[:, None], sizes
 
     def _wire(self) -> np.ndarray:
         if self._edges is None:
@@ -1440,7 +1460,8 @@ class RigDrawing:
             self.markers.set(keypoints, scales, camera)
             view.put("keypoints", self.markers.geometry, show=s.show_keypoints)
             if self.digits is not None:
-                self.digits.set(self.label_anchors(keypoints, camera, scales), camera)
+                anchors, sizes = self.labels_in_front(self.label_anchors(keypoints, camera, scales), camera)
+                self.digits.set(anchors, camera, sizes)
                 view.put("numbers", self.digits.geometry, show=s.show_keypoints and s.show_labels)
         if self.cage_edges is not None and frame.cage is not None and s.show_cage:
             if self._cage is None:
