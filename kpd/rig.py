@@ -700,8 +700,8 @@ class _StraightenSystem:
             inside[self.label[self.ends[:, 0]]] = True
             self._solve_region(inside[self.label], inside[self.label], merged, correction)
             return correction
-        diagonal = _diagonal(self.indptr, self.indices, self.points, self.sliver_values, self.anchor, self.floor)
-        seeds = np.flatnonzero(_sliver_seeds(merged, self.points, diagonal, self.ends, self.along, self.height,
+        seeds = np.flatnonzero(_sliver_seeds(merged, self.points, self.indptr, self.indices, self.sliver_values,
+                                             self.anchor, self.floor, self.ends, self.along, self.height,
                                              float(tolerance), _FOLD_MOVE, _STRAIGHTEN_CAP))
         inside = np.zeros(self.n, dtype=bool)
         piece_size = np.bincount(self.label, minlength=self.pieces)
@@ -1168,36 +1168,32 @@ def _rows_times(indptr, indices, data, rows, basis):  # pragma: no cover - compi
     return out
 
 
-@numba.njit(cache=True, nogil=True)
-def _diagonal(indptr, indices, points, sliver_values, anchor, floor):  # pragma: no cover - compiled
-    """(n,) the system's diagonal (:func:`_row`)."""
-    n = len(indptr) - 1
-    out = np.empty(n)
-    row = np.empty(1)
-    for i in range(n):
-        if len(row) < indptr[i + 1] - indptr[i]:
-            row = np.empty(indptr[i + 1] - indptr[i])
-        _row(i, indptr, indices, points, sliver_values, anchor, floor, row)
-        for e in range(indptr[i], indptr[i + 1]):
-            if indices[e] == i:
-                out[i] = row[e - indptr[i]]
-    return out
-
-
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _sliver_seeds(merged, points, diagonal, ends, along, height, tolerance, move, cap):  # pragma: no cover - compiled
+def _sliver_seeds(merged, points, indptr, indices, sliver_values, anchor, floor, ends, along, height, tolerance,
+                  move, cap):  # pragma: no cover - compiled
     """(n,) bool: the corners of the slivers whose own term alone would move one of their corners by more than
     ``tolerance`` in a keypoint's column, or move its third corner across its height for a ``move`` of every
     keypoint: one Jacobi step from no correction, the straightness ``r`` (off in ``merged`` (n, K)) times the
-    sliver's weight and its corner's coefficient over that corner's ``diagonal`` entry (on a thin sliver of a
-    native mesh its weight is most of the diagonal, and that is ``r`` itself)."""
+    sliver's weight and its corner's coefficient over that corner's diagonal entry of the system (:func:`_row`; on a
+    thin sliver of a native mesh its weight is most of the diagonal, and that is ``r`` itself). The diagonal is
+    made for the slivers' corners only."""
     n = merged.shape[0]
     seed = np.zeros(n, dtype=np.bool_)
     k = merged.shape[1]
     root_cap = np.sqrt(cap)
+    diagonal = np.full(n, -1.0)  # made on first use
+    row = np.empty(1)
     for s in range(ends.shape[0]):
         c, a, b = ends[s, 0], ends[s, 1], ends[s, 2]
         t = along[s]
+        for i in (c, a, b):
+            if diagonal[i] < 0.0:
+                if len(row) < indptr[i + 1] - indptr[i]:
+                    row = np.empty(indptr[i + 1] - indptr[i])
+                _row(i, indptr, indices, points, sliver_values, anchor, floor, row)
+                for e in range(indptr[i], indptr[i + 1]):
+                    if indices[e] == i:
+                        diagonal[i] = row[e - indptr[i]]
         longest = np.sqrt((points[b, 0] - points[a, 0]) ** 2 + (points[b, 1] - points[a, 1]) ** 2
                           + (points[b, 2] - points[a, 2]) ** 2)
         weight = (longest / max(height[s], longest / root_cap)) ** 2  # as _sliver_terms weighs it
