@@ -544,9 +544,9 @@ def straighten_basis(
     across the sliver's height in a move of half the model box of every keypoint, grown until the correction just
     outside is below ``tolerance`` (:class:`_StraightenSystem`). On a native mesh a thin sliver's weight is most of
     its corners' diagonal, and that step is its straightness itself. On a real scan only a few percent of the
-    triangles are slivers, and this solves a sixth of the points (a 324k-vertex shoe scan: 0.29 s on a quiet
-    machine, against 3.0 s for every piece); the result differs from the solve over every piece with a sliver
-    (``tolerance=0``, as kpd did before) by at most 1.6e-5 there and 4e-7 on the test chairs (the many slivers
+    triangles are slivers, and this solves 8% of the points (a 324k-vertex shoe scan: 0.22 s on a quiet machine,
+    against 3.0 s for every piece); the result differs from the solve over every piece with a sliver
+    (``tolerance=0``, as kpd did before) by at most 1.4e-5 there and 4e-7 on the test chairs (the many slivers
     left out, each moving the correction by less than ``tolerance``, and the region's growth solved as patches
     with the rest held, add up to that). A CAD mesh subdivided to a scan's size keeps a sliver in every triangle
     of a sliver, but the edges around each one grow stiffer with each subdivision, and their many small terms add
