@@ -213,18 +213,16 @@ class Rig:
         points, inverse = _distinct_in_order(vertices)
         triangles = np.ascontiguousarray(mesh.triangles, dtype=np.int64)
         building = None
-        if straighten and len(triangles) and _has_sliver(np.ascontiguousarray(vertices), triangles,
-                                                         STRAIGHTEN_THINNESS):
-            # the straightening's system (the edge graph, the slivers' terms) does not depend on the basis: it is
-            # made on a thread of its own while the MVC basis takes the others (whose two threads leave part of
-            # the two cores idle: 2.9 s of CPU in 1.9 s at 1.37M points)
-            merged = triangles if len(points) == len(vertices) else inverse[triangles]
-            with ThreadPoolExecutor(1, thread_name_prefix="kpd-straighten") as pool:
+        # the straightening's system (the edge graph, the slivers' terms) does not depend on the basis: it is made on
+        # a thread of its own while the MVC basis takes the others (whose two threads leave part of the two cores
+        # idle: 2.9 s of CPU in 1.9 s at 1.37M points)
+        with ThreadPoolExecutor(1, thread_name_prefix="kpd-straighten") as pool:
+            if straighten and len(triangles) and _has_sliver(np.ascontiguousarray(vertices), triangles,
+                                                             STRAIGHTEN_THINNESS):
+                merged = triangles if len(points) == len(vertices) else inverse[triangles]
                 building = pool.submit(_StraightenSystem, points, merged, STRAIGHTEN_THINNESS, STRAIGHTEN_REACH)
-                basis = mvc_project(points, cage.vertices, cage.faces, masked.T)  # (n, K) float64
-            del merged
-        else:
-            basis = mvc_project(points, cage.vertices, cage.faces, masked.T)
+                del merged
+            basis = mvc_project(points, cage.vertices, cage.faces, masked.T)  # (n, K) float64
         straightened = building is not None and _straighten_system(building.result(), basis, STRAIGHTEN_TOLERANCE)
         del building
         basis = _compact_basis(basis)
@@ -886,6 +884,12 @@ def _entry(indptr, indices, row, col):  # pragma: no cover - compiled
     return lo
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _sliver_weight(longest, height, cap):  # pragma: no cover - compiled
+    """The weight of a sliver's straightness: its long edge over its height, squared, at most ``cap``."""
+    return (longest / max(height, longest / np.sqrt(cap))) ** 2
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _sliver_terms(points, tri, indptr, indices, thinness, inverse_reach2, ends_weight, cap, sliver_values, anchor,
                   sliver_ends, sliver_along, sliver_height, piece):  # pragma: no cover - compiled
@@ -900,7 +904,6 @@ def _sliver_terms(points, tri, indptr, indices, thinness, inverse_reach2, ends_w
     corner_of = np.zeros(n, dtype=np.bool_)
     slivers = 0
     longest_edge = 0.0
-    root_cap = np.sqrt(cap)
     for t in range(tri.shape[0]):
         v = (tri[t, 0], tri[t, 1], tri[t, 2])
         if v[0] == v[1] or v[1] == v[2] or v[2] == v[0]:
@@ -943,7 +946,7 @@ def _sliver_terms(points, tri, indptr, indices, thinness, inverse_reach2, ends_w
         dot = ((points[corner, 0] - points[start, 0]) * ex + (points[corner, 1] - points[start, 1]) * ey
                + (points[corner, 2] - points[start, 2]) * ez)
         s = min(max(dot / (ex * ex + ey * ey + ez * ez), 0.0), 1.0)
-        weight = (longest / max(height, longest / root_cap)) ** 2
+        weight = _sliver_weight(longest, height, cap)
         ends = (corner, start, end)
         coef = (1.0, s - 1.0, -s)
         corner_of[corner] = True
@@ -976,7 +979,8 @@ def _sliver_terms(points, tri, indptr, indices, thinness, inverse_reach2, ends_w
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _row(i, indptr, indices, points, sliver_values, anchor, floor, out):  # pragma: no cover - compiled
     """Row ``i`` of the system into ``out`` (its pattern entries in order): the edges' stiffness ``-1 / l²`` (lengths
-    floored at ``floor``) and on the diagonal their sum and the anchor, plus the slivers' terms."""
+    floored at ``floor``) and on the diagonal their sum and the anchor, plus the slivers' terms. Returns the
+    diagonal entry."""
     diagonal = anchor[i]
     at_diagonal = 0
     for e in range(indptr[i], indptr[i + 1]):
@@ -991,6 +995,7 @@ def _row(i, indptr, indices, points, sliver_values, anchor, floor, out):  # prag
             out[e - indptr[i]] -= stiffness
             diagonal += stiffness
     out[at_diagonal] += diagonal
+    return out[at_diagonal]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -1174,13 +1179,12 @@ def _sliver_seeds(merged, points, indptr, indices, sliver_values, anchor, floor,
     """(n,) bool: the corners of the slivers whose own term alone would move one of their corners by more than
     ``tolerance`` in a keypoint's column, or move its third corner across its height for a ``move`` of every
     keypoint: one Jacobi step from no correction, the straightness ``r`` (off in ``merged`` (n, K)) times the
-    sliver's weight and its corner's coefficient over that corner's diagonal entry of the system (:func:`_row`; on a
+    sliver's weight (:func:`_sliver_weight`) and its corner's coefficient over that corner's diagonal entry of the system (:func:`_row`; on a
     thin sliver of a native mesh its weight is most of the diagonal, and that is ``r`` itself). The diagonal is
     made for the slivers' corners only."""
     n = merged.shape[0]
     seed = np.zeros(n, dtype=np.bool_)
     k = merged.shape[1]
-    root_cap = np.sqrt(cap)
     diagonal = np.full(n, -1.0)  # made on first use
     row = np.empty(1)
     for s in range(ends.shape[0]):
@@ -1190,14 +1194,11 @@ def _sliver_seeds(merged, points, indptr, indices, sliver_values, anchor, floor,
             if diagonal[i] < 0.0:
                 if len(row) < indptr[i + 1] - indptr[i]:
                     row = np.empty(indptr[i + 1] - indptr[i])
-                _row(i, indptr, indices, points, sliver_values, anchor, floor, row)
-                for e in range(indptr[i], indptr[i + 1]):
-                    if indices[e] == i:
-                        diagonal[i] = row[e - indptr[i]]
+                diagonal[i] = _row(i, indptr, indices, points, sliver_values, anchor, floor, row)
         longest = np.sqrt((points[b, 0] - points[a, 0]) ** 2 + (points[b, 1] - points[a, 1]) ** 2
                           + (points[b, 2] - points[a, 2]) ** 2)
-        weight = (longest / max(height[s], longest / root_cap)) ** 2  # as _sliver_terms weighs it
-        step = max(weight / diagonal[c], weight * (1.0 - t) / diagonal[a], weight * t / diagonal[b])
+        w = _sliver_weight(longest, height[s], cap)
+        step = max(w / diagonal[c], w * (1.0 - t) / diagonal[a], w * t / diagonal[b])
         largest, total = 0.0, 0.0
         for j in range(k):
             off = abs(merged[c, j] - (1.0 - t) * merged[a, j] - t * merged[b, j])

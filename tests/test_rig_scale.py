@@ -54,6 +54,22 @@ def assert_same_edits(new, old):
         assert np.abs(new.deform(keypoints) - old.deform(keypoints)).max() <= 1e-6 * diagonal
 
 
+def subdivided_unstraightened(path, levels, model):
+    """``path`` subdivided ``levels`` times (Open3D midpoint) and bound by a shipped model without straightening:
+    (mesh, rig, rest vertices in the model frame, the (V, K) float64 basis)."""
+    import open3d as o3d
+
+    from kpd.runtime import Model
+
+    source = read_mesh(path)
+    fine = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(source.vertices),
+                                     o3d.utility.Vector3iVector(source.triangles.astype(np.int32)))
+    fine = fine.subdivide_midpoint(levels)
+    mesh = Mesh(vertices=np.asarray(fine.vertices), triangles=np.asarray(fine.triangles, dtype=np.int64))
+    rig = Model.load(model, threads=1).rig(mesh, straighten=False)
+    return mesh, rig, rig.normalizer.apply(mesh.vertices), np.asarray(rig.basis, dtype=np.float64)
+
+
 @pytest.mark.parametrize("path, straighten", [
     ("modelnet10/chair/test/chair_0890.ply", True),
     ("modelnet10/table/test/table_0411.ply", True),
@@ -96,17 +112,7 @@ def test_straightening_of_a_real_scan_solves_near_its_slivers_only(data_dir, cap
     mesh within 1e-4."""
     import logging
 
-    import open3d as o3d
-
-    from kpd.runtime import Model
-
-    scan = read_mesh(data_dir / "scans" / "sneaker.ply")
-    fine = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(scan.vertices),
-                                     o3d.utility.Vector3iVector(scan.triangles.astype(np.int32))).subdivide_midpoint(1)
-    mesh = Mesh(vertices=np.asarray(fine.vertices), triangles=np.asarray(fine.triangles, dtype=np.int64))
-    rig = Model.load("shoe", threads=1).rig(mesh, straighten=False)
-    vertices = rig.normalizer.apply(mesh.vertices)
-    basis = np.asarray(rig.basis, dtype=np.float64)
+    mesh, rig, vertices, basis = subdivided_unstraightened(data_dir / "scans" / "sneaker.ply", 1, "shoe")
     with caplog.at_level(logging.DEBUG, logger="kpd.rig"):
         local = straighten_basis(basis, vertices, mesh.triangles)
     passes = [r for r in caplog.records if r.getMessage().startswith("straightening:")]
@@ -125,18 +131,8 @@ def test_straightening_of_a_dense_cad_mesh_solves_near_the_slivers_that_bend_it(
     Solved near the slivers whose own term moves a point by more than the tolerance, it leaves about half the
     points as they were, and keeps as many triangles from turning over as the solve over the whole mesh in 72
     single moves (each keypoint by 10% of the box along each axis, both ways)."""
-    import open3d as o3d
-
-    from kpd.runtime import Model
-
-    chair = read_mesh(data_dir / "keypointnet" / "models" / "03001627" / "fe6b3c001a86d844d5767a0de8dd037e"
-                      / "model.obj")
-    fine = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(chair.vertices),
-                                     o3d.utility.Vector3iVector(chair.triangles.astype(np.int32))).subdivide_midpoint(2)
-    mesh = Mesh(vertices=np.asarray(fine.vertices), triangles=np.asarray(fine.triangles, dtype=np.int64))
-    rig = Model.load("chair", threads=1).rig(mesh, straighten=False)
-    vertices = rig.normalizer.apply(mesh.vertices)
-    basis = np.asarray(rig.basis, dtype=np.float64)
+    chair = data_dir / "keypointnet" / "models" / "03001627" / "fe6b3c001a86d844d5767a0de8dd037e" / "model.obj"
+    mesh, rig, vertices, basis = subdivided_unstraightened(chair, 2, "chair")
     local = straighten_basis(basis, vertices, mesh.triangles)
     slow = _straighten_basis_reference(basis, vertices, mesh.triangles)
     untouched = (local == basis).all(axis=1)

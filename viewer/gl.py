@@ -23,6 +23,7 @@ a frame and its first frame about 0.4 s after start, where a Filament frame take
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import math
 import os
@@ -1346,8 +1347,7 @@ class RigDrawing:
         lo, hi = box([np.ascontiguousarray(mesh.vertices, dtype=np.float64)])
         self.diagonal = float(np.linalg.norm(hi - lo)) or 1.0
         reach = 0.5 * self.diagonal  # the rest box grown by this on every side: where edits take the mesh
-        self._reach_corners = np.array([[x, y, z] for x in (lo[0] - reach, hi[0] + reach)
-                                        for y in (lo[1] - reach, hi[1] + reach) for z in (lo[2] - reach, hi[2] + reach)])
+        self._reach_corners = np.array(list(itertools.product(*np.stack([lo - reach, hi + reach]).T)))  # (8, 3)
         self.shaded = shaded if shaded is not None else ShadedMesh(mesh, settings.mesh_color)
         self.proxy: ShadedMesh | None = None  # the coarse stand-in of a large mesh (set_stand_in)
         self._kept: np.ndarray | None = None  # (P,) the mesh's vertices the stand-in is made of
