@@ -8,7 +8,7 @@ from kpd.errors import InputError
 from kpd.geometry import Normalizer, farthest_point_sampling, sample_surface
 from kpd.io import Mesh, read_mesh, write_mesh
 from kpd.io.integrity import HASH_KEY, content_hash
-from kpd.rig import (Rig, _compact_basis, _mesh_arrays, _straighten_basis_reference, bind_memory,
+from kpd.rig import (Rig, _compact_basis, _factorised, _mesh_arrays, _straighten_basis_reference, bind_memory,
                      coincident_mvc_basis, coincident_mvc_weights, straighten_basis)
 
 
@@ -104,6 +104,30 @@ def test_straightening_by_pieces_equals_the_whole_mesh_solve(data_dir, name):
     assert np.abs(slow - basis).max() > 1e-3  # the meshes have slivers to straighten
     np.testing.assert_allclose(pieces, slow, rtol=0, atol=1e-9)  # the same system, solved exactly by pieces
     assert np.abs(local - slow).max() <= 1e-4  # solved near the slivers only: the issue's bound
+
+
+def test_the_straightenings_factorisation_solves_a_symmetric_positive_definite_system_in_any_numbering():
+    """The LDLᵀ solve the straightening uses, on a graph Laplacian plus a diagonal (its systems' kind) with several
+    right-hand sides, against SciPy's general sparse solve, in a random numbering of the unknowns."""
+    import scipy.sparse as sparse
+    from scipy.sparse.linalg import spsolve
+
+    rng = np.random.default_rng(3)
+    n = 2000
+    rows = rng.integers(0, n, 8000)
+    cols = (rows + rng.integers(1, 40, 8000)) % n
+    w = rng.uniform(0.1, 1e4, 8000)
+    adjacency = sparse.coo_matrix((w, (rows, cols)), shape=(n, n)).tocsr()
+    adjacency = adjacency + adjacency.T
+    laplacian = sparse.diags(np.asarray(adjacency.sum(axis=1)).ravel()) - adjacency
+    system = (laplacian + sparse.diags(rng.uniform(1e-3, 1.0, n))).tocsc()
+    rhs = rng.standard_normal((n, 5))
+    expected = spsolve(system, rhs)
+    np.testing.assert_allclose(_factorised(system)(rhs), expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+    order = rng.permutation(n)
+    shuffled = system[order][:, order].tocsc()
+    np.testing.assert_allclose(_factorised(shuffled)(rhs[order]), expected[order], rtol=0,
+                               atol=1e-9 * np.abs(expected).max())
 
 
 def test_straightening_of_a_real_scan_solves_near_its_slivers_only(data_dir, caplog):
