@@ -301,7 +301,8 @@ def test_visible_triangles_with_neighbours_keep_fewer_and_every_nearest_one():
     assert not (paired & ~alone).any()
     assert paired.sum() < 0.9 * alone.sum()
     screen = np.empty((len(vertices), 3))
-    _project(0, len(vertices), vertices, viewport.view, viewport.focal, width / 2, height / 2, screen)
+    _project(0, len(vertices), vertices, np.zeros(0, np.int64), viewport.view, viewport.focal, width / 2, height / 2,
+             screen)
     nearest = _nearest_at_samples(screen, triangles, width, height, samples)
     assert len(nearest) > 1000 and all(paired[t] for t in nearest)
 

@@ -165,6 +165,36 @@ def test_a_frame_of_the_visible_triangles_is_the_picture_of_all_of_them(dense_ch
             view.close()
 
 
+def test_culling_near_runs_first_keeps_the_same_triangles_and_judges_fewer(dense_chair):
+    """A CullingLayout's runs of nearby triangles, taken nearest first, leave the hidden ones out in pass 1: the
+    same triangles are kept as when they are judged in the mesh's order (whole, below, close up, from inside), and
+    pass 2 judges far fewer."""
+    from kpd.viewer.gl import CullingLayout, Viewport, visible_triangles
+    from kpd.viewer.render import ViewSettings, camera_pose
+
+    vertices, triangles = dense_chair.vertices, dense_chair.triangles
+    layout = CullingLayout(vertices, triangles)
+    assert sorted(layout.order.tolist()) == list(range(len(triangles)))
+    np.testing.assert_array_equal(layout.used[layout.triangles], triangles[layout.order])  # the same triangles
+    assert len(layout.cells) > 100 and layout.cells[0] == 0 and layout.cells[-1] == len(triangles)
+    samples = np.array([[0.375, 0.125], [0.875, 0.375], [0.125, 0.625], [0.625, 0.875]])
+    for azimuth, elevation, zoom in [(30, 20, 1.0), (200, -40, 1.0), (75, 60, 4.0), (10, 5, 30.0)]:
+        camera = camera_pose(vertices, ViewSettings(width=400, height=300, azimuth=azimuth, elevation=elevation,
+                                                    zoom=zoom))
+        viewport = Viewport(camera, 400, 300, samples)
+        judged = {}
+        for name, cells in (("in order", None), ("near first", layout.cells)):
+            scratch: dict = {}
+            judged[name] = visible_triangles(vertices, layout.triangles, viewport, scratch=scratch,
+                                             neighbours=layout.neighbours, index=layout.used, cells=cells).copy()
+            judged[name + " listed"] = int(scratch["listed_count"].sum())
+        np.testing.assert_array_equal(judged["near first"], judged["in order"])
+        alone = visible_triangles(vertices, triangles, viewport)  # the mesh's own order, each triangle alone
+        assert not (judged["in order"] & ~alone[layout.order]).any()  # judged with neighbours: fewer kept
+        if zoom == 1.0:  # seen whole: much of the surface lies behind the rest
+            assert judged["near first listed"] < 0.9 * judged["in order listed"], judged
+
+
 _HELD_BINDING = """
 import sys, time
 from pathlib import Path

@@ -227,19 +227,27 @@ def _summed_used(lo, hi, face, starts, entries, inverse, used, out):  # pragma: 
 _POOL: Any = None
 
 
-def _halves(kernel: Any, n: int, *args: Any) -> None:
-    """``kernel(lo, hi, *args)`` over [0, n): in two halves on two threads (compiled kernels that release the GIL)
-    when the machine has two cores and ``n`` is large, else at once."""
+def _pool() -> Any:
     global _POOL
-    if n < 200_000 or (os.cpu_count() or 1) < 2:
-        kernel(0, n, *args)
-        return
     if _POOL is None:
         from concurrent.futures import ThreadPoolExecutor
 
         _POOL = ThreadPoolExecutor(2, thread_name_prefix="kpd-draw")  # two callers at once each get one
+    return _POOL
+
+
+def _two_threads() -> bool:
+    return (os.cpu_count() or 1) >= 2
+
+
+def _halves(kernel: Any, n: int, *args: Any) -> None:
+    """``kernel(lo, hi, *args)`` over [0, n): in two halves on two threads (compiled kernels that release the GIL)
+    when the machine has two cores and ``n`` is large, else at once."""
+    if n < 200_000 or not _two_threads():
+        kernel(0, n, *args)
+        return
     half = n // 2
-    other = _POOL.submit(kernel, half, n, *args)
+    other = _pool().submit(kernel, half, n, *args)
     kernel(0, half, *args)
     other.result()
 
@@ -303,7 +311,8 @@ DEPTH_SLACK = 3e-3
 
 def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Viewport, *,
                       scratch: dict | None = None, stop: np.ndarray | None = None,
-                      neighbours: np.ndarray | None = None) -> np.ndarray | None:
+                      neighbours: np.ndarray | None = None, index: np.ndarray | None = None,
+                      cells: np.ndarray | None = None) -> np.ndarray | None:
     """(T,) bool: the triangles that may show in a pixel of the viewport; a frame drawn without the others is the
     same picture.
 
@@ -337,21 +346,30 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
     stop : (1,) uint8, set non-zero by another thread to abandon the work: the passes look at it every 65,536
         triangles and None is returned (a frame no longer wanted gives the cores back within a few milliseconds).
     neighbours : (T, 3) int32 :func:`edge_neighbours` of ``triangles``, or None to judge each triangle alone.
+    index : (V',) int, or None: the triangles index ``vertices[index]`` (a :class:`CullingLayout`'s order).
+    cells : (C + 1,) int64, or None: the triangles come in runs ``cells[c]:cells[c + 1]`` of triangles near each
+        other (a :class:`CullingLayout`'s). Pass 1 then takes the runs nearest the camera first (by the depth of a
+        run's first corner), and a triangle whose nearest corner lies behind the depth reached so far at every
+        sample point in its reach (by more than :data:`DEPTH_SLACK`) is left out there and then, without its
+        coverage worked out: pass 2 would leave it out too, since that depth only comes nearer (the same
+        triangles are kept as in any order). Most of a closed surface's far side is left out so.
     """
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    index = np.zeros(0, dtype=np.int64) if index is None else np.ascontiguousarray(index)
+    count = len(index) if len(index) else len(vertices)  # the points the triangles index
     triangles = np.ascontiguousarray(triangles)
     w, h, samples = viewport.width, viewport.height, viewport.samples
     points = h * w * len(samples)
     if len(samples) > 64:  # more than the kernels' bit masks hold: every triangle
         return np.ones(len(triangles), dtype=np.bool_)
     scratch = {} if scratch is None else scratch
-    if scratch.get("sizes") != (len(vertices), len(triangles), points):
-        scratch.update(sizes=(len(vertices), len(triangles), points), screen=np.empty((len(vertices), 3)),
+    if scratch.get("sizes") != (count, len(triangles), points):
+        scratch.update(sizes=(count, len(triangles), points), screen=np.empty((count, 3)),
                        depth=np.empty((2, points), np.float32), front=np.empty(points, np.float32),
                        keep=np.empty(len(triangles), np.bool_), listed=np.empty(len(triangles), np.int32),
                        listed_count=np.zeros(2, np.int64))
     screen = scratch["screen"]  # (V, 3) window x, y (y up) and the depth along the view axis
-    _halves(_project, len(vertices), vertices, viewport.view, viewport.focal, w / 2, h / 2, screen)
+    _halves(_project, count, vertices, index, viewport.view, viewport.focal, w / 2, h / 2, screen)
     delta = _margin(vertices, viewport)
     depth = scratch["depth"]  # (2, H W S) per sample point, one row per thread
     depth.fill(np.inf)
@@ -361,15 +379,39 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
     ox, oy = np.ascontiguousarray(samples[:, 0]), np.ascontiguousarray(samples[:, 1])  # (S,) each
     if neighbours is None:
         neighbours = np.full((len(triangles), 3), -1, dtype=np.int32)
-    _halves(_fronts, len(triangles), triangles, neighbours, screen, w, h, ox, oy, delta, depth, listed, listed_count,
-            stop)
+    n = len(triangles)
+    two = n >= 200_000 and _two_threads()
+    if cells is None:  # in their order: a half each
+        half = n // 2 if two else n
+        ranges = (np.array([[0, half]], np.int64), np.array([[half, n]], np.int64))
+    else:  # the runs nearest first, every other run on each thread (both come nearer at once)
+        first = triangles[cells[:-1], 0]  # (C,) a corner of each run
+        order = np.argsort(screen[first, 2], kind="stable")
+        runs = np.stack([cells[:-1], cells[1:]], axis=1)[order]  # (C, 2)
+        ranges = (runs[0::2], runs[1::2]) if two else (runs, runs[:0])
+    start = np.array([0, int((ranges[0][:, 1] - ranges[0][:, 0]).sum())], np.int64)  # of each thread's list
+    args = (triangles, neighbours, screen, w, h, ox, oy, delta, depth, listed, start, listed_count, stop,
+            DEPTH_SLACK, cells is not None)
+    if two:
+        other = _pool().submit(_fronts, ranges[1], 1, *args)
+        _fronts(ranges[0], 0, *args)
+        other.result()
+    else:
+        _fronts(ranges[0], 0, *args)
+        _fronts(ranges[1], 1, *args)
     if stop[0]:
         return None
     front = np.minimum(depth[0], depth[1], out=scratch["front"])  # (H W S,)
     keep = scratch["keep"]
     keep.fill(False)
-    _halves(_showing, len(triangles), triangles, screen, w, h, ox, oy, delta, front, DEPTH_SLACK, listed,
-            listed_count, keep, stop)
+    args = (triangles, screen, w, h, ox, oy, delta, front, DEPTH_SLACK, listed, start, listed_count, keep, stop)
+    if two:
+        other = _pool().submit(_showing, 1, *args)
+        _showing(0, *args)
+        other.result()
+    else:
+        _showing(0, *args)
+        _showing(1, *args)
     return None if stop[0] else keep
 
 
@@ -389,10 +431,13 @@ def _margin(vertices: np.ndarray, viewport: Viewport) -> float:
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _project(lo, hi, vertices, view, focal, half_width, half_height, screen):  # pragma: no cover - compiled
-    """Window coordinates (x right, y up) and depth in front of the camera (<= 0: not in front)."""
+def _project(lo, hi, vertices, index, view, focal, half_width, half_height, screen):  # pragma: no cover - compiled
+    """Window coordinates (x right, y up) and depth in front of the camera (<= 0: not in front) of
+    ``vertices[index]`` (of ``vertices`` when ``index`` is empty)."""
+    gather = index.shape[0] > 0
     for i in range(lo, hi):
-        px, py, pz = vertices[i, 0], vertices[i, 1], vertices[i, 2]
+        v = index[i] if gather else i
+        px, py, pz = vertices[v, 0], vertices[v, 1], vertices[v, 2]
         x = view[0, 0] * px + view[0, 1] * py + view[0, 2] * pz + view[0, 3]
         y = view[1, 0] * px + view[1, 1] * py + view[1, 2] * pz + view[1, 3]
         z = view[2, 0] * px + view[2, 1] * py + view[2, 2] * pz + view[2, 3]
@@ -448,98 +493,115 @@ def _pair_far(sx, sy, screen, p0, p1, q, d, delta):  # pragma: no cover - compil
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _fronts(lo, hi, triangles, neighbours, screen, width, height, ox, oy, delta, depth, listed, listed_count,
-            stop):  # pragma: no cover - compiled
-    """Pass 1 of :func:`visible_triangles`, into ``depth[0]`` for a range from 0 and ``depth[1]`` for the other
-    (:func:`_halves`' second thread); the range's triangles with a sample point in reach (or a corner not in front of
-    the camera) are listed for pass 2 in ``listed[lo:lo + listed_count[0 or 1]]``. Returns early once ``stop[0]`` is
+def _fronts(ranges, half, triangles, neighbours, screen, width, height, ox, oy, delta, depth, listed, start,
+            listed_count, stop, slack, skip_hidden):  # pragma: no cover - compiled
+    """Pass 1 of :func:`visible_triangles` over the triangles ``ranges[r, 0]:ranges[r, 1]`` in turn, into
+    ``depth[half]`` (the other thread's row is ``depth[1 - half]``); the triangles with a sample point in reach (or
+    a corner not in front of the camera) are listed for pass 2 in ``listed[start[half]:start[half] +
+    listed_count[half]]``. With ``skip_hidden``, one whose nearest corner lies behind the depth reached so far (both
+    rows, by more than ``slack``) at every sample point in its reach is left out. Returns early once ``stop[0]`` is
     set. A sample point is at ``(i + ox[k], j + oy[k])`` in pixel (i, j)."""
-    half = 0 if lo == 0 else 1
     out = depth[half]
+    seen = depth[1 - half]  # the other thread's: read while it writes (a depth only ever comes nearer)
     count = ox.shape[0]
-    found = lo  # the candidates go to listed[lo:found]
-    for t in range(lo, hi):
-        if (t - lo) % _LOOK_EVERY == 0 and stop[0] != 0:
-            return
-        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        za, zb, zc = screen[a, 2], screen[b, 2], screen[c, 2]
-        if not (za > 0.0 and zb > 0.0 and zc > 0.0):
-            listed[found] = t  # kept by pass 2
-            found += 1
-            continue
-        ax, ay, bx, by, cx, cy = screen[a, 0], screen[a, 1], screen[b, 0], screen[b, 1], screen[c, 0], screen[c, 1]
-        x0, x1, y0, y1 = min(ax, bx, cx), max(ax, bx, cx), min(ay, by, cy), max(ay, by, cy)
-        i0, i1 = max(math.floor(x0 - delta), 0), min(math.floor(x1 + delta), width - 1)  # the pixels in reach
-        j0, j1 = max(math.floor(y0 - delta), 0), min(math.floor(y1 + delta), height - 1)
-        if i0 > i1 or j0 > j1:
-            continue
-        reached = False  # a sample point in reach (the box grown by delta): most triangles of a dense mesh have
-        for i in range(i0, i1 + 1):  # none and are left out
-            column = _offsets_in(x0 - delta - i, x1 + delta - i, ox)
-            if column == 0:
+    found = start[half]  # the candidates go to listed[start[half]:found]
+    done = 0
+    for r in range(ranges.shape[0]):
+        for t in range(ranges[r, 0], ranges[r, 1]):
+            if done % _LOOK_EVERY == 0 and stop[0] != 0:
+                return
+            done += 1
+            a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+            za, zb, zc = screen[a, 2], screen[b, 2], screen[c, 2]
+            if not (za > 0.0 and zb > 0.0 and zc > 0.0):
+                listed[found] = t  # kept by pass 2
+                found += 1
                 continue
-            for j in range(j0, j1 + 1):
-                if column & _offsets_in(y0 - delta - j, y1 + delta - j, oy):
-                    reached = True
-                    break
-            if reached:
-                break
-        if not reached:
-            continue
-        listed[found] = t
-        found += 1
-        # the sample points it surely covers lie in its box shrunk by delta (farther than that from its edges)
-        if x1 - x0 < 2.0 * delta or y1 - y0 < 2.0 * delta or (i1 - i0 + 1) * (j1 - j0 + 1) > 4096:
-            continue
-        area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)  # twice the signed area
-        sign = 1.0 if area > 0.0 else -1.0
-        reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + 2.0 * delta
-        m0 = -1.0  # the edges' margins, worked out at the first sample point inside the shrunk box
-        m1 = m2 = 0.0
-        far = np.float32(max(za, zb, zc))  # nothing of the triangle lies behind its farthest corner
-        for i in range(i0, i1 + 1):
-            column = _offsets_in(x0 + delta - i, x1 - delta - i, ox)
-            if column == 0:
+            ax, ay, bx, by = screen[a, 0], screen[a, 1], screen[b, 0], screen[b, 1]
+            cx, cy = screen[c, 0], screen[c, 1]
+            x0, x1, y0, y1 = min(ax, bx, cx), max(ax, bx, cx), min(ay, by, cy), max(ay, by, cy)
+            i0, i1 = max(math.floor(x0 - delta), 0), min(math.floor(x1 + delta), width - 1)  # the pixels in reach
+            j0, j1 = max(math.floor(y0 - delta), 0), min(math.floor(y1 + delta), height - 1)
+            if i0 > i1 or j0 > j1:
                 continue
-            for j in range(j0, j1 + 1):
-                inside = column & _offsets_in(y0 + delta - j, y1 - delta - j, oy)
-                if inside == 0:
+            # a sample point in reach (the box grown by delta) and not surely behind: most triangles of a dense mesh
+            # have none and are left out (pass 2 keeps a triangle over more than 25 pixels untested: listed)
+            near = min(za, zb, zc) / (1.0 + slack) if skip_hidden and (i1 - i0 + 1) * (j1 - j0 + 1) <= 25 \
+                else -np.inf
+            reached = False
+            for i in range(i0, i1 + 1):
+                column = _offsets_in(x0 - delta - i, x1 + delta - i, ox)
+                if column == 0:
                     continue
-                if m0 < 0.0:
-                    m0 = delta * (reach + math.sqrt((bx - ax) ** 2 + (by - ay) ** 2))
-                    m1 = delta * (reach + math.sqrt((cx - bx) ** 2 + (cy - by) ** 2))
-                    m2 = delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
-                base = (j * width + i) * count
-                for k in range(count):  # few branches: whether a sample point is inside is a coin toss
-                    sx, sy = i + ox[k], j + oy[k]
-                    e0 = sign * ((bx - ax) * (sy - ay) - (by - ay) * (sx - ax))
-                    e1 = sign * ((cx - bx) * (sy - by) - (cy - by) * (sx - bx))
-                    e2 = sign * ((ax - cx) * (sy - cy) - (ay - cy) * (sx - cx))
-                    held = out[base + k]
-                    ok0, ok1, ok2 = e0 >= m0, e1 >= m1, e2 >= m2
-                    bit = (inside >> k) & 1 != 0
-                    out[base + k] = far if bit & ok0 & ok1 & ok2 & (far < held) else held  # surely inside, nearer
-                    # too near one edge to be sure: covered by the triangle or its neighbour across the edge if the
-                    # two lie either side of it (a rare branch)
-                    near0, near1, near2 = abs(e0) < m0, abs(e1) < m1, abs(e2) < m2
-                    if bit & (far < held) & ((near0 & ok1 & ok2) | (ok0 & near1 & ok2) | (ok0 & ok1 & near2)):
-                        edge = 0 if near0 else 1 if near1 else 2
-                        d = neighbours[t, edge]
-                        if d >= 0:
-                            p0, p1, q = (a, b, c) if edge == 0 else (b, c, a) if edge == 1 else (c, a, b)
-                            paired = _pair_far(sx, sy, screen, p0, p1, q, d, delta)
-                            if paired < out[base + k]:
-                                out[base + k] = paired
-    listed_count[half] = found - lo
+                for j in range(j0, j1 + 1):
+                    row = column & _offsets_in(y0 - delta - j, y1 + delta - j, oy)
+                    if row == 0:
+                        continue
+                    base = (j * width + i) * count
+                    for k in range(count):
+                        row &= ~((near > min(out[base + k], seen[base + k])) << k)
+                    if row != 0:
+                        reached = True
+                        break
+                if reached:
+                    break
+            if not reached:
+                continue
+            listed[found] = t
+            found += 1
+            # the sample points it surely covers lie in its box shrunk by delta (farther than that from its edges)
+            if x1 - x0 < 2.0 * delta or y1 - y0 < 2.0 * delta or (i1 - i0 + 1) * (j1 - j0 + 1) > 4096:
+                continue
+            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)  # twice the signed area
+            sign = 1.0 if area > 0.0 else -1.0
+            reach = 2.0 * math.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + 2.0 * delta
+            m0 = -1.0  # the edges' margins, worked out at the first sample point inside the shrunk box
+            m1 = m2 = 0.0
+            far = np.float32(max(za, zb, zc))  # nothing of the triangle lies behind its farthest corner
+            for i in range(i0, i1 + 1):
+                column = _offsets_in(x0 + delta - i, x1 - delta - i, ox)
+                if column == 0:
+                    continue
+                for j in range(j0, j1 + 1):
+                    inside = column & _offsets_in(y0 + delta - j, y1 - delta - j, oy)
+                    if inside == 0:
+                        continue
+                    if m0 < 0.0:
+                        m0 = delta * (reach + math.sqrt((bx - ax) ** 2 + (by - ay) ** 2))
+                        m1 = delta * (reach + math.sqrt((cx - bx) ** 2 + (cy - by) ** 2))
+                        m2 = delta * (reach + math.sqrt((ax - cx) ** 2 + (ay - cy) ** 2))
+                    base = (j * width + i) * count
+                    for k in range(count):  # few branches: whether a sample point is inside is a coin toss
+                        sx, sy = i + ox[k], j + oy[k]
+                        e0 = sign * ((bx - ax) * (sy - ay) - (by - ay) * (sx - ax))
+                        e1 = sign * ((cx - bx) * (sy - by) - (cy - by) * (sx - bx))
+                        e2 = sign * ((ax - cx) * (sy - cy) - (ay - cy) * (sx - cx))
+                        held = out[base + k]
+                        ok0, ok1, ok2 = e0 >= m0, e1 >= m1, e2 >= m2
+                        bit = (inside >> k) & 1 != 0
+                        out[base + k] = far if bit & ok0 & ok1 & ok2 & (far < held) else held  # surely inside, nearer
+                        # too near one edge to be sure: covered by the triangle or its neighbour across the edge if the
+                        # two lie either side of it (a rare branch)
+                        near0, near1, near2 = abs(e0) < m0, abs(e1) < m1, abs(e2) < m2
+                        if bit & (far < held) & ((near0 & ok1 & ok2) | (ok0 & near1 & ok2) | (ok0 & ok1 & near2)):
+                            edge = 0 if near0 else 1 if near1 else 2
+                            d = neighbours[t, edge]
+                            if d >= 0:
+                                p0, p1, q = (a, b, c) if edge == 0 else (b, c, a) if edge == 1 else (c, a, b)
+                                paired = _pair_far(sx, sy, screen, p0, p1, q, d, delta)
+                                if paired < out[base + k]:
+                                    out[base + k] = paired
+    listed_count[half] = found - start[half]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _showing(lo, hi, triangles, screen, width, height, ox, oy, delta, front, slack, listed, listed_count, keep,
+def _showing(half, triangles, screen, width, height, ox, oy, delta, front, slack, listed, start, listed_count, keep,
              stop):  # pragma: no cover - compiled
-    """Pass 2 of :func:`visible_triangles` over the triangles pass 1 listed in the range (``keep`` holds False for
-    the others); returns early once ``stop[0]`` is set."""
+    """Pass 2 of :func:`visible_triangles` over the triangles thread ``half`` of pass 1 listed (``keep`` holds False
+    for the others); returns early once ``stop[0]`` is set."""
     count = ox.shape[0]
-    for n in range(lo, lo + listed_count[0 if lo == 0 else 1]):
+    lo = start[half]
+    for n in range(lo, lo + listed_count[half]):
         if (n - lo) % _LOOK_EVERY == 0 and stop[0] != 0:
             return
         t = listed[n]
@@ -646,6 +708,104 @@ def _neighbours(triangles, starts, entries, out):  # pragma: no cover - compiled
                     break
 
 
+class CullingLayout:
+    """The triangles of a mesh part in the order :func:`visible_triangles` goes through them fastest: near each other
+    in space (by the Morton order of their centroids at rest, over 64 cells a side of the part's bounding cube), and
+    their vertices numbered in order of first use, so that the culling's passes read the projected vertices and
+    write the sample points' depths near where they read and wrote last. On a ShapeNet chair subdivided to 1.37M
+    vertices (2.75M distinct triangles) seen whole at 960 x 720, the two passes took 0.30 s and 0.22 s in the
+    mesh's order and 0.23 s and 0.07 s in this one (two threads).
+
+    ``order`` (T,) the part's triangles in that order, ``used`` (V',) the vertices they use in order of first use,
+    ``triangles`` (T, 3) int32 the ordered triangles indexing ``used``, ``neighbours`` their :func:`edge_neighbours`,
+    ``cells`` (C + 1,) where the triangles of each cell start: pass 1 takes the cells nearest the camera first.
+    """
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
+        vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+        triangles = np.ascontiguousarray(triangles, dtype=np.int64)
+        self.order = np.empty(len(triangles), dtype=np.int64)
+        self.triangles = np.empty((len(triangles), 3), dtype=np.int32)
+        used = np.empty(len(vertices), dtype=np.int64)
+        starts = np.empty(len(triangles) + 1, dtype=np.int64)
+        n, c = _near_layout(vertices, triangles, _LAYOUT_CELLS, self.order, self.triangles, used, starts)
+        self.used = used[:n].copy()
+        self.cells = starts[:c + 1].copy()  # (C + 1,) the runs of triangles in one cell
+        self.neighbours = edge_neighbours(self.triangles, n)
+
+    def visible(self, vertices: np.ndarray, viewport: Viewport, keep: np.ndarray, *, scratch: dict | None = None,
+                stop: np.ndarray | None = None) -> np.ndarray | None:
+        """:func:`visible_triangles` of the part's triangles over ``vertices`` (the whole mesh's), into ``keep`` (T,)
+        bool in the part's order; None when stopped."""
+        shown = visible_triangles(vertices, self.triangles, viewport, scratch=scratch, stop=stop,
+                                  neighbours=self.neighbours, index=self.used, cells=self.cells)
+        if shown is None:
+            return None
+        keep[self.order] = shown
+        return keep
+
+
+_LAYOUT_CELLS = 64  # cells a side of the Morton order of a CullingLayout
+
+
+@numba.njit(cache=True, nogil=True)
+def _near_layout(vertices, triangles, cells, order, local, used, runs):  # pragma: no cover - compiled
+    """:class:`CullingLayout`'s arrays: ``order`` (T,) the triangles by the Morton order of their centroids over
+    ``cells`` (a power of two, at most 128) cells a side of their bounding cube (a counting sort; in their order
+    within a cell), ``local`` (T, 3) the ordered triangles renumbered over ``used[:n]``, the vertices in order of
+    first use, and ``runs[:c + 1]`` where each non-empty cell's triangles start (and the end); returns (n, c)."""
+    t_count = triangles.shape[0]
+    low = np.full(3, np.inf)
+    high = np.full(3, -np.inf)
+    for t in range(t_count):
+        for k in range(3):
+            v = triangles[t, k]
+            for a in range(3):
+                low[a] = min(low[a], vertices[v, a])
+                high[a] = max(high[a], vertices[v, a])
+    size = 0.0
+    for a in range(3):
+        size = max(size, high[a] - low[a])
+    step = (cells - 1e-9) / size if size > 0.0 else 0.0
+    bits = 0
+    while (1 << bits) < cells:
+        bits += 1
+    code = np.empty(t_count, dtype=np.int64)
+    start = np.zeros(cells * cells * cells + 1, dtype=np.int64)
+    for t in range(t_count):
+        c = 0
+        for a in range(3):
+            centre = (vertices[triangles[t, 0], a] + vertices[triangles[t, 1], a] + vertices[triangles[t, 2], a]) / 3.0
+            q = min(max(int((centre - low[a]) * step), 0), cells - 1)
+            for b in range(bits):  # bit b of axis a goes to bit 3b + a
+                c |= ((q >> b) & 1) << (3 * b + a)
+        code[t] = c
+        start[c + 1] += 1
+    for c in range(cells * cells * cells):
+        start[c + 1] += start[c]
+    c = 0
+    for cell in range(cells * cells * cells):
+        if start[cell + 1] > start[cell]:
+            runs[c] = start[cell]
+            c += 1
+    runs[c] = t_count
+    for t in range(t_count):
+        order[start[code[t]]] = t
+        start[code[t]] += 1
+    renumber = np.full(vertices.shape[0], -1, dtype=np.int64)
+    n = 0
+    for i in range(t_count):
+        t = order[i]
+        for k in range(3):
+            v = triangles[t, k]
+            if renumber[v] < 0:
+                renumber[v] = n
+                used[n] = v
+                n += 1
+            local[i, k] = renumber[v]
+    return n, c
+
+
 # --- meshes to draw ---------------------------------------------------------------------------------------------------
 
 
@@ -653,14 +813,15 @@ class _Part:
     """One legacy ``TriangleMesh`` of a :class:`ShadedMesh`: the triangles (into the whole mesh's vertices) it draws,
     their base colours (per vertex of the whole mesh, or one colour; None for a texture) and corner UVs."""
 
-    def __init__(self, geometry: Any, triangles: np.ndarray, albedo: np.ndarray | None, uvs: np.ndarray | None) -> None:
+    def __init__(self, geometry: Any, vertices: np.ndarray, triangles: np.ndarray, albedo: np.ndarray | None,
+                 uvs: np.ndarray | None) -> None:
         self.geometry, self.triangles, self.albedo, self.uvs = geometry, triangles, albedo, uvs
         self.layout: tuple[np.ndarray, np.ndarray] | None = None  # (used, local) of all triangles, once uploaded
         self.scratch: dict = {}  # visible_triangles' arrays, reused frame after frame
         self.sided: np.ndarray | None = None  # of the triangles, those drawn only from the front (material_sides)
-        # (Tp, 3) edge_neighbours of the triangles where a frame draws only those that show
-        self.neighbours = edge_neighbours(triangles, int(triangles.max()) + 1) if len(triangles) > CULL_TRIANGLES \
-            else None
+        # where a frame draws only the triangles that show: the order it judges them in, and a buffer of the verdicts
+        self.layout_for_culling = CullingLayout(vertices, triangles) if len(triangles) > CULL_TRIANGLES else None
+        self.keep = np.empty(len(triangles), dtype=np.bool_) if self.layout_for_culling is not None else None
 
 
 class ShadedMesh:
@@ -725,7 +886,7 @@ class ShadedMesh:
                 albedo = np.asarray(mesh.vertex_colors, dtype=np.float32)  # (V, 3)
             else:
                 albedo = np.asarray(color, dtype=np.float32)[:3]  # (3,)
-            self.parts.append(_Part(part, triangles[chosen], albedo, uvs))
+            self.parts.append(_Part(part, mesh.vertices, triangles[chosen], albedo, uvs))
             if sided is not None and chosen is not None and sided[chosen].any():
                 self.parts[-1].sided = np.flatnonzero(sided[chosen])
         drawn = (self.parts[0].triangles if len(self.parts) == 1 else np.concatenate([p.triangles for p in self.parts])
@@ -772,9 +933,8 @@ class ShadedMesh:
                       viewport: Viewport | None, stop: np.ndarray | None = None) -> _Upload | None:
         layout = part.layout
         triangles = uvs = keep = None
-        if viewport is not None and len(part.triangles) > CULL_TRIANGLES:
-            keep = visible_triangles(vertices, part.triangles, viewport, scratch=part.scratch, stop=stop,
-                                     neighbours=part.neighbours)
+        if viewport is not None and part.layout_for_culling is not None:
+            keep = part.layout_for_culling.visible(vertices, viewport, part.keep, scratch=part.scratch, stop=stop)
             if keep is None:
                 return None
         if part.sided is not None:  # one side of a face with two materials: drawn when its front faces the camera
