@@ -165,6 +165,52 @@ def test_a_frame_of_the_visible_triangles_is_the_picture_of_all_of_them(dense_ch
             view.close()
 
 
+def test_a_triangle_is_kept_wherever_its_corners_may_be_drawn():
+    """Pass 2 keeps a triangle when a sample point lies within the distance its drawn corners may stray (delta along
+    each axis) of it: whatever corners within that reach are drawn, the triangle covers no sample point of one left
+    out. Slivers and small triangles, each corner moved to every extreme of its reach and at random."""
+    import itertools
+
+    from kpd.viewer.gl import _showing
+
+    rng = np.random.default_rng(11)
+    width = height = 8
+    samples = np.array([[0.375, 0.125], [0.875, 0.375], [0.125, 0.625], [0.625, 0.875]])
+    delta = 0.05  # far more than a drawn corner strays (1/256 pixel and float32's rounding): a test that can fail
+    corners = []
+    for _ in range(3000):
+        a = rng.uniform(1.5, 6.5, size=2)
+        b = a + rng.uniform(-1.5, 1.5, size=2)
+        c = (a + b) / 2 + rng.uniform(-1.0, 1.0) * np.array([a[1] - b[1], b[0] - a[0]]) * 10.0 ** rng.uniform(-3, 0)
+        corners.append([a, b, c])  # from slivers (c near the middle of ab) to plump triangles
+    corners = np.array(corners)  # (T, 3, 2)
+    t = len(corners)
+    screen = np.concatenate([corners.reshape(-1, 2), np.ones((3 * t, 1))], axis=1)  # in front of the camera
+    triangles = np.arange(3 * t).reshape(t, 3)
+    keep = np.zeros(t, np.bool_)
+    _showing(0, triangles, screen, width, height, samples[:, 0].copy(), samples[:, 1].copy(), delta,
+             np.full(width * height * len(samples), np.inf, np.float32), 3e-3, np.arange(t, dtype=np.int32),
+             np.array([0, t], np.int64), np.array([t, 0], np.int64), keep, np.zeros(1, np.uint8))
+    points = (np.stack(np.meshgrid(np.arange(width), np.arange(height), indexing="ij"), -1).reshape(-1, 1, 2)
+              + samples).reshape(-1, 2)  # (P, 2) every sample point
+
+    def covers(p):  # (T, 3, 2) corners -> (T,) whether any sample point is inside (either winding, edges included)
+        e = []
+        for i in range(3):
+            edge, to = p[:, (i + 1) % 3, None] - p[:, i, None], points[None] - p[:, i, None]  # (T, 1, 2), (T, P, 2)
+            e.append(edge[..., 0] * to[..., 1] - edge[..., 1] * to[..., 0])
+        return (((e[0] >= 0) & (e[1] >= 0) & (e[2] >= 0)) | ((e[0] <= 0) & (e[1] <= 0) & (e[2] <= 0))).any(axis=1)
+
+    moves = [np.array(m).reshape(3, 2) for m in itertools.product((-delta, delta), repeat=6)]
+    moves += [rng.uniform(-delta, delta, size=(3, 2)) for _ in range(64)]
+    drawn = np.zeros(t, np.bool_)
+    for move in moves:
+        drawn |= covers(corners + move)
+    assert not (drawn & ~keep).any()  # never left out where a drawn triangle covers a sample point
+    assert (drawn & ~covers(corners)).sum() > 100  # many are covered only as drawn, not as projected
+    assert (keep & ~drawn).sum() < 0.1 * keep.sum(), ((keep & ~drawn).sum(), keep.sum())  # few kept needlessly
+
+
 def test_culling_near_runs_first_keeps_the_same_triangles_and_judges_fewer(dense_chair):
     """A CullingLayout's runs of nearby triangles, taken nearest first, leave the hidden ones out in pass 1: the
     same triangles are kept as when they are judged in the mesh's order (whole, below, close up, from inside), and
