@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib
 import logging
 import sys
@@ -47,6 +48,11 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or a bad option (2, one line already printed)
         return int(exc.code or 0)
+    if argv is None:  # the program itself (not a caller's process, whose objects are not ours to freeze)
+        # the objects made so far (the commands' modules, the parser) live as long as the process: the cyclic
+        # garbage collector need not go through them again at each collection (40-60 ms of kpd render at 1.3M
+        # vertices)
+        gc.freeze()
     handler = logging.StreamHandler()
     handler.setFormatter(_Formatter())
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, handlers=[handler])
