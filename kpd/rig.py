@@ -219,9 +219,10 @@ class Rig:
         with ThreadPoolExecutor(1, thread_name_prefix="kpd-straighten") as pool:
             if straighten and len(triangles) and _has_sliver(np.ascontiguousarray(vertices), triangles,
                                                              STRAIGHTEN_THINNESS):
-                merged = triangles if len(points) == len(vertices) else inverse[triangles]
-                building = pool.submit(_StraightenSystem, points, merged, STRAIGHTEN_THINNESS, STRAIGHTEN_REACH)
-                del merged
+                # the triangles renumbered onto the distinct points there too (a pass over them all, 0.3 s at 5.5M
+                # triangles, that would hold the MVC back)
+                building = pool.submit(_merged_system, points, triangles, inverse if len(points) < len(vertices)
+                                       else None)
             basis = mvc_project(points, cage.vertices, cage.faces, masked.T)  # (n, K) float64
         straightened = building is not None and _straighten_system(building.result(), basis, STRAIGHTEN_TOLERANCE)
         del building
@@ -587,6 +588,12 @@ def _straighten_merged(basis: np.ndarray, points: np.ndarray, triangles: np.ndar
     return _straighten_system(_StraightenSystem(points, triangles, thinness, reach), basis, tolerance)
 
 
+def _merged_system(points: np.ndarray, triangles: np.ndarray, inverse: np.ndarray | None) -> "_StraightenSystem":
+    """The straightening's system of a mesh's ``triangles`` on its distinct ``points``: ``inverse`` (V,) maps each
+    vertex to its point (None when no two vertices coincide)."""
+    return _StraightenSystem(points, triangles, STRAIGHTEN_THINNESS, STRAIGHTEN_REACH, point_of=inverse)
+
+
 def _straighten_system(system: "_StraightenSystem", basis: np.ndarray, tolerance: float) -> bool:
     """:func:`_straighten_merged` with its system made already."""
     if system.slivers == 0:
@@ -684,18 +691,22 @@ class _StraightenSystem:
     half of is taken whole.
     """
 
-    def __init__(self, points: np.ndarray, tri: np.ndarray, thinness: float, reach: float) -> None:
-        """``points`` (n, 3) distinct, ``tri`` (T, 3) int64 indexing them (repeated corners allowed: skipped)."""
+    def __init__(self, points: np.ndarray, tri: np.ndarray, thinness: float, reach: float,
+                 point_of: np.ndarray | None = None) -> None:
+        """``points`` (n, 3) distinct, ``tri`` (T, 3) int64 indexing them (repeated corners allowed: skipped); or
+        indexing a mesh's vertices, each vertex ``v`` at point ``point_of[v]`` (the triangles are not renumbered
+        into a copy: the kernels look the points up)."""
         points = np.ascontiguousarray(points, dtype=np.float64)
         self.reach = float(reach)
         n = self.n = len(points)
         tri = np.ascontiguousarray(tri, dtype=np.int64)
-        indptr, indices = _graph_pattern(tri, n)  # (n + 1,), (n + 2E,): each row's neighbours and itself, sorted
+        point_of = np.zeros(0, np.int64) if point_of is None else np.ascontiguousarray(point_of, dtype=np.int64)
+        indptr, indices = _graph_pattern(tri, point_of, n)  # (n + 1,), (n + 2E,): each row's neighbours and itself, sorted
         self.indptr, self.indices, self.points = indptr, indices, points
         self.sliver_values, self.anchor = np.zeros(len(indices)), np.empty(n)  # the rest of a row: _row
         ends, along, height = np.empty((len(tri), 3), dtype=np.int32), np.empty(len(tri)), np.empty(len(tri))
         self.label = np.empty(n, dtype=np.int64)  # connected pieces
-        self.slivers, longest = _sliver_terms(points, tri, indptr, indices, float(thinness), 1.0 / reach**2,
+        self.slivers, longest = _sliver_terms(points, tri, point_of, indptr, indices, float(thinness), 1.0 / reach**2,
                                               _STRAIGHTEN_ENDS, _STRAIGHTEN_CAP, self.sliver_values, self.anchor, ends,
                                               along, height, self.label)
         self.floor = 1e-6 * max(longest, 1e-300)  # edge lengths floored at 1e-6 of the longest
@@ -823,13 +834,14 @@ class _StraightenSystem:
 
 
 @numba.njit(cache=True, nogil=True)
-def _graph_pattern(tri, n):  # pragma: no cover - compiled
+def _graph_pattern(tri, point_of, n):  # pragma: no cover - compiled
     """CSR (indptr (n + 1,), indices) of the symmetric pattern of the triangles' edges plus the diagonal, each
-    entry once, columns sorted; degenerate triangles (a repeated corner) add no edge."""
+    entry once, columns sorted; degenerate triangles (a repeated corner) add no edge. The triangles' corners are
+    ``point_of[tri]`` (``tri`` itself when ``point_of`` is empty)."""
     count = np.ones(n + 1, dtype=np.int64)  # the diagonal
     count[0] = 0
     for t in range(tri.shape[0]):
-        a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+        a, b, c = _corners(tri, point_of, t)
         if a == b or b == c or c == a:
             continue
         count[a + 1] += 2
@@ -843,7 +855,7 @@ def _graph_pattern(tri, n):  # pragma: no cover - compiled
         other[fill[i]] = i
         fill[i] += 1
     for t in range(tri.shape[0]):
-        a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+        a, b, c = _corners(tri, point_of, t)
         if a == b or b == c or c == a:
             continue
         other[fill[a]] = b
@@ -877,6 +889,15 @@ def _graph_pattern(tri, n):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _corners(tri, point_of, t):  # pragma: no cover - compiled
+    """The three corners of triangle ``t``: ``tri[t]``, through ``point_of`` when it is not empty."""
+    a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+    if point_of.shape[0]:
+        return point_of[a], point_of[b], point_of[c]
+    return a, b, c
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _entry(indptr, indices, row, col):  # pragma: no cover - compiled
     """Position of (row, col) in a CSR pattern with sorted columns (it is there)."""
     lo, hi = indptr[row], indptr[row + 1] - 1
@@ -896,7 +917,7 @@ def _sliver_weight(longest, height, cap):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _sliver_terms(points, tri, indptr, indices, thinness, inverse_reach2, ends_weight, cap, sliver_values, anchor,
+def _sliver_terms(points, tri, point_of, indptr, indices, thinness, inverse_reach2, ends_weight, cap, sliver_values, anchor,
                   sliver_ends, sliver_along, sliver_height, piece):  # pragma: no cover - compiled
     """One pass over the triangles: the slivers' ``SᵀWS`` into the pattern (``sliver_values``); per sliver, in the
     order found, its third corner and long edge's ends (``sliver_ends``), the corner's place along that edge and its
@@ -910,7 +931,7 @@ def _sliver_terms(points, tri, indptr, indices, thinness, inverse_reach2, ends_w
     slivers = 0
     longest_edge = 0.0
     for t in range(tri.shape[0]):
-        v = (tri[t, 0], tri[t, 1], tri[t, 2])
+        v = _corners(tri, point_of, t)
         if v[0] == v[1] or v[1] == v[2] or v[2] == v[0]:
             continue
         a, b, c = v
