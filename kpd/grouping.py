@@ -13,7 +13,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-__all__ = ["coincident_first", "first_occurrence_groups", "merge_coincident", "Groups"]
+__all__ = ["coincident_first", "first_occurrence_groups", "merge_coincident", "same_corners", "Groups"]
 
 _KEY_LIMIT = 2**63 - 1  # the largest int64: rank keys of more distinct combinations fall back to a lexicographic sort
 
@@ -241,3 +241,46 @@ def _merge_coincident_reference(vertices: np.ndarray) -> tuple[np.ndarray, np.nd
     inverse = np.empty(len(vertices), dtype=np.int64)
     inverse[order] = np.cumsum(new) - 1
     return ordered[new], inverse
+
+
+@compiled_on_first_call
+def same_corners(triangles, mapping, top, drop_collapsed, same):  # pragma: no cover - compiled
+    """``same[t]``: the first triangle with the corners of t (t itself when no earlier one has them), each corner
+    taken through ``mapping`` (into [0, top)); with ``drop_collapsed``, -1 for triangles with two equal corners.
+    Triangles are bucketed by their smallest corner (a counting sort, in triangle order), then compared on the other
+    two within a bucket."""
+    n = triangles.shape[0]
+    low = np.empty(n, dtype=np.int64)
+    rest = np.empty(n, dtype=np.int64)  # the two larger corners as one number
+    starts = np.zeros(top + 1, dtype=np.int64)
+    for t in range(n):
+        a, b, c = mapping[triangles[t, 0]], mapping[triangles[t, 1]], mapping[triangles[t, 2]]
+        if a > b:
+            a, b = b, a
+        if b > c:
+            b, c = c, b
+        if a > b:
+            a, b = b, a
+        if drop_collapsed and (a == b or b == c):
+            low[t] = -1
+            same[t] = -1
+            continue
+        low[t] = a
+        rest[t] = b * top + c
+        starts[a + 1] += 1
+    for v in range(top):
+        starts[v + 1] += starts[v]
+    fill = starts[:-1].copy()
+    order = np.empty(starts[top], dtype=np.int64)
+    for t in range(n):
+        if low[t] >= 0:
+            order[fill[low[t]]] = t
+            fill[low[t]] += 1
+    for v in range(top):
+        for i in range(starts[v], starts[v + 1]):
+            key = rest[order[i]]
+            same[order[i]] = order[i]
+            for j in range(starts[v], i):
+                if rest[order[j]] == key:
+                    same[order[i]] = order[j]
+                    break

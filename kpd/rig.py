@@ -30,7 +30,7 @@ import numpy as np
 from kpd.cage import Cage, cage_faces_from_vertices, default_m, fit_cage, influence_mask
 from kpd.errors import InputError
 from kpd.geometry import Normalizer, as_points, sample_surface
-from kpd.grouping import first_occurrence_groups, merge_coincident
+from kpd.grouping import first_occurrence_groups, merge_coincident, same_corners
 from kpd.io import Mesh, atomic_output
 from kpd.io.integrity import HASH_KEY, check_hash, content_hash, load_numpy
 from kpd.mvc import mvc_weights
@@ -701,16 +701,20 @@ class _StraightenSystem:
         n = self.n = len(points)
         tri = np.ascontiguousarray(tri, dtype=np.int64)
         point_of = np.zeros(0, np.int64) if point_of is None else np.ascontiguousarray(point_of, dtype=np.int64)
-        indptr, indices = _graph_pattern(tri, point_of, n)  # (n + 1,), (n + 2E,): each row's neighbours and itself, sorted
+        # a triangle stored again over the same corners (ShapeNet's meshes store every face twice, once each way
+        # round) is counted with its first copy: the same system in half the passes
+        same = np.empty(len(tri), dtype=np.int64)
+        same_corners(tri, point_of if len(point_of) else np.arange(n, dtype=np.int64), n, True, same)
+        indptr, indices = _graph_pattern(tri, point_of, same, n)  # (n + 1,), (n + 2E,): each row's neighbours and itself, sorted
         self.indptr, self.indices, self.points = indptr, indices, points
         self.sliver_values, self.anchor = np.zeros(len(indices)), np.empty(n)  # the rest of a row: _row
         ends, along, height = np.empty((len(tri), 3), dtype=np.int32), np.empty(len(tri)), np.empty(len(tri))
         self.label = np.empty(n, dtype=np.int64)  # connected pieces
-        self.slivers, longest = _sliver_terms(points, tri, point_of, indptr, indices, float(thinness), 1.0 / reach**2,
+        self.slivers, longest = _sliver_terms(points, tri, point_of, same, indptr, indices, float(thinness), 1.0 / reach**2,
                                               _STRAIGHTEN_ENDS, _STRAIGHTEN_CAP, self.sliver_values, self.anchor, ends,
                                               along, height, self.label)
         self.floor = 1e-6 * max(longest, 1e-300)  # edge lengths floored at 1e-6 of the longest
-        del tri
+        del tri, same
         if self.slivers == 0:
             return
         s = self.slivers
@@ -834,13 +838,16 @@ class _StraightenSystem:
 
 
 @numba.njit(cache=True, nogil=True)
-def _graph_pattern(tri, point_of, n):  # pragma: no cover - compiled
+def _graph_pattern(tri, point_of, same, n):  # pragma: no cover - compiled
     """CSR (indptr (n + 1,), indices) of the symmetric pattern of the triangles' edges plus the diagonal, each
     entry once, columns sorted; degenerate triangles (a repeated corner) add no edge. The triangles' corners are
-    ``point_of[tri]`` (``tri`` itself when ``point_of`` is empty)."""
+    ``point_of[tri]`` (``tri`` itself when ``point_of`` is empty); only the triangles ``t`` with ``same[t] == t``
+    (the first over their corners) are read."""
     count = np.ones(n + 1, dtype=np.int64)  # the diagonal
     count[0] = 0
     for t in range(tri.shape[0]):
+        if same[t] != t:
+            continue
         a, b, c = _corners(tri, point_of, t)
         if a == b or b == c or c == a:
             continue
@@ -855,6 +862,8 @@ def _graph_pattern(tri, point_of, n):  # pragma: no cover - compiled
         other[fill[i]] = i
         fill[i] += 1
     for t in range(tri.shape[0]):
+        if same[t] != t:
+            continue
         a, b, c = _corners(tri, point_of, t)
         if a == b or b == c or c == a:
             continue
@@ -917,13 +926,21 @@ def _sliver_weight(longest, height, cap):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _sliver_terms(points, tri, point_of, indptr, indices, thinness, inverse_reach2, ends_weight, cap, sliver_values, anchor,
-                  sliver_ends, sliver_along, sliver_height, piece):  # pragma: no cover - compiled
+def _sliver_terms(points, tri, point_of, same, indptr, indices, thinness, inverse_reach2, ends_weight, cap,
+                  sliver_values, anchor, sliver_ends, sliver_along, sliver_height, piece):  # pragma: no cover - compiled
     """One pass over the triangles: the slivers' ``SᵀWS`` into the pattern (``sliver_values``); per sliver, in the
     order found, its third corner and long edge's ends (``sliver_ends``), the corner's place along that edge and its
     height; each point's anchor weight (``anchor``) and connected piece (``piece``, numbered from 0 in order of
-    the points). Returns the number of slivers and the longest edge."""
+    the points). Returns the number of slivers and the longest edge.
+
+    A triangle whose corners an earlier one has (``same[t] != t``; -1: two equal corners) adds what it would add
+    through that first one, which counts its copies: the same long edge, so the same terms. Not where two edges are
+    equally longest: which one is taken depends on the order of the corners, so each copy adds its own, as it is."""
     n = points.shape[0]
+    copies = np.zeros(tri.shape[0], dtype=np.int32)
+    for t in range(tri.shape[0]):
+        if same[t] >= 0:
+            copies[same[t]] += 1
     for i in range(n):
         piece[i] = i  # union-find: each point's parent
     area = np.zeros(n)
@@ -931,19 +948,11 @@ def _sliver_terms(points, tri, point_of, indptr, indices, thinness, inverse_reac
     slivers = 0
     longest_edge = 0.0
     for t in range(tri.shape[0]):
-        v = _corners(tri, point_of, t)
-        if v[0] == v[1] or v[1] == v[2] or v[2] == v[0]:
+        first = same[t]
+        if first < 0 or (first != t and copies[first] == 0):  # two equal corners; a copy counted already
             continue
+        v = _corners(tri, point_of, t)
         a, b, c = v
-        for x, y in ((a, b), (a, c)):
-            while piece[x] != x:
-                piece[x] = piece[piece[x]]
-                x = piece[x]
-            while piece[y] != y:
-                piece[y] = piece[piece[y]]
-                y = piece[y]
-            if x != y:
-                piece[max(x, y)] = min(x, y)
         l0 = np.sqrt((points[c, 0] - points[b, 0]) ** 2 + (points[c, 1] - points[b, 1]) ** 2
                      + (points[c, 2] - points[b, 2]) ** 2)
         l1 = np.sqrt((points[a, 0] - points[c, 0]) ** 2 + (points[a, 1] - points[c, 1]) ** 2
@@ -955,14 +964,31 @@ def _sliver_terms(points, tri, point_of, indptr, indices, thinness, inverse_reac
             k, longest = 1, l1
         if l2 > longest:
             k, longest = 2, l2
+        tied = (l0 == longest) + (l1 == longest) + (l2 == longest) > 1
+        if first != t and not tied:
+            continue  # added by its first copy
+        times = 1.0
+        if first == t and not tied:
+            times = float(copies[t])
+            copies[t] = 0  # its copies are counted (a tied one keeps its count: its copies add their own)
+        if first == t:
+            for x, y in ((a, b), (a, c)):
+                while piece[x] != x:
+                    piece[x] = piece[piece[x]]
+                    x = piece[x]
+                while piece[y] != y:
+                    piece[y] = piece[piece[y]]
+                    y = piece[y]
+                if x != y:
+                    piece[max(x, y)] = min(x, y)
         longest_edge = max(longest_edge, longest)
         ux, uy, uz = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1], points[b, 2] - points[a, 2]
         vx, vy, vz = points[c, 0] - points[a, 0], points[c, 1] - points[a, 1], points[c, 2] - points[a, 2]
         nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
         twice_area = np.sqrt(nx * nx + ny * ny + nz * nz)
-        area[a] += twice_area / 6.0
-        area[b] += twice_area / 6.0
-        area[c] += twice_area / 6.0
+        area[a] += times * twice_area / 6.0
+        area[b] += times * twice_area / 6.0
+        area[c] += times * twice_area / 6.0
         height = twice_area / max(longest, 1e-300)
         if not height < thinness * longest:
             continue
@@ -972,7 +998,7 @@ def _sliver_terms(points, tri, point_of, indptr, indices, thinness, inverse_reac
         dot = ((points[corner, 0] - points[start, 0]) * ex + (points[corner, 1] - points[start, 1]) * ey
                + (points[corner, 2] - points[start, 2]) * ez)
         s = min(max(dot / (ex * ex + ey * ey + ez * ez), 0.0), 1.0)
-        weight = _sliver_weight(longest, height, cap)
+        weight = times * _sliver_weight(longest, height, cap)
         ends = (corner, start, end)
         coef = (1.0, s - 1.0, -s)
         corner_of[corner] = True

@@ -130,6 +130,36 @@ def test_the_straightenings_factorisation_solves_a_symmetric_positive_definite_s
                                atol=1e-9 * np.abs(expected).max())
 
 
+def test_a_triangle_stored_again_adds_its_sliver_terms_as_often_as_it_is_stored():
+    """The straightening's system counts a triangle stored again over the same corners (either way round, as
+    ShapeNet stores every face) through its first copy: its terms are those of each copy, added. Where two edges
+    of a sliver are equally longest, the copies' orders take different long edges: each copy adds its own."""
+    from kpd.rig import STRAIGHTEN_REACH, STRAIGHTEN_THINNESS, _StraightenSystem
+
+    points, triangles = [], []
+    for i, h in enumerate((0.002, 0.01, 0.03)):  # per level: an isosceles sliver (two equal long edges), a plain one
+        z = float(i)
+        base = len(points)
+        points += [[0.0, 0.0, z], [1.0, h, z], [1.0, -h, z], [1.3, h, z]]
+        triangles += [[base, base + 1, base + 2], [base, base + 3, base + 2]]
+    points = np.array(points)
+    once = np.array(triangles)
+    again = np.roll(once[:, ::-1], 1, axis=1)  # the other way round, from another corner
+    half = np.concatenate([once[:2], again[2:]])  # a mix: each triangle once, some of them turned
+    twice = np.concatenate([once, again, half])
+
+    def system(tri):
+        return _StraightenSystem(points, tri, STRAIGHTEN_THINNESS, STRAIGHTEN_REACH)
+
+    whole, parts = system(twice), [system(once), system(again), system(half)]
+    assert all(np.array_equal(whole.indices, p.indices) for p in parts)
+    np.testing.assert_allclose(whole.sliver_values, sum(p.sliver_values for p in parts), rtol=1e-12, atol=0)
+    tied = system(once[::2]), system(again[::2])  # the isosceles slivers take a different long edge each way
+    assert not np.allclose(tied[0].sliver_values, tied[1].sliver_values)
+    # one sliver listed per plain triangle (its three copies in one), one per copy of an isosceles one
+    assert whole.slivers == 3 + 3 * 3
+
+
 def test_straightening_of_a_real_scan_solves_near_its_slivers_only(data_dir, caplog):
     """A real scan has few slivers (2.4% of the sneaker's triangles): the straightening solves for a small part of
     its points, grows that region by patches solved with the rest held, and agrees with the solve over the whole

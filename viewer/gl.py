@@ -36,6 +36,7 @@ import numba
 import numpy as np
 
 from kpd.errors import KpdError
+from kpd.grouping import same_corners
 from kpd.viewer.camera import box
 
 __all__ = ["GLView", "ShadedMesh", "RigDrawing", "Shot", "Layer", "render_shots", "shading_normals", "NoWindowError"]
@@ -1010,51 +1011,8 @@ def distinct_triangles(triangles: np.ndarray) -> np.ndarray:
         return np.zeros(0, dtype=np.int64)
     top = int(triangles.max()) + 1
     same = np.empty(len(triangles), dtype=np.int64)
-    _first_same(triangles, np.arange(top, dtype=np.int64), top, False, same)
+    same_corners(triangles, np.arange(top, dtype=np.int64), top, False, same)
     return np.flatnonzero(same == np.arange(len(triangles)))
-
-
-@numba.njit(cache=True, nogil=True)
-def _first_same(triangles, mapping, top, drop_collapsed, same):  # pragma: no cover - compiled
-    """``same[t]``: the first triangle with the corners of t (t itself when no earlier one has them), each corner
-    taken through ``mapping`` (into [0, top)); with ``drop_collapsed``, -1 for triangles with two equal corners.
-    Triangles are bucketed by their smallest corner (a counting sort, in triangle order), then compared on the other
-    two within a bucket."""
-    n = triangles.shape[0]
-    low = np.empty(n, dtype=np.int64)
-    rest = np.empty(n, dtype=np.int64)  # the two larger corners as one number
-    starts = np.zeros(top + 1, dtype=np.int64)
-    for t in range(n):
-        a, b, c = mapping[triangles[t, 0]], mapping[triangles[t, 1]], mapping[triangles[t, 2]]
-        if a > b:
-            a, b = b, a
-        if b > c:
-            b, c = c, b
-        if a > b:
-            a, b = b, a
-        if drop_collapsed and (a == b or b == c):
-            low[t] = -1
-            same[t] = -1
-            continue
-        low[t] = a
-        rest[t] = b * top + c
-        starts[a + 1] += 1
-    for v in range(top):
-        starts[v + 1] += starts[v]
-    fill = starts[:-1].copy()
-    order = np.empty(starts[top], dtype=np.int64)
-    for t in range(n):
-        if low[t] >= 0:
-            order[fill[low[t]]] = t
-            fill[low[t]] += 1
-    for v in range(top):
-        for i in range(starts[v], starts[v + 1]):
-            key = rest[order[i]]
-            same[order[i]] = order[i]
-            for j in range(starts[v], i):
-                if rest[order[j]] == key:
-                    same[order[i]] = order[j]
-                    break
 
 
 def material_sides(triangles: np.ndarray, ids: np.ndarray, welding: _Welding) -> tuple[np.ndarray, np.ndarray]:
@@ -1071,7 +1029,7 @@ def material_sides(triangles: np.ndarray, ids: np.ndarray, welding: _Welding) ->
         return np.zeros(0, dtype=np.bool_), np.zeros(0, dtype=np.bool_)
     corners = welding.inverse.astype(np.int64, copy=False)[triangles]  # (T, 3) by position
     same = np.empty(count, dtype=np.int64)
-    _first_same(corners, np.arange(welding.groups, dtype=np.int64), welding.groups, False, same)
+    same_corners(corners, np.arange(welding.groups, dtype=np.int64), welding.groups, False, same)
     # the winding against the first triangle over the same corners: the corner after the smallest, in each
     low = corners.argmin(axis=1)
     after = corners[np.arange(count), (low + 1) % 3]
@@ -1120,7 +1078,7 @@ def proxy_triangles(vertices: np.ndarray, triangles: np.ndarray, limit: int) -> 
     for _ in range(12):
         span = np.floor((hi - lo) / size).astype(np.int64) + 1  # cells along each axis
         count = _cells(vertices, lo, size, span, cluster, first)
-        _first_same(triangles, cluster, count, True, same)
+        same_corners(triangles, cluster, count, True, same)
         keep = same == index
         faces = cluster[triangles[keep]]  # (Q, 3)
         if len(faces) <= limit:
