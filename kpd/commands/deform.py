@@ -97,17 +97,20 @@ def run(args: argparse.Namespace) -> int:
 def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray], check=None):
     """The deformed mesh of ``kpd deform MODEL SHAPE``: rig the mesh, move keypoints (through the prior if asked).
     ``check(mesh)`` runs on the input mesh before the work (the output's companion files)."""
-    from kpd.commands.keypoints import load_model, rig_checked, scan_frame
-    from kpd.io import read_mesh
+    from kpd.commands.keypoints import load_model, model_beside_read, rig_checked, scan_frame
 
-    model = load_model(args)
-    k = model.num_keypoints
-    for index in moves:
-        if not 0 <= index < k:
-            raise InputError(f"--move keypoint index must lie in [0, {k}) for this {k}-keypoint model; got {index}")
-    if args.prior and model.prior is None:
-        raise InputError(f"{args.model}: this bundle has no category prior; drop --prior")
-    mesh = read_mesh(args.shape)
+    def load():
+        model = load_model(args)
+        k = model.num_keypoints
+        for index in moves:
+            if not 0 <= index < k:
+                raise InputError(f"--move keypoint index must lie in [0, {k}) for this {k}-keypoint model; got "
+                                 f"{index}")
+        if args.prior and model.prior is None:
+            raise InputError(f"{args.model}: this bundle has no category prior; drop --prior")
+        return model
+
+    model, mesh = model_beside_read(load, args.shape)
     if check is not None:
         check(mesh)
     scan = None

@@ -120,6 +120,29 @@ def load_model(args: argparse.Namespace):
     return Model.load(args.model, threads=args.threads)
 
 
+def model_beside_read(load, path):
+    """``(load(), read_mesh(path))``: the mesh is read on a worker thread (a large file's read and its fresh memory
+    wait mostly outside the interpreter's lock) while this one loads the model (``load``, which checks it too) and
+    gets the compiled kernels' machinery ready with a first small kernel call (numba's start: 0.3-0.4 s in a fresh
+    process), work the binding would otherwise do after the read. The model's errors come first, as before."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numpy as np
+
+    from kpd.geometry import sample_surface
+    from kpd.io import read_mesh
+
+    with ThreadPoolExecutor(1, thread_name_prefix="kpd-read") as pool:
+        reading = pool.submit(read_mesh, path)
+        try:
+            model = load()
+            sample_surface(np.eye(3), np.array([[0, 1, 2]]), 1, seed=0)  # the first kernel call: numba's start
+        except BaseException:
+            reading.cancel()
+            raise
+        return model, reading.result()
+
+
 def check_suffix(path: str, formats: tuple, what: str, option: str = "--out") -> None:
     from pathlib import Path
 

@@ -97,7 +97,7 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bo
     checked, and the binding still to run), so that the editor shows the mesh at once and binds it on a worker
     thread; a mesh too large for the memory ends here all the same."""
     from kpd.commands.deform import load_rig
-    from kpd.commands.keypoints import scan_frame
+    from kpd.commands.keypoints import model_beside_read, scan_frame
     from kpd.frame import ScanRig
     from kpd.runtime import Model
 
@@ -130,7 +130,13 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bo
         raise InputError(f"{args.shape}: is a folder, not a mesh file (give one of the mesh files in it)")
     if not Path(args.shape).is_file():
         raise InputError(f"{args.shape}: no such file")
-    model, mesh = _model_and_mesh(args, need_prior)
+    def load():
+        model = Model.load(args.model, threads=args.threads)
+        if need_prior and model.prior is None:
+            raise InputError(f"{args.model}: this bundle has no category prior; drop --prior")
+        return model
+
+    model, mesh = model_beside_read(load, args.shape)
     from kpd.io import file_up
 
     if later:
@@ -155,30 +161,6 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bo
     # file's format defines one)
     return Source(_later(mesh, model, bind) if later else bind(), model.prior, Path(args.shape).name,
                   file_up(args.shape) or model.up)
-
-
-def _model_and_mesh(args: argparse.Namespace, need_prior: bool) -> tuple:
-    """``(Model.load(MODEL), read_mesh(SHAPE))``: the mesh is read on a worker thread (a large file's read and its
-    fresh memory wait mostly outside the interpreter's lock) while this one loads the model and gets the compiled
-    kernels' machinery ready with a first small kernel call (numba's start, 0.3-0.4 s in a fresh process), work
-    the binding would otherwise do after the read. The model's errors come first, as before."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from kpd.geometry import sample_surface
-    from kpd.io import read_mesh
-    from kpd.runtime import Model
-
-    with ThreadPoolExecutor(1, thread_name_prefix="kpd-read") as pool:
-        reading = pool.submit(read_mesh, args.shape)
-        try:
-            model = Model.load(args.model, threads=args.threads)
-            if need_prior and model.prior is None:
-                raise InputError(f"{args.model}: this bundle has no category prior; drop --prior")
-            sample_surface(np.eye(3), np.array([[0, 1, 2]]), 1, seed=0)  # the first kernel call: numba's start
-        except BaseException:
-            reading.cancel()
-            raise
-        return model, reading.result()
 
 
 def _later(mesh: Any, model: Any, bind: Any) -> Any:
