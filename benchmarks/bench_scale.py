@@ -200,10 +200,13 @@ def main() -> None:
                          child_time(name, path, int(rest[0]), int(rest[1]))))
         return
 
+    from kpd.benchmark import machine_speed
+
     picks = [int(x) - 1 for x in args.levels.split(",")]
     result: dict = {
         "benchmark": "kpd at scan sizes: bind, edit, save, load",
-        "machine": {"python": platform.python_version(), "numpy": np.__version__, "cpus": os.cpu_count()},
+        "machine": {"python": platform.python_version(), "numpy": np.__version__, "cpus": os.cpu_count(),
+                    "speed_at_start": machine_speed()},  # to compare runs of different days
         "meshes": {},
     }
     with tempfile.TemporaryDirectory() as tmp:
@@ -265,6 +268,7 @@ def main() -> None:
                                                                         2)
             record["summary"] = summary
     result["machine"]["load_average_1min"] = round(os.getloadavg()[0], 2)
+    result["machine"]["speed_at_end"] = machine_speed()
     print(json.dumps(result, indent=2))
 
 

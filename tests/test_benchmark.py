@@ -33,3 +33,11 @@ def test_timers_measure_the_call():
     fast = best_seconds(lambda: None, repeats=3)
     slow = best_seconds(lambda: time.sleep(0.003), repeats=3)
     assert 0 <= fast < slow and slow >= 0.0025
+
+
+def test_machine_speed_times_a_sort_and_fresh_pages():
+    from kpd.benchmark import machine_speed
+
+    speed = machine_speed(repeats=1)
+    assert set(speed) == {"sort_s", "fresh_memory_gb_per_s"}
+    assert 0 < speed["sort_s"] < 60 and 0 < speed["fresh_memory_gb_per_s"] < 1e4
