@@ -219,8 +219,8 @@ class Rig:
         with ThreadPoolExecutor(1, thread_name_prefix="kpd-straighten") as pool:
             if straighten and len(triangles) and _has_sliver(np.ascontiguousarray(vertices), triangles,
                                                              STRAIGHTEN_THINNESS):
-                # the triangles renumbered onto the distinct points there too (a pass over them all, 0.3 s at 5.5M
-                # triangles, that would hold the MVC back)
+                # the system looks the triangles' corners up on the distinct points itself: no renumbered copy of
+                # the triangles made here first (a pass over them all, 0.3 s at 5.5M triangles, before the MVC)
                 building = pool.submit(_merged_system, points, triangles, inverse if len(points) < len(vertices)
                                        else None)
             basis = mvc_project(points, cage.vertices, cage.faces, masked.T)  # (n, K) float64
@@ -705,14 +705,15 @@ class _StraightenSystem:
         # round) is counted with its first copy: the same system in half the passes
         same = np.empty(len(tri), dtype=np.int64)
         same_corners(tri, point_of if len(point_of) else np.arange(n, dtype=np.int64), n, True, same)
-        indptr, indices = _graph_pattern(tri, point_of, same, n)  # (n + 1,), (n + 2E,): each row's neighbours and itself, sorted
+        # (n + 1,), (n + 2E,): each row's neighbours and itself, sorted
+        indptr, indices = _graph_pattern(tri, point_of, same, n)
         self.indptr, self.indices, self.points = indptr, indices, points
         self.sliver_values, self.anchor = np.zeros(len(indices)), np.empty(n)  # the rest of a row: _row
         ends, along, height = np.empty((len(tri), 3), dtype=np.int32), np.empty(len(tri)), np.empty(len(tri))
         self.label = np.empty(n, dtype=np.int64)  # connected pieces
-        self.slivers, longest = _sliver_terms(points, tri, point_of, same, indptr, indices, float(thinness), 1.0 / reach**2,
-                                              _STRAIGHTEN_ENDS, _STRAIGHTEN_CAP, self.sliver_values, self.anchor, ends,
-                                              along, height, self.label)
+        self.slivers, longest = _sliver_terms(points, tri, point_of, same, indptr, indices, float(thinness),
+                                              1.0 / reach**2, _STRAIGHTEN_ENDS, _STRAIGHTEN_CAP, self.sliver_values,
+                                              self.anchor, ends, along, height, self.label)
         self.floor = 1e-6 * max(longest, 1e-300)  # edge lengths floored at 1e-6 of the longest
         del tri, same
         if self.slivers == 0:
@@ -927,7 +928,8 @@ def _sliver_weight(longest, height, cap):  # pragma: no cover - compiled
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _sliver_terms(points, tri, point_of, same, indptr, indices, thinness, inverse_reach2, ends_weight, cap,
-                  sliver_values, anchor, sliver_ends, sliver_along, sliver_height, piece):  # pragma: no cover - compiled
+                  sliver_values, anchor, sliver_ends, sliver_along, sliver_height,
+                  piece):  # pragma: no cover - compiled
     """One pass over the triangles: the slivers' ``SᵀWS`` into the pattern (``sliver_values``); per sliver, in the
     order found, its third corner and long edge's ends (``sliver_ends``), the corner's place along that edge and its
     height; each point's anchor weight (``anchor``) and connected piece (``piece``, numbered from 0 in order of

@@ -130,6 +130,7 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bo
         raise InputError(f"{args.shape}: is a folder, not a mesh file (give one of the mesh files in it)")
     if not Path(args.shape).is_file():
         raise InputError(f"{args.shape}: no such file")
+
     def load():
         model = Model.load(args.model, threads=args.threads)
         if need_prior and model.prior is None:
