@@ -97,11 +97,20 @@ def test_orientation_is_seed_stable():
     assert a.score == b.score
 
 
+def test_one_thread_finds_what_two_find():
+    scan, reference = lumpy(2000, 0) @ rotation(2).T, lumpy(2000, 1)
+    one, two = (orient(scan, reference, reference_up="z", threads=n) for n in (1, 2))
+    np.testing.assert_array_equal(one.rotation, two.rotation)
+    assert [(h.score, h.source) for h in one.hypotheses] == [(h.score, h.source) for h in two.hypotheses]
+
+
 def test_orient_errors():
     with pytest.raises(NotFittedError, match="fit"):
         ScanAligner().orient(lumpy(100, 0))
     with pytest.raises(InputError, match="trim"):
         ScanAligner(trim=2.0).fit(lumpy(100, 0))
+    with pytest.raises(InputError, match="threads"):
+        ScanAligner(threads=0).fit(lumpy(100, 0))
     with pytest.raises(InputError, match="at least 10"):
         orient(lumpy(100, 0)[:5], lumpy(100, 1))
     with pytest.raises(InputError, match=r"shape \(N, 3\)"):

@@ -145,10 +145,12 @@ def _umeyama(
     return scale, rot, my - scale * rot @ mx
 
 
-def _two_at_a_time(function: Any, items: Any) -> list:
-    """``[function(item) for item in items]`` on two threads: the orientation hypotheses are independent, and their
-    nearest-neighbour queries (scipy's cKDTree) release the GIL."""
-    with ThreadPoolExecutor(2) as pool:
+def _at_a_time(function: Any, items: Any, threads: int) -> list:
+    """``[function(item) for item in items]`` on ``threads`` threads: the orientation hypotheses are independent, and
+    their nearest-neighbour queries (scipy's cKDTree) release the GIL."""
+    if threads == 1:
+        return [function(item) for item in items]
+    with ThreadPoolExecutor(threads) as pool:
         return list(pool.map(function, items))
 
 
@@ -187,6 +189,9 @@ class ScanAligner:
     distinct_angle : the runner-up must differ from the best by more than this many degrees.
     ambiguity_margin : relative margin (runner-up score / best score - 1) below which the result is flagged ambiguous.
     seed : seeds the subsets and RANSAC.
+    threads : hypotheses fitted at a time (the same result whatever the number). Two suit ``kpd scan``'s full
+        search; the frame check's light search is held by the GIL for most of its time, and one thread does it for
+        less CPU in the same time.
     """
 
     def __init__(
@@ -210,6 +215,7 @@ class ScanAligner:
         support: bool = True,
         snap_angle: float = 25.0,
         seed: int = 0,
+        threads: int = 2,
     ) -> None:
         self.up = up
         self.reference_up = reference_up
@@ -229,6 +235,7 @@ class ScanAligner:
         self.support = support
         self.snap_angle = snap_angle
         self.seed = seed
+        self.threads = threads
 
     # -- set-up -------------------------------------------------------------------------------------------------------
 
@@ -241,7 +248,7 @@ class ScanAligner:
         if not (self.voxel > 0 and self.normal_weight >= 0 and self.ambiguity_margin >= 0):
             raise InputError(f"voxel must be > 0, normal_weight and ambiguity_margin >= 0; got {self.voxel}, "
                              f"{self.normal_weight}, {self.ambiguity_margin}")
-        for name in ("n_points", "coarse_points", "iterations", "refine_top"):
+        for name in ("n_points", "coarse_points", "iterations", "refine_top", "threads"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"{name} must be at least 1; got {getattr(self, name)}")
         if self.fpfh_runs < 0 or self.coarse_iterations < 0:
@@ -476,7 +483,7 @@ class ScanAligner:
             _, r, _, score = self._icp(scan, start[0], self.coarse_iterations, self.coarse_points, normals=False)
             return score, r, start[1]
 
-        coarse = _two_at_a_time(first_fit, starts)
+        coarse = _at_a_time(first_fit, starts, self.threads)
         coarse.sort(key=lambda c: c[0])
         chosen: list[tuple[float, np.ndarray, str]] = []
         for score, r, source in coarse:
@@ -507,7 +514,7 @@ class ScanAligner:
                     source += "+support"
             return score, a, r, t, source, ups
 
-        refined = sorted(_two_at_a_time(lambda c: refine(c[1], c[2]), chosen), key=lambda c: c[0])
+        refined = sorted(_at_a_time(lambda c: refine(c[1], c[2]), chosen, self.threads), key=lambda c: c[0])
         if standing is not None:
             # With the up axis settled by the support, the quarter turns of the best about it are searched too:
             # many objects (tables, boxes) look alike after such a turn, and a runner-up found there is a genuine
@@ -523,7 +530,7 @@ class ScanAligner:
                 a, r, t, score = self._icp(scan, turned, self.iterations, normals=search_normals, ups=ups_best)
                 return score, a, r, t, source + "+support", ups_best
 
-            refined += _two_at_a_time(turn, (1, 2, 3))
+            refined += _at_a_time(turn, (1, 2, 3), self.threads)
             refined.sort(key=lambda c: c[0])
         unit = self.reference_.radius / self.reference_box_scale_  # working units -> reference box units
         best_score, s, r, t, _, best_ups = refined[0]
