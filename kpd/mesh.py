@@ -23,6 +23,7 @@ Conventions
 from __future__ import annotations
 
 import os
+import threading
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -112,6 +113,7 @@ class Mesh:
         # Not a dataclass field: groups of vertices sharing a position and a normal (UV-seam copies), computed by
         # with_vertices on first use and handed on to the meshes it makes.
         self._normal_groups: np.ndarray | None = None
+        self._forget_positions()
         where = _prefix(self.path, "mesh")
         self.vertices = _vertex_array(self.vertices, where, "vertices", "vertices")
         V = len(self.vertices)
@@ -177,7 +179,35 @@ class Mesh:
         out.__dict__.update(self.__dict__)
         out.vertices = new
         out.vertex_normals = normals
+        out._forget_positions()  # new positions: grouped again when asked
         return out
+
+    def position_groups(self) -> tuple[np.ndarray, np.ndarray]:
+        """The vertices grouped by position: ``(first, index)``, the first vertex of each group in order of first
+        occurrence (G,) and each vertex's group (V,), as :func:`kpd.grouping.first_occurrence_groups` of
+        ``vertices``.
+
+        Computed once per mesh, on first use, and kept (the arrays are shared: treat them as read-only): binding a
+        mesh and getting it ready to draw both need them, and a command does the two at once on two threads (a
+        second asker waits for the first's result; 0.3 s at 1.4M vertices).
+        """
+        with self._positions_lock:
+            if self._positions is None:
+                self._positions = first_occurrence_groups(self.vertices)
+            return self._positions
+
+    def _forget_positions(self) -> None:
+        self._positions: tuple[np.ndarray, np.ndarray] | None = None
+        self._positions_lock = threading.Lock()
+
+    def __getstate__(self) -> dict:  # a copy (copy.deepcopy, multiprocessing) takes neither the lock nor the groups
+        state = self.__dict__.copy()
+        del state["_positions"], state["_positions_lock"]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._forget_positions()
 
     def to_open3d(self) -> "open3d.geometry.TriangleMesh":
         """An ``open3d.geometry.TriangleMesh`` with every attribute (textures flipped to Open3D's convention)."""

@@ -209,8 +209,10 @@ class Rig:
         masked = influence * influence_mask(keypoints, cage.vertices, m)
         check_bind_memory(len(vertices), len(mesh.triangles), k)
         # the basis is computed once per distinct position, the positions in the mesh's order: its neighbours are
-        # near each other in memory (the straightening's passes over the mesh took twice as long in sorted order)
-        points, inverse = _distinct_in_order(vertices)
+        # near each other in memory (the straightening's passes over the mesh took twice as long in sorted order).
+        # Grouped in the mesh's own units, by the mesh (a command drawing it at once uses the same groups)
+        first, inverse = mesh.position_groups()
+        points = vertices if len(first) == len(vertices) else vertices[first]
         triangles = np.ascontiguousarray(mesh.triangles, dtype=np.int64)
         building = None
         # the straightening's system (the edge graph, the slivers' terms) does not depend on the basis: it is made on

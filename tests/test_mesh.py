@@ -145,3 +145,23 @@ def test_pointset_checks_fields():
         PointSet([[0, 0, 0]], normals=[[0, 0, 1], [0, 1, 0]])
     with pytest.raises(InputError, match="no points"):
         PointSet(np.zeros((0, 3)))
+
+
+def test_position_groups_are_found_once_and_follow_new_positions():
+    import copy
+    import pickle
+
+    from kpd.grouping import first_occurrence_groups
+
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 0], [1, 0, 0]])
+    mesh = Mesh(vertices, np.array([[0, 1, 2], [3, 4, 2]]))
+    first, index = mesh.position_groups()
+    np.testing.assert_array_equal(first, [0, 1, 2])
+    np.testing.assert_array_equal(index, [0, 1, 2, 0, 1])
+    assert mesh.position_groups() is mesh.position_groups()  # kept
+    moved = mesh.with_vertices(vertices + [[0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, 1], [0, 0, 0]])
+    np.testing.assert_array_equal(moved.position_groups()[1], [0, 1, 2, 3, 1])  # its own positions
+    np.testing.assert_array_equal(mesh.position_groups()[1], [0, 1, 2, 0, 1])
+    for again in (copy.deepcopy(moved), pickle.loads(pickle.dumps(moved))):
+        np.testing.assert_array_equal(again.position_groups()[1], first_occurrence_groups(again.vertices)[1])
+

@@ -115,6 +115,38 @@ def test_prepared_normals_are_the_serial_kernels_bit_for_bit():
                                   shading_normals(vertices, big, np.ones(3), welding=welding))
 
 
+def test_binding_and_drawing_a_mesh_at_once_group_its_positions_once(monkeypatch):
+    import kpd.grouping
+    import kpd.mesh
+    import kpd.rig
+    from kpd.commands.render import bind_beside_drawing
+    from kpd.grouping import first_occurrence_groups
+    from kpd.io import Mesh
+    from kpd.rig import Rig
+    from kpd.viewer.app import Binding
+    from kpd.viewer.render import ViewSettings
+
+    calls = []
+
+    def counted(keys):
+        calls.append(len(keys))
+        return first_occurrence_groups(keys)
+
+    for module in (kpd.mesh, kpd.grouping, kpd.rig):  # wherever a grouping may be asked for
+        monkeypatch.setattr(module, "first_occurrence_groups", counted)
+    rng = np.random.default_rng(5)
+    vertices = rng.uniform(-1.0, 1.0, size=(3000, 3))
+    vertices[2000:] = vertices[:1000]  # copies of a position
+    mesh = Mesh(vertices, rng.integers(0, 3000, size=(6000, 3)))
+    keypoints = vertices[:4]
+    rig, shaded = bind_beside_drawing(Binding(mesh, 4, lambda: Rig.bind(mesh, keypoints)), ViewSettings())
+    assert calls == [3000]  # the binding's and the drawing's groups, found once
+    assert shaded.welding.groups == 2000
+    alone = Rig.bind(Mesh(vertices.copy(), mesh.triangles), keypoints)  # its own positions grouped again
+    assert calls == [3000, 3000]
+    np.testing.assert_array_equal(rig.basis, alone.basis)
+
+
 @pytest.fixture(scope="module")
 def dense_chair(data_dir):
     """The unseen ShapeNet chair subdivided twice (86k vertices, 344k triangles, half of them stored twice)."""

@@ -58,11 +58,13 @@ class NoWindowError(KpdError):
 class _Welding:
     """Vertices grouped by position (``inverse`` (V,): the group of each vertex; ``groups``: how many)."""
 
-    def __init__(self, vertices: np.ndarray, triangles: np.ndarray | None = None) -> None:  # triangles: not needed
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray | None = None, *,
+                 grouped: tuple[np.ndarray, np.ndarray] | None = None) -> None:  # triangles: not needed
         from kpd.grouping import first_occurrence_groups
 
-        # groups numbered in order of first occurrence, found through a hash table (a sort took 5x as long)
-        first, self.inverse = first_occurrence_groups(np.asarray(vertices, dtype=np.float64))  # (V,) each one's group
+        # groups numbered in order of first occurrence, found through a hash table (a sort took 5x as long);
+        # ``grouped``: that result already at hand (a mesh's own, kpd.mesh.Mesh.position_groups)
+        first, self.inverse = grouped or first_occurrence_groups(np.asarray(vertices, dtype=np.float64))
         self.groups = len(first)
 
 
@@ -849,7 +851,7 @@ class ShadedMesh:
 
         self.mesh = mesh
         triangles = np.asarray(mesh.triangles, dtype=np.int64)
-        self.welding = _Welding(mesh.vertices)
+        self.welding = _Welding(mesh.vertices, grouped=mesh.position_groups())  # the binding's groups too
         self.parts: list[_Part] = []
         t = len(triangles)
         textured = bool(mesh.textures) and mesh.triangle_uvs is not None and not override
