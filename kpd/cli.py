@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import atexit
 import gc
 import importlib
 import logging
+import os
 import sys
+import threading
 
 from kpd.commands import COMMANDS, run_checks
 from kpd.errors import KpdError
@@ -43,6 +46,35 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    code = _main(argv)
+    if argv is None:  # the program itself
+        _end_program(code)
+    return code
+
+
+def _end_program(code: int) -> None:
+    """End the program now, without the interpreter's teardown.
+
+    The teardown frees every object one by one and collects the cycles among them: 0.2-0.35 s after any command
+    (numba's, SciPy's and Open3D's modules, a dense mesh's arrays), while the operating system frees the process's
+    memory at once anyway. What the interpreter's exit does before it is done here the same way: the threads still
+    at work are waited for (and idle pool workers woken to end: ``threading._shutdown``, which the interpreter calls
+    first), the functions registered with :mod:`atexit` run (logging's flush, multiprocessing's children), and both
+    output streams are flushed. An interpreter without ``threading._shutdown`` ends as usual."""
+    shutdown = getattr(threading, "_shutdown", None)
+    if shutdown is None:
+        return
+    shutdown()
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe (kpd ... | head): what was not read is lost either way
+            code = code or 120  # the interpreter's own status when it cannot flush
+    os._exit(code)
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

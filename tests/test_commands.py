@@ -325,3 +325,37 @@ def test_bad_input_exits_2_with_one_line(case, toy, bare, chair_file, tmp_path, 
     assert len(lines) == 1 and lines[0].startswith(f"kpd {command}: error: "), err
     assert out == ""
     assert _snapshot(tmp_path) == before  # nothing written, nothing replaced
+
+
+_PROGRAM = """
+import atexit, sys, threading, time
+from pathlib import Path
+from kpd.cli import main
+
+out = Path(sys.argv[1])
+atexit.register(lambda: (out / "atexit").write_text("ran"))
+
+def slow():  # a thread still at work when the command ends
+    time.sleep(0.5)
+    (out / "thread").write_text("done")
+
+threading.Thread(target=slow).start()
+sys.argv = ["kpd", *sys.argv[2:]]
+sys.exit(main())
+"""
+
+
+@pytest.mark.parametrize("argv, status", [(["keypoints", "--help"], 0), (["keypoints", "chair", "missing.ply"], 2)])
+def test_the_program_ends_as_the_interpreter_would_without_its_teardown(argv, status, tmp_path):
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _PROGRAM, str(tmp_path), *argv], capture_output=True, text=True,
+                          cwd=tmp_path, timeout=120)
+    assert done.returncode == status
+    assert (tmp_path / "thread").read_text() == "done"  # waited for
+    assert (tmp_path / "atexit").read_text() == "ran"
+    if status == 0:
+        assert "example:\n  kpd keypoints " in done.stdout  # the whole help, flushed
+    else:
+        assert done.stderr == "kpd keypoints: error: missing.ply: no such file\n"
