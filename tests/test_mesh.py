@@ -164,4 +164,3 @@ def test_position_groups_are_found_once_and_follow_new_positions():
     np.testing.assert_array_equal(mesh.position_groups()[1], [0, 1, 2, 0, 1])
     for again in (copy.deepcopy(moved), pickle.loads(pickle.dumps(moved))):
         np.testing.assert_array_equal(again.position_groups()[1], first_occurrence_groups(again.vertices)[1])
-
