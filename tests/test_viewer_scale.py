@@ -273,6 +273,38 @@ def test_culling_near_runs_first_keeps_the_same_triangles_and_judges_fewer(dense
             assert judged["near first listed"] < 0.9 * judged["in order listed"], judged
 
 
+
+def test_a_block_of_triangles_is_hidden_only_when_each_of_them_is(dense_chair):
+    """Pass 1 leaves out 32 nearby triangles at once when their common box is behind the depth reached: a block is
+    judged hidden only when each of its triangles, judged alone against the same depths, is; and seen whole, many
+    blocks of the far side are."""
+    from kpd.viewer.gl import _BLOCK, DEPTH_SLACK, CullingLayout, Viewport, _block_hidden, _margin, visible_triangles
+    from kpd.viewer.render import ViewSettings, camera_pose
+
+    vertices, triangles = dense_chair.vertices, dense_chair.triangles
+    layout = CullingLayout(vertices, triangles)
+    samples = np.array([[0.375, 0.125], [0.875, 0.375], [0.125, 0.625], [0.625, 0.875]])
+    camera = camera_pose(vertices, ViewSettings(width=400, height=300, azimuth=30, elevation=20))
+    viewport = Viewport(camera, 400, 300, samples)
+    scratch: dict = {}
+    visible_triangles(vertices, layout.triangles, viewport, scratch=scratch, neighbours=layout.neighbours,
+                      index=layout.used, cells=layout.cells)
+    screen, depth = scratch["screen"], scratch["depth"]  # the projected points and the depths at the end of pass 1
+    delta = _margin(vertices, viewport)
+    args = (layout.triangles, screen, 400, 300, samples[:, 0].copy(), samples[:, 1].copy(), delta, depth[0], depth[1],
+            DEPTH_SLACK)
+    blocks = range(0, len(layout.triangles) - _BLOCK, _BLOCK)
+    hidden = [s for s in blocks if _block_hidden(s, s + _BLOCK, *args)]
+    assert 0.1 * len(blocks) < len(hidden) < 0.9 * len(blocks)
+    for s in hidden[::7]:
+        assert all(_block_hidden(t, t + 1, *args) for t in range(s, s + _BLOCK))
+    # one triangle that shows makes a block of hidden ones worth looking at
+    shown = next(t for t in range(len(layout.triangles)) if not _block_hidden(t, t + 1, *args))
+    mixed = np.concatenate([layout.triangles[hidden[0]:hidden[0] + _BLOCK], layout.triangles[shown:shown + 1]])
+    assert _block_hidden(0, _BLOCK, mixed, *args[1:])
+    assert not _block_hidden(0, _BLOCK + 1, mixed, *args[1:])
+
+
 _HELD_BINDING = """
 import sys, time
 from pathlib import Path
