@@ -211,6 +211,38 @@ def test_straightening_of_a_dense_cad_mesh_solves_near_the_slivers_that_bend_it(
     assert worst["local"] <= worst["whole"] < worst["plain"]
 
 
+def test_the_straightenings_seeds_are_the_same_on_two_threads_as_on_one(data_dir, monkeypatch):
+    """The region's seeds are judged from each sliver's step, made with the system (beside the MVC basis): the same
+    seeds whether the slivers are judged in two halves on two threads or at once, and each step is the sliver's
+    weight times its corner's coefficient over that corner's diagonal entry."""
+    import kpd.rig as kr
+
+    chair = data_dir / "keypointnet" / "models" / "03001627" / "fe6b3c001a86d844d5767a0de8dd037e" / "model.obj"
+    mesh, rig, vertices, basis = subdivided_unstraightened(chair, 1, "chair")
+    points, inverse = kr._merge_coincident(vertices)
+    system = kr._StraightenSystem(points, np.ascontiguousarray(inverse[mesh.triangles]), kr.STRAIGHTEN_THINNESS,
+                                  kr.STRAIGHTEN_REACH)
+    assert system.slivers > 1000 and system.step.shape == (system.slivers,)
+    merged = np.ascontiguousarray(basis[np.unique(inverse, return_index=True)[1]])
+    monkeypatch.setattr(kr, "_SEEDS_ON_TWO_THREADS", 10**12)
+    alone = system._seeds(merged, kr.STRAIGHTEN_TOLERANCE)
+    monkeypatch.setattr(kr, "_SEEDS_ON_TWO_THREADS", 0)
+    halves = system._seeds(merged, kr.STRAIGHTEN_TOLERANCE)
+    np.testing.assert_array_equal(halves, alone)
+    assert 0 < alone.sum() < len(alone)
+    for s in (0, system.slivers // 2, system.slivers - 1):
+        c, a, b = system.ends[s]
+        t = system.along[s]
+        diagonal = {}
+        for i in (c, a, b):
+            row = np.empty(system.indptr[i + 1] - system.indptr[i])
+            diagonal[i] = kr._row(i, system.indptr, system.indices, system.points, system.sliver_values,
+                                  system.anchor, system.floor, row)
+        w = kr._sliver_weight(np.linalg.norm(points[b] - points[a]), system.height[s], kr._STRAIGHTEN_CAP)
+        expected = max(w / diagonal[c], w * (1 - t) / diagonal[a], w * t / diagonal[b])
+        assert system.step[s] == pytest.approx(expected, rel=1e-12)
+
+
 def test_coincident_mvc_basis_is_the_weights_times_the_rows(data_dir):
     mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0956.ply")  # ~4 vertices per position
     rig = fps_rig(mesh, straighten=False)
