@@ -111,7 +111,9 @@ class Normalizer:
     def apply(self, points: Any) -> np.ndarray:
         """``(points - center_) / scale_`` for ``points : (N, 3)``."""
         self._check_fitted()
-        return (as_points(points, min_count=0) - self.center_) / self.scale_
+        out = as_points(points, min_count=0) - self.center_
+        out /= self.scale_  # in place: the same numbers, without a second (N, 3) array to fault in
+        return out
 
     def invert(self, points: Any) -> np.ndarray:
         """``points * scale_ + center_``, the inverse of :meth:`apply`."""

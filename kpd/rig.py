@@ -171,6 +171,7 @@ class Rig:
         enclose: bool = True,
         seed: int = 0,
         straighten: bool = True,
+        model_vertices: Any = None,
     ) -> "Rig":
         """Bind a mesh to keypoints predicted (or picked) in the model's [-1, 1] frame.
 
@@ -188,12 +189,20 @@ class Rig:
             some points outside, where MVC misplaces them).
         seed : seed of the surface sample.
         straighten : keep the mesh's sliver triangles from turning over in edits (:func:`straighten_basis`).
+        model_vertices : (V, 3) float64 ``normalizer.apply(mesh.vertices)``, when the caller has it already (with
+            ``normalizer`` given): not computed again.
         """
         if not isinstance(mesh, Mesh):
             raise InputError(f"mesh must be a kpd.io.Mesh; got {type(mesh).__name__}")
         normalizer = normalizer if normalizer is not None else Normalizer().fit(mesh.vertices)
         keypoints = as_points(keypoints, "keypoints")
-        vertices = normalizer.apply(mesh.vertices)  # (V, 3)
+        if model_vertices is None:
+            vertices = normalizer.apply(mesh.vertices)  # (V, 3)
+        else:
+            vertices = as_points(model_vertices, "model_vertices", min_count=0)
+            if vertices.shape != mesh.vertices.shape:
+                raise InputError(f"model_vertices must have the mesh's shape {mesh.vertices.shape}; got "
+                                 f"{vertices.shape}")
         if cage is None:
             if points is None:
                 points = sample_surface(vertices, mesh.triangles, _CAGE_SAMPLE_POINTS, seed=seed).points

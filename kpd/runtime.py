@@ -312,16 +312,14 @@ class Model:
         influence = prediction.influence
         if self._rig_fit:  # a tighter cage for editing, with the learned motion transferred onto it
             rig_cage = self._fitted_cage(prediction.points, vertices, {**self._cage_fit, **self._rig_fit})
-            del vertices  # the binding normalises the mesh itself
             support = min(self.num_cage_vertices, int(round(self._transfer.get("support", TRANSFER_SUPPORT) * self.m)))
             influence = transfer_influence(influence, prediction.keypoints, prediction.points, cage, rig_cage,
                                            self.m, sigma=self._transfer.get("sigma", TRANSFER_SIGMA),
                                            ridge=self._transfer.get("ridge", TRANSFER_RIDGE), support=support)
             return Rig.bind(mesh, prediction.keypoints, influence, normalizer=prediction.normalizer,
-                            cage=rig_cage, m=support, straighten=straighten)
-        del vertices
+                            cage=rig_cage, m=support, straighten=straighten, model_vertices=vertices)
         return Rig.bind(mesh, prediction.keypoints, influence, normalizer=prediction.normalizer,
-                        cage=cage, m=self.m, straighten=straighten)
+                        cage=cage, m=self.m, straighten=straighten, model_vertices=vertices)
 
     def _fitted_cage(self, points: np.ndarray, vertices: np.ndarray | None, fit: dict) -> Cage:
         """The template shrunk onto the sampled points (N, 3), then grown to enclose the vertices (V, 3) if given."""

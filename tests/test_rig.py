@@ -59,6 +59,25 @@ def test_deform_cage_and_deformed_mesh():
     np.testing.assert_allclose(mesh.vertices, rig.deform(kp))
 
 
+def test_a_binding_given_the_model_frame_vertices_is_the_same_rig(data_dir):
+    """Model.rig hands the binding the mesh's vertices in the model frame it made for the cage: the same basis as
+    when the binding makes them itself; vertices of another shape are refused."""
+    mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply")
+    norm = Normalizer().fit(mesh.vertices)
+    keypoints = norm.apply(mesh.vertices[:: max(1, len(mesh.vertices) // 8)][:8])
+    plain = Rig.bind(mesh, keypoints, normalizer=norm)
+    given = Rig.bind(mesh, keypoints, normalizer=norm, model_vertices=norm.apply(mesh.vertices))
+    np.testing.assert_array_equal(given.basis, plain.basis)
+    with pytest.raises(InputError, match="model_vertices"):
+        Rig.bind(mesh, keypoints, normalizer=norm, model_vertices=norm.apply(mesh.vertices)[:-1])
+
+
+def test_normalising_rounds_as_subtracting_then_dividing():
+    points = np.random.default_rng(3).normal(size=(1000, 3)) * 1e3
+    norm = Normalizer().fit(points)
+    np.testing.assert_array_equal(norm.apply(points), (points - norm.center_) / norm.scale_)
+
+
 def test_save_load_round_trip(tmp_path):
     rig = corner_rig()
     rig.save(tmp_path / "rig.npz")
