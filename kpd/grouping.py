@@ -248,11 +248,10 @@ def same_corners(triangles, mapping, top, drop_collapsed, same):  # pragma: no c
     """``same[t]``: the first triangle with the corners of t (t itself when no earlier one has them), each corner
     taken through ``mapping`` (into [0, top)); with ``drop_collapsed``, -1 for triangles with two equal corners.
     Triangles are bucketed by their smallest corner (a counting sort, in triangle order), then compared on the other
-    two within a bucket."""
+    two within a bucket. ``same`` holds each triangle's smallest corner until the buckets are compared."""
     n = triangles.shape[0]
-    low = np.empty(n, dtype=np.int64)
     rest = np.empty(n, dtype=np.int64)  # the two larger corners as one number
-    starts = np.zeros(top + 1, dtype=np.int64)
+    starts = np.zeros(top + 2, dtype=np.int64)
     for t in range(n):
         a, b, c = mapping[triangles[t, 0]], mapping[triangles[t, 1]], mapping[triangles[t, 2]]
         if a > b:
@@ -262,20 +261,19 @@ def same_corners(triangles, mapping, top, drop_collapsed, same):  # pragma: no c
         if a > b:
             a, b = b, a
         if drop_collapsed and (a == b or b == c):
-            low[t] = -1
             same[t] = -1
             continue
-        low[t] = a
+        same[t] = a
         rest[t] = b * top + c
-        starts[a + 1] += 1
+        starts[a + 2] += 1
     for v in range(top):
-        starts[v + 1] += starts[v]
-    fill = starts[:-1].copy()
-    order = np.empty(starts[top], dtype=np.int64)
+        starts[v + 2] += starts[v + 1]
+    order = np.empty(starts[top + 1], dtype=np.int64)  # by smallest corner; bucket v ends up at starts[v]:starts[v + 1]
     for t in range(n):
-        if low[t] >= 0:
-            order[fill[low[t]]] = t
-            fill[low[t]] += 1
+        a = same[t]
+        if a >= 0:
+            order[starts[a + 1]] = t
+            starts[a + 1] += 1
     for v in range(top):
         for i in range(starts[v], starts[v + 1]):
             key = rest[order[i]]

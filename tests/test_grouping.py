@@ -116,3 +116,25 @@ def test_coincident_first_on_a_scan_sized_grid_of_repeated_rows():
     lowest = np.full(inverse.max() + 1, len(rows))
     np.minimum.at(lowest, inverse, np.arange(len(rows)))
     np.testing.assert_array_equal(first, lowest[inverse])
+
+
+def test_same_corners_names_the_first_triangle_over_the_same_corners():
+    from kpd.grouping import same_corners
+
+    @settings(max_examples=60, deadline=None)
+    @given(n=st.integers(1, 200), points=st.integers(1, 15), top=st.integers(1, 8), drop=st.booleans(),
+           seed=st.integers(0, 2**16))
+    def check(n, points, top, drop, seed):
+        rng = np.random.default_rng(seed)
+        triangles = rng.integers(0, points, size=(n, 3))  # repeats, either way round, collapsed
+        mapping = rng.integers(0, top, size=points)  # several points onto one corner
+        same = np.empty(n, dtype=np.int64)
+        same_corners(triangles, mapping, top, drop, same)
+        corners = np.sort(mapping[triangles], axis=1)
+        for t in range(n):
+            if drop and (corners[t, 0] == corners[t, 1] or corners[t, 1] == corners[t, 2]):
+                assert same[t] == -1
+            else:
+                assert same[t] == np.flatnonzero((corners[: t + 1] == corners[t]).all(axis=1))[0]
+
+    check()
