@@ -12,7 +12,6 @@ import logging
 from typing import Any, NamedTuple
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from kpd.errors import InputError, KpdError
 from kpd.geometry import as_points
@@ -203,6 +202,8 @@ def fit_cage(
         raise InputError(f"step must lie in (0, 1); got {step}")
     if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 0:
         raise InputError(f"iterations must be an integer >= 0; got {iterations!r}")
+
+    from scipy.spatial import cKDTree  # here: importing scipy.spatial takes 0.3 s, and the CLI's help needs none
 
     vertices = vertices.copy()
     tree = cKDTree(points) if iterations else None
@@ -543,6 +544,8 @@ def cage_faces_from_vertices(vertices: Any) -> np.ndarray:
     if not (radii > 0).all():
         raise InputError(f"cage vertex {int(np.argmin(radii))} lies at the origin; its direction is undefined")
     dirs = vertices / radii[:, None]
+    from scipy.spatial import ConvexHull, QhullError
+
     try:
         hull = ConvexHull(dirs)
     except QhullError as exc:

@@ -8,7 +8,6 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from kpd.errors import InputError, NotFittedError
 from kpd.grouping import compiled_on_first_call
@@ -550,6 +549,8 @@ def chamfer(a: Any, b: Any) -> float:
         d = np.sum(a * a, 1)[:, None] + np.sum(b * b, 1)[None, :] - 2.0 * a @ b.T  # (N, M)
         np.maximum(d, 0.0, out=d)
         return float(d.min(axis=1).mean() + d.min(axis=0).mean())
+    from scipy.spatial import cKDTree  # here: importing scipy.spatial takes 0.3 s, most commands' start needs none
+
     d_ab, _ = cKDTree(b).query(a, k=1)
     d_ba, _ = cKDTree(a).query(b, k=1)
     return float(np.mean(d_ab**2) + np.mean(d_ba**2))

@@ -119,6 +119,22 @@ def test_cli_help_does_not_import_torch():
     assert not torch_loaded_after("from kpd.cli import build_parser\nbuild_parser()")
 
 
+
+def test_the_cli_parser_and_the_mesh_readers_leave_scipy_spatial_unloaded():
+    """Importing scipy.spatial takes about 0.3 s: the parser (every command's start, and --help) and the readers
+    (which commands run beside the model's load) do without it; what needs it imports it."""
+    code = ("import sys\nfrom kpd.cli import build_parser\nbuild_parser()\nimport kpd.io, kpd.geometry, kpd.cage\n"
+            "print('scipy.spatial' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines()[-1] == "False"
+    code = ("import sys, numpy as np\nfrom kpd.geometry import chamfer\n"
+            "a = np.random.default_rng(0).normal(size=(3000, 3))\nchamfer(a, a + 1e-3)\n"
+            "print('scipy.spatial' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines()[-1] == "True"
+
 def test_cli_help_exits_zero():
     out = subprocess.run([sys.executable, "-m", "kpd.cli", "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "usage: kpd" in out.stdout
