@@ -21,6 +21,8 @@ PAPER = {"alpha_kpt": 1.0, "inf_reg": "paper", "alpha_inf": 1e-6, "warmup": 0, "
          "paper_m": True}
 
 
+_QUIET_RANK_GRACE = 3.0  # s a rank that stops without a message of its own waits before it ends
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("data", type=folder, help="dataset folder (ModelNet, ShapeNet v1/v2, or a flat folder of meshes)")
     parser.add_argument("--category", help="class folder, ShapeNet synset id or name (e.g. chair)")
@@ -135,7 +137,11 @@ def run(args: argparse.Namespace) -> int:
         finally:
             distributed.shutdown()
     except distributed.Stopped:
-        return 2  # another rank printed the error
+        # another rank prints the error. torchrun ends the whole job once one rank has exited: a quiet rank that
+        # ended at once could stop the job before that line is out (seen since the program skips the interpreter's
+        # teardown), so it waits a little first; torchrun ends it when the reporting rank is done
+        time.sleep(_QUIET_RANK_GRACE)
+        return 2
 
 
 def check_run_folder(args: argparse.Namespace, out: Path) -> None:
