@@ -502,13 +502,34 @@ def _pair_far(sx, sy, screen, p0, p1, q, d, delta):  # pragma: no cover - compil
     return np.float32(np.inf)
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _reached(x0, x1, y0, y1, i0, i1, j0, j1, near, delta, width, ox, oy, out, seen):  # pragma: no cover - compiled
+    """Whether a sample point within ``delta`` of the box [x0, x1] x [y0, y1] (in the pixels i0..i1, j0..j1) is
+    not behind the depth reached there (both rows ``out`` and ``seen``) by more than what ``near`` allows: where
+    something nearest at ``near`` may still show (pass 1 of :func:`visible_triangles`)."""
+    count = ox.shape[0]
+    for i in range(i0, i1 + 1):
+        column = _offsets_in(x0 - delta - i, x1 + delta - i, ox)
+        if column == 0:
+            continue
+        for j in range(j0, j1 + 1):
+            row = column & _offsets_in(y0 - delta - j, y1 + delta - j, oy)
+            if row == 0:
+                continue
+            base = (j * width + i) * count
+            for k in range(count):
+                row &= ~((near > min(out[base + k], seen[base + k])) << k)
+            if row != 0:
+                return True
+    return False
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _block_hidden(s0, s1, triangles, screen, width, height, ox, oy, delta, out, seen, slack):  # pragma: no cover
     """Whether pass 1 would leave out each of the triangles ``s0:s1`` as hidden: all in front of the camera and over
     at most 25 pixels, and the nearest corner of them all behind the depth reached so far (both rows, by more than
     ``slack``) at every sample point in reach of their common box (which holds each one's reach). The same verdict
     as for each triangle alone, at a fraction of the cost: a run's triangles lie near each other."""
-    count = ox.shape[0]
     x0 = y0 = np.inf
     x1 = y1 = -np.inf
     nearest = np.inf
@@ -527,23 +548,9 @@ def _block_hidden(s0, s1, triangles, screen, width, height, ox, oy, delta, out, 
             return False
         x0, x1, y0, y1 = min(x0, tx0), max(x1, tx1), min(y0, ty0), max(y1, ty1)
         nearest = min(nearest, za, zb, zc)
-    near = nearest / (1.0 + slack)
     i0, i1 = max(math.floor(x0 - delta), 0), min(math.floor(x1 + delta), width - 1)
     j0, j1 = max(math.floor(y0 - delta), 0), min(math.floor(y1 + delta), height - 1)
-    for i in range(i0, i1 + 1):
-        column = _offsets_in(x0 - delta - i, x1 + delta - i, ox)
-        if column == 0:
-            continue
-        for j in range(j0, j1 + 1):
-            row = column & _offsets_in(y0 - delta - j, y1 + delta - j, oy)
-            if row == 0:
-                continue
-            base = (j * width + i) * count
-            for k in range(count):
-                row &= ~((near > min(out[base + k], seen[base + k])) << k)
-            if row != 0:
-                return False
-    return True
+    return not _reached(x0, x1, y0, y1, i0, i1, j0, j1, nearest / (1.0 + slack), delta, width, ox, oy, out, seen)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -591,24 +598,7 @@ def _fronts(ranges, half, triangles, neighbours, screen, width, height, ox, oy, 
                 # have none and are left out (pass 2 keeps a triangle over more than 25 pixels untested: listed)
                 near = min(za, zb, zc) / (1.0 + slack) if skip_hidden and (i1 - i0 + 1) * (j1 - j0 + 1) <= 25 \
                     else -np.inf
-                reached = False
-                for i in range(i0, i1 + 1):
-                    column = _offsets_in(x0 - delta - i, x1 + delta - i, ox)
-                    if column == 0:
-                        continue
-                    for j in range(j0, j1 + 1):
-                        row = column & _offsets_in(y0 - delta - j, y1 + delta - j, oy)
-                        if row == 0:
-                            continue
-                        base = (j * width + i) * count
-                        for k in range(count):
-                            row &= ~((near > min(out[base + k], seen[base + k])) << k)
-                        if row != 0:
-                            reached = True
-                            break
-                    if reached:
-                        break
-                if not reached:
+                if not _reached(x0, x1, y0, y1, i0, i1, j0, j1, near, delta, width, ox, oy, out, seen):
                     continue
                 listed[found] = t
                 found += 1
@@ -1073,46 +1063,10 @@ def distinct_triangles(triangles: np.ndarray) -> np.ndarray:
     triangles = np.ascontiguousarray(triangles, dtype=np.int64)
     if not len(triangles):
         return np.zeros(0, dtype=np.int64)
-    first = np.empty(len(triangles), dtype=np.bool_)
-    _first_of_corners(triangles, int(triangles.max()) + 1, first)
-    return np.flatnonzero(first)
-
-
-@numba.njit(cache=True, nogil=True)
-def _first_of_corners(triangles, top, first):  # pragma: no cover - compiled
-    """``first[t]``: whether no earlier triangle has the corners of t (corners in [0, top)). The triangles are
-    bucketed by their smallest corner (a counting sort, in triangle order) and compared on the other two within a
-    bucket: :func:`kpd.grouping.same_corners` without the corners' mapping and the first copy's index (0.16 s
-    against 0.21-0.23 s at 5.5M triangles, a third of the fresh memory)."""
-    n = triangles.shape[0]
-    starts = np.zeros(top + 2, dtype=np.int64)
-    rest = np.empty(n, dtype=np.int64)  # the two larger corners as one number
-    for t in range(n):
-        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        if a > b:
-            a, b = b, a
-        if b > c:
-            b, c = c, b
-        if a > b:
-            a, b = b, a
-        rest[t] = b * top + c
-        starts[a + 2] += 1
-    for v in range(top):
-        starts[v + 2] += starts[v + 1]
-    order = np.empty(n, dtype=np.int64)  # by smallest corner; bucket v ends up at starts[v]:starts[v + 1]
-    for t in range(n):
-        a = min(triangles[t, 0], triangles[t, 1], triangles[t, 2])
-        order[starts[a + 1]] = t
-        starts[a + 1] += 1
-    for v in range(top):
-        for i in range(starts[v], starts[v + 1]):
-            key = rest[order[i]]
-            earliest = True
-            for j in range(starts[v], i):
-                if rest[order[j]] == key:
-                    earliest = False
-                    break
-            first[order[i]] = earliest
+    top = int(triangles.max()) + 1
+    same = np.empty(len(triangles), dtype=np.int64)
+    same_corners(triangles, np.arange(top, dtype=np.int64), top, False, same)
+    return np.flatnonzero(same == np.arange(len(triangles)))
 
 
 def material_sides(triangles: np.ndarray, ids: np.ndarray, welding: _Welding) -> tuple[np.ndarray, np.ndarray]:
