@@ -178,7 +178,8 @@ def _check_mesh(vertices: Any, triangles: Any) -> tuple[np.ndarray, np.ndarray]:
 def _draw(vertices: np.ndarray, triangles: np.ndarray, area2: np.ndarray, n: int,
           rng: np.random.Generator) -> SurfaceSample:
     """``n`` points drawn by area: the triangles first, then the corners and cross products of those alone."""
-    faces = rng.choice(len(triangles), size=n, p=area2 / area2.sum()).astype(np.int64)
+    faces = np.empty(n, dtype=np.int64)
+    _picks_by_area(area2, float(area2.sum()), rng.random(n), faces)
     r1, r2 = rng.random(n), rng.random(n)
     s = np.sqrt(r1)
     u, v = 1.0 - s, s * (1.0 - r2)  # barycentric weights of a and b
@@ -187,6 +188,33 @@ def _draw(vertices: np.ndarray, triangles: np.ndarray, area2: np.ndarray, n: int
     points = u[:, None] * a + v[:, None] * b + (1.0 - u - v)[:, None] * c
     normals = triangle_cross(vertices, picked) / area2[faces, None]
     return SurfaceSample(points, normals, faces)
+
+
+@compiled_on_first_call
+def _picks_by_area(area2, total, uniform, out):  # pragma: no cover - compiled
+    """``out[j]``: the triangle that ``Generator.choice(len(area2), p=area2 / total)`` picks for its uniform number
+    ``uniform[j]``, to the bit (numpy takes the cumulative sum of ``p``, divides it by its last value and finds each
+    number in it with ``searchsorted(side="right")``), in two passes over the areas and without the (T,) arrays of
+    ``p`` and its cumulative sum (fresh memory, and most of the time of a sample of a scan-sized mesh)."""
+    t = area2.shape[0]
+    last = 0.0
+    for i in range(t):
+        last += area2[i] / total
+    order = np.argsort(uniform)  # the numbers in ascending order: found in one pass along the sums
+    m = uniform.shape[0]
+    j = 0
+    running = 0.0
+    for i in range(t):
+        if j == m:
+            break
+        running += area2[i] / total
+        value = running / last
+        while j < m and uniform[order[j]] < value:
+            out[order[j]] = i
+            j += 1
+    while j < m:  # at or past the last value (not for numbers below 1)
+        out[order[j]] = t
+        j += 1
 
 
 @compiled_on_first_call
@@ -236,8 +264,11 @@ def sample_surface(
         raise InputError(f"the number of samples must be at least 1; got {n}")
     rng = as_rng(seed)
     area2 = _double_areas(vertices, triangles)  # (T,)
-    if not area2.sum() > 0:
+    total = float(area2.sum())
+    if not total > 0:
         raise InputError("cannot sample a mesh whose triangles all have zero area")
+    if not np.isfinite(total):
+        raise InputError("cannot sample a mesh this large: its triangles' areas overflow (scale it down)")
     if not outer:
         return _draw(vertices, triangles, area2, n, rng)
     inside = _InteriorTest(vertices, triangles)

@@ -154,8 +154,28 @@ def test_double_areas_are_the_norms_of_the_cross_products_to_the_bit():
     assert _double_areas(v, t[:0]).shape == (0,)
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 5000), st.integers(1, 3000), st.integers(1, 8), st.floats(0.0, 0.6), st.integers(0, 2**31))
+def test_picks_by_area_are_numpys_choice_to_the_bit(count, n, power, zeros, seed):
+    # zero areas (degenerate triangles), a few large areas among many small ones, and ties
+    from kpd.geometry import _picks_by_area
+
+    rng = np.random.default_rng(seed)
+    area2 = rng.random(count) ** power
+    area2[rng.random(count) < zeros] = 0.0
+    if seed % 3 == 0:
+        area2 = np.round(area2, 1)
+    area2[count // 2] = 0.5
+    want = np.random.default_rng(seed).choice(count, size=n, p=area2 / area2.sum())
+    got = np.empty(n, dtype=np.int64)
+    _picks_by_area(area2, float(area2.sum()), np.random.default_rng(seed).random(n), got)
+    np.testing.assert_array_equal(got, want)
+
+
 def test_sample_surface_errors():
     v, t = unit_cube()
+    with pytest.raises(InputError, match="overflow"):
+        sample_surface(v * 1e200, t, 10)
     with pytest.raises(InputError, match="indices"):
         sample_surface(v, t + 10, 10)
     with pytest.raises(InputError, match="zero area"):
