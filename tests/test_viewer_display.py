@@ -36,3 +36,14 @@ def test_private_display_runs_and_its_screen_can_be_grabbed(tmp_path):
     after = subprocess.run(["xdotool", "getdisplaygeometry"], env=dict(os.environ, DISPLAY=display),
                            capture_output=True, text=True, timeout=20)
     assert after.returncode != 0  # the server stopped with the block
+
+
+def test_software_rasteriser_gets_one_thread_more_than_the_processors_unless_the_user_says(monkeypatch):
+    from kpd.viewer.gl import _raster_threads
+
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
+    _raster_threads()
+    assert os.environ["LP_NUM_THREADS"] == str((os.cpu_count() or 1) + 1)
+    monkeypatch.setenv("LP_NUM_THREADS", "1")
+    _raster_threads()
+    assert os.environ["LP_NUM_THREADS"] == "1"

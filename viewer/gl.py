@@ -1186,6 +1186,16 @@ def _runtime_dir() -> None:
     os.environ["XDG_RUNTIME_DIR"] = tempfile.mkdtemp(prefix="kpd-xdg-")
 
 
+def _raster_threads() -> None:
+    """Mesa's software rasteriser (llvmpipe) draws with one thread per processor unless ``$LP_NUM_THREADS`` says
+    otherwise; kpd asks for one more, unless the user has set it. The frame is cut into tiles that its threads take
+    in turn: beside another busy process, a thread that the system holds back for a time slice holds back a smaller
+    share of the frame. Drawing the 489k triangles that show of a 1.37M-vertex chair at 960 x 720 (4 samples a
+    pixel) took 310 ms against 350 ms beside a busy process (medians of 24 draws each), and the same quiet; the
+    pictures do not change (each tile is drawn alike whatever thread takes it). A GPU driver ignores it."""
+    os.environ.setdefault("LP_NUM_THREADS", str((os.cpu_count() or 1) + 1))
+
+
 class GLView:
     """One Open3D legacy window with named geometries and a look-at camera.
 
@@ -1210,6 +1220,7 @@ class GLView:
             raise NoWindowError("no display to open a window on ($DISPLAY is not set); run under xvfb-run, or draw "
                                 "pictures with kpd render")
         _runtime_dir()
+        _raster_threads()
         self.width, self.height = int(width), int(height)
         self.vis = o3d.visualization.VisualizerWithKeyCallback()
         with _quiet_native_output() as said:
