@@ -30,7 +30,7 @@ import os
 import tempfile
 import threading
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numba
 import numpy as np
@@ -377,52 +377,77 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
         scratch.update(sizes=(count, len(triangles), points), screen=np.empty((count, 3)),
                        depth=np.empty((2, points), np.float32), front=np.empty(points, np.float32),
                        keep=np.empty(len(triangles), np.bool_), listed=np.empty(len(triangles), np.int32),
-                       listed_count=np.zeros(2, np.int64))
+                       listed_count=np.zeros(_PIECES, np.int64))
     screen = scratch["screen"]  # (V, 3) window x, y (y up) and the depth along the view axis
     _halves(_project, count, vertices, index, viewport.view, viewport.focal, w / 2, h / 2, screen)
     delta = _margin(vertices, viewport)
     depth = scratch["depth"]  # (2, H W S) per sample point, one row per thread
     depth.fill(np.inf)
     stop = np.zeros(1, np.uint8) if stop is None else stop
-    listed, listed_count = scratch["listed"], scratch["listed_count"]  # (T,) int32, (2,): pass 1's candidates
+    listed, listed_count = scratch["listed"], scratch["listed_count"]  # (T,) int32, (_PIECES,): pass 1's candidates
     listed_count.fill(0)
     ox, oy = np.ascontiguousarray(samples[:, 0]), np.ascontiguousarray(samples[:, 1])  # (S,) each
     if neighbours is None:
         neighbours = np.full((len(triangles), 3), -1, dtype=np.int32)
     n = len(triangles)
     two = n >= 200_000 and _two_threads()
-    if cells is None:  # in their order: a half each
-        half = n // 2 if two else n
-        ranges = (np.array([[0, half]], np.int64), np.array([[half, n]], np.int64))
-    else:  # the runs nearest first, every other run on each thread (both come nearer at once)
+    pieces = _PIECES if two else 1  # the work in pieces, each taken by whichever thread is free
+    if len(listed_count) < pieces:
+        listed_count = scratch["listed_count"] = np.zeros(pieces, np.int64)
+    if cells is None:  # in their order
+        bounds = np.linspace(0, n, pieces + 1).astype(np.int64)
+        ranges = [bounds[p:p + 2].reshape(1, 2) for p in range(pieces)]
+    else:  # the runs nearest first, in bands of about as many triangles; every other run of a band in each of its
+        # two pieces, which the two threads take at once (both come nearer together, as the depth fills from the front)
         first = triangles[cells[:-1], 0]  # (C,) a corner of each run
         order = np.argsort(screen[first, 2], kind="stable")
         runs = np.stack([cells[:-1], cells[1:]], axis=1)[order]  # (C, 2)
-        ranges = (runs[0::2], runs[1::2]) if two else (runs, runs[:0])
-    start = np.array([0, int((ranges[0][:, 1] - ranges[0][:, 0]).sum())], np.int64)  # of each thread's list
+        if pieces == 1:
+            ranges = [runs]
+        else:
+            ends = np.cumsum(runs[:, 1] - runs[:, 0])  # triangles up to each run's end
+            cuts = np.searchsorted(ends, np.arange(1, pieces // 2) * (n / (pieces // 2)))
+            ranges = [band[k::2] for band in np.split(runs, cuts) for k in (0, 1)]
+    sizes = np.array([int((r[:, 1] - r[:, 0]).sum()) for r in ranges], np.int64)
+    start = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)  # of each piece's list
     args = (triangles, neighbours, screen, w, h, ox, oy, delta, depth, listed, start, listed_count, stop,
             DEPTH_SLACK, cells is not None)
-    if two:
-        other = _pool().submit(_fronts, ranges[1], 1, *args)
-        _fronts(ranges[0], 0, *args)
-        other.result()
-    else:
-        _fronts(ranges[0], 0, *args)
-        _fronts(ranges[1], 1, *args)
+    _in_pieces(pieces, two, stop, lambda p, row: _fronts(ranges[p], row, p, *args))
     if stop[0]:
         return None
     front = np.minimum(depth[0], depth[1], out=scratch["front"])  # (H W S,)
     keep = scratch["keep"]
     keep.fill(False)
     args = (triangles, screen, w, h, ox, oy, delta, front, DEPTH_SLACK, listed, start, listed_count, keep, stop)
-    if two:
-        other = _pool().submit(_showing, 1, *args)
-        _showing(0, *args)
-        other.result()
-    else:
-        _showing(0, *args)
-        _showing(1, *args)
+    _in_pieces(pieces, two, stop, lambda p, row: _showing(p, *args))
     return None if stop[0] else keep
+
+
+# Pieces the culling's passes cut their work into (even): two threads take them in turn, so that a thread held back
+# by the system (another busy process) holds back one piece, not half of the work
+_PIECES = 16
+
+
+def _in_pieces(pieces: int, two: bool, stop: np.ndarray, work: Callable[[int, int], None]) -> None:
+    """``work(piece, row)`` for each piece in [0, pieces), in order of asking, on this thread (row 0) and, with
+    ``two``, a thread of the pool (row 1), each taking the next piece when it is free; until ``stop[0]`` is set."""
+    taken = itertools.count()  # next() of a count is atomic under the interpreter's lock
+
+    def worker(row: int) -> None:
+        while not stop[0]:
+            piece = next(taken)
+            if piece >= pieces:
+                return
+            work(piece, row)
+
+    if not two:
+        worker(0)
+        return
+    other = _pool().submit(worker, 1)
+    try:
+        worker(0)
+    finally:
+        other.result()
 
 
 def _margin(vertices: np.ndarray, viewport: Viewport) -> float:
@@ -554,18 +579,19 @@ def _block_hidden(s0, s1, triangles, screen, width, height, ox, oy, delta, out, 
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _fronts(ranges, half, triangles, neighbours, screen, width, height, ox, oy, delta, depth, listed, start,
+def _fronts(ranges, row, slot, triangles, neighbours, screen, width, height, ox, oy, delta, depth, listed, start,
             listed_count, stop, slack, skip_hidden):  # pragma: no cover - compiled
-    """Pass 1 of :func:`visible_triangles` over the triangles ``ranges[r, 0]:ranges[r, 1]`` in turn, into
-    ``depth[half]`` (the other thread's row is ``depth[1 - half]``); the triangles with a sample point in reach (or
-    a corner not in front of the camera) are listed for pass 2 in ``listed[start[half]:start[half] +
-    listed_count[half]]``. With ``skip_hidden``, one whose nearest corner lies behind the depth reached so far (both
-    rows, by more than ``slack``) at every sample point in its reach is left out. Returns early once ``stop[0]`` is
-    set. A sample point is at ``(i + ox[k], j + oy[k])`` in pixel (i, j)."""
-    out = depth[half]
-    seen = depth[1 - half]  # the other thread's: read while it writes (a depth only ever comes nearer)
+    """Pass 1 of :func:`visible_triangles` over the triangles ``ranges[r, 0]:ranges[r, 1]`` in turn (one piece of
+    the work), into ``depth[row]``, the calling thread's row (the other thread's is ``depth[1 - row]``); the
+    triangles with a sample point in reach (or a corner not in front of the camera) are listed for pass 2 in
+    ``listed[start[slot]:start[slot] + listed_count[slot]]``, the piece's place. With ``skip_hidden``, one whose
+    nearest corner lies behind the depth reached so far (both rows, by more than ``slack``) at every sample point in
+    its reach is left out. Returns early once ``stop[0]`` is set. A sample point is at ``(i + ox[k], j + oy[k])`` in
+    pixel (i, j)."""
+    out = depth[row]
+    seen = depth[1 - row]  # the other thread's: read while it writes (a depth only ever comes nearer)
     count = ox.shape[0]
-    found = start[half]  # the candidates go to listed[start[half]:found]
+    found = start[slot]  # the candidates go to listed[start[slot]:found]
     done = 0
     look = 0  # where the next look at stop is due
     for r in range(ranges.shape[0]):
@@ -650,14 +676,14 @@ def _fronts(ranges, half, triangles, neighbours, screen, width, height, ox, oy, 
                                     paired = _pair_far(sx, sy, screen, p0, p1, q, d, delta)
                                     if paired < out[base + k]:
                                         out[base + k] = paired
-    listed_count[half] = found - start[half]
+    listed_count[slot] = found - start[slot]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _showing(half, triangles, screen, width, height, ox, oy, delta, front, slack, listed, start, listed_count, keep,
              stop):  # pragma: no cover - compiled
-    """Pass 2 of :func:`visible_triangles` over the triangles thread ``half`` of pass 1 listed (``keep`` holds False
-    for the others); returns early once ``stop[0]`` is set."""
+    """Pass 2 of :func:`visible_triangles` over the triangles that pass 1 listed in its slot ``half`` (``keep``
+    holds False for the others); returns early once ``stop[0]`` is set."""
     count = ox.shape[0]
     # a drawn corner strays by at most delta along each axis, so by at most this far: the triangle drawn lies within
     # this distance of the one projected (each drawn corner does, and so does their convex hull)
