@@ -291,8 +291,7 @@ def test_a_block_of_triangles_is_hidden_only_when_each_of_them_is(dense_chair):
                       index=layout.used, cells=layout.cells)
     screen, depth = scratch["screen"], scratch["depth"]  # the projected points and the depths at the end of pass 1
     delta = _margin(vertices, viewport)
-    args = (layout.triangles, screen, 400, 300, samples[:, 0].copy(), samples[:, 1].copy(), delta, depth[0], depth[1],
-            DEPTH_SLACK)
+    args = (layout.triangles, screen, 400, 300, samples[:, 0].copy(), samples[:, 1].copy(), delta, depth, DEPTH_SLACK)
     blocks = range(0, len(layout.triangles) - _BLOCK, _BLOCK)
     hidden = [s for s in blocks if _block_hidden(s, s + _BLOCK, *args)]
     assert 0.1 * len(blocks) < len(hidden) < 0.9 * len(blocks)

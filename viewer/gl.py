@@ -236,7 +236,7 @@ def _pool() -> Any:
     if _POOL is None:
         from concurrent.futures import ThreadPoolExecutor
 
-        _POOL = ThreadPoolExecutor(2, thread_name_prefix="kpd-draw")  # two callers at once each get one
+        _POOL = ThreadPoolExecutor(2 * _MAX_CULLING_THREADS, thread_name_prefix="kpd-draw")  # two callers at once
     return _POOL
 
 
@@ -372,33 +372,31 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
     points = h * w * len(samples)
     if len(samples) > 64:  # more than the kernels' bit masks hold: every triangle
         return np.ones(len(triangles), dtype=np.bool_)
+    n = len(triangles)
+    threads = _culling_threads() if n >= 200_000 else 1
+    pieces = _BANDS * threads if threads > 1 else 1  # the work in pieces, each taken by whichever thread is free
     scratch = {} if scratch is None else scratch
-    if scratch.get("sizes") != (count, len(triangles), points):
-        scratch.update(sizes=(count, len(triangles), points), screen=np.empty((count, 3)),
-                       depth=np.empty((2, points), np.float32), front=np.empty(points, np.float32),
-                       keep=np.empty(len(triangles), np.bool_), listed=np.empty(len(triangles), np.int32),
-                       listed_count=np.zeros(_PIECES, np.int64))
+    if scratch.get("sizes") != (count, n, points, threads):
+        scratch.update(sizes=(count, n, points, threads), screen=np.empty((count, 3)),
+                       depth=np.empty((threads, points), np.float32), front=np.empty(points, np.float32),
+                       keep=np.empty(n, np.bool_), listed=np.empty(n, np.int32),
+                       listed_count=np.zeros(pieces, np.int64))
     screen = scratch["screen"]  # (V, 3) window x, y (y up) and the depth along the view axis
     _halves(_project, count, vertices, index, viewport.view, viewport.focal, w / 2, h / 2, screen)
     delta = _margin(vertices, viewport)
-    depth = scratch["depth"]  # (2, H W S) per sample point, one row per thread
+    depth = scratch["depth"]  # (threads, H W S) per sample point, one row per thread
     depth.fill(np.inf)
     stop = np.zeros(1, np.uint8) if stop is None else stop
-    listed, listed_count = scratch["listed"], scratch["listed_count"]  # (T,) int32, (_PIECES,): pass 1's candidates
+    listed, listed_count = scratch["listed"], scratch["listed_count"]  # (T,) int32, (pieces,): pass 1's candidates
     listed_count.fill(0)
     ox, oy = np.ascontiguousarray(samples[:, 0]), np.ascontiguousarray(samples[:, 1])  # (S,) each
     if neighbours is None:
         neighbours = np.full((len(triangles), 3), -1, dtype=np.int32)
-    n = len(triangles)
-    two = n >= 200_000 and _two_threads()
-    pieces = _PIECES if two else 1  # the work in pieces, each taken by whichever thread is free
-    if len(listed_count) < pieces:
-        listed_count = scratch["listed_count"] = np.zeros(pieces, np.int64)
     if cells is None:  # in their order
         bounds = np.linspace(0, n, pieces + 1).astype(np.int64)
         ranges = [bounds[p:p + 2].reshape(1, 2) for p in range(pieces)]
-    else:  # the runs nearest first, in bands of about as many triangles; every other run of a band in each of its
-        # two pieces, which the two threads take at once (both come nearer together, as the depth fills from the front)
+    else:  # the runs nearest first, in bands of about as many triangles; every threads-th run of a band in each of
+        # its pieces, which the threads take at once (they come nearer together, as the depth fills from the front)
         first = triangles[cells[:-1], 0]  # (C,) a corner of each run
         order = np.argsort(screen[first, 2], kind="stable")
         runs = np.stack([cells[:-1], cells[1:]], axis=1)[order]  # (C, 2)
@@ -406,31 +404,41 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
             ranges = [runs]
         else:
             ends = np.cumsum(runs[:, 1] - runs[:, 0])  # triangles up to each run's end
-            cuts = np.searchsorted(ends, np.arange(1, pieces // 2) * (n / (pieces // 2)))
-            ranges = [band[k::2] for band in np.split(runs, cuts) for k in (0, 1)]
+            cuts = np.searchsorted(ends, np.arange(1, _BANDS) * (n / _BANDS))
+            ranges = [band[k::threads] for band in np.split(runs, cuts) for k in range(threads)]
     sizes = np.array([int((r[:, 1] - r[:, 0]).sum()) for r in ranges], np.int64)
     start = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)  # of each piece's list
     args = (triangles, neighbours, screen, w, h, ox, oy, delta, depth, listed, start, listed_count, stop,
             DEPTH_SLACK, cells is not None)
-    _in_pieces(pieces, two, stop, lambda p, row: _fronts(ranges[p], row, p, *args))
+    _in_pieces(pieces, threads, stop, lambda p, row: _fronts(ranges[p], row, p, *args))
     if stop[0]:
         return None
-    front = np.minimum(depth[0], depth[1], out=scratch["front"])  # (H W S,)
+    front = np.minimum.reduce(depth, axis=0, out=scratch["front"])  # (H W S,)
     keep = scratch["keep"]
     keep.fill(False)
     args = (triangles, screen, w, h, ox, oy, delta, front, DEPTH_SLACK, listed, start, listed_count, keep, stop)
-    _in_pieces(pieces, two, stop, lambda p, row: _showing(p, *args))
+    _in_pieces(pieces, threads, stop, lambda p, row: _showing(p, *args))
     return None if stop[0] else keep
 
 
-# Pieces the culling's passes cut their work into (even): two threads take them in turn, so that a thread held back
-# by the system (another busy process) holds back one piece, not half of the work
-_PIECES = 16
+# Bands the culling's passes cut their work into, each in one piece a thread: the threads take the pieces in turn,
+# so that a thread held back by the system (another busy process) holds back one piece, not its share of the work
+_BANDS = 8
+_MAX_CULLING_THREADS = 4
 
 
-def _in_pieces(pieces: int, two: bool, stop: np.ndarray, work: Callable[[int, int], None]) -> None:
-    """``work(piece, row)`` for each piece in [0, pieces), in order of asking, on this thread (row 0) and, with
-    ``two``, a thread of the pool (row 1), each taking the next piece when it is free; until ``stop[0]`` is set."""
+def _culling_threads() -> int:
+    """Threads of a culling pass: one more than the processors (at most :data:`_MAX_CULLING_THREADS`), so that
+    beside another busy process the pass keeps a larger share of the cores (the system shares them among threads),
+    and a thread held back holds back less."""
+    cores = os.cpu_count() or 1
+    return 1 if cores < 2 else min(cores + 1, _MAX_CULLING_THREADS)
+
+
+def _in_pieces(pieces: int, threads: int, stop: np.ndarray, work: Callable[[int, int], None]) -> None:
+    """``work(piece, row)`` for each piece in [0, pieces), in order of asking, on this thread (row 0) and
+    ``threads - 1`` threads of the pool (rows 1...), each taking the next piece when it is free; until ``stop[0]``
+    is set."""
     taken = itertools.count()  # next() of a count is atomic under the interpreter's lock
 
     def worker(row: int) -> None:
@@ -440,14 +448,12 @@ def _in_pieces(pieces: int, two: bool, stop: np.ndarray, work: Callable[[int, in
                 return
             work(piece, row)
 
-    if not two:
-        worker(0)
-        return
-    other = _pool().submit(worker, 1)
+    others = [_pool().submit(worker, row) for row in range(1, threads)]
     try:
         worker(0)
     finally:
-        other.result()
+        for other in others:
+            other.result()
 
 
 def _margin(vertices: np.ndarray, viewport: Viewport) -> float:
@@ -528,11 +534,12 @@ def _pair_far(sx, sy, screen, p0, p1, q, d, delta):  # pragma: no cover - compil
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _reached(x0, x1, y0, y1, i0, i1, j0, j1, near, delta, width, ox, oy, out, seen):  # pragma: no cover - compiled
+def _reached(x0, x1, y0, y1, i0, i1, j0, j1, near, delta, width, ox, oy, depth):  # pragma: no cover - compiled
     """Whether a sample point within ``delta`` of the box [x0, x1] x [y0, y1] (in the pixels i0..i1, j0..j1) is
-    not behind the depth reached there (both rows ``out`` and ``seen``) by more than what ``near`` allows: where
-    something nearest at ``near`` may still show (pass 1 of :func:`visible_triangles`)."""
+    not behind the depth reached there (every row of ``depth``, one a thread) by more than what ``near`` allows:
+    where something nearest at ``near`` may still show (pass 1 of :func:`visible_triangles`)."""
     count = ox.shape[0]
+    rows = depth.shape[0]
     for i in range(i0, i1 + 1):
         column = _offsets_in(x0 - delta - i, x1 + delta - i, ox)
         if column == 0:
@@ -543,16 +550,19 @@ def _reached(x0, x1, y0, y1, i0, i1, j0, j1, near, delta, width, ox, oy, out, se
                 continue
             base = (j * width + i) * count
             for k in range(count):
-                row &= ~((near > min(out[base + k], seen[base + k])) << k)
+                behind = False
+                for r in range(rows):
+                    behind |= near > depth[r, base + k]
+                row &= ~(behind << k)
             if row != 0:
                 return True
     return False
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _block_hidden(s0, s1, triangles, screen, width, height, ox, oy, delta, out, seen, slack):  # pragma: no cover
+def _block_hidden(s0, s1, triangles, screen, width, height, ox, oy, delta, depth, slack):  # pragma: no cover
     """Whether pass 1 would leave out each of the triangles ``s0:s1`` as hidden: all in front of the camera and over
-    at most 25 pixels, and the nearest corner of them all behind the depth reached so far (both rows, by more than
+    at most 25 pixels, and the nearest corner of them all behind the depth reached so far (any row, by more than
     ``slack``) at every sample point in reach of their common box (which holds each one's reach). The same verdict
     as for each triangle alone, at a fraction of the cost: a run's triangles lie near each other."""
     x0 = y0 = np.inf
@@ -575,21 +585,20 @@ def _block_hidden(s0, s1, triangles, screen, width, height, ox, oy, delta, out, 
         nearest = min(nearest, za, zb, zc)
     i0, i1 = max(math.floor(x0 - delta), 0), min(math.floor(x1 + delta), width - 1)
     j0, j1 = max(math.floor(y0 - delta), 0), min(math.floor(y1 + delta), height - 1)
-    return not _reached(x0, x1, y0, y1, i0, i1, j0, j1, nearest / (1.0 + slack), delta, width, ox, oy, out, seen)
+    return not _reached(x0, x1, y0, y1, i0, i1, j0, j1, nearest / (1.0 + slack), delta, width, ox, oy, depth)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _fronts(ranges, row, slot, triangles, neighbours, screen, width, height, ox, oy, delta, depth, listed, start,
             listed_count, stop, slack, skip_hidden):  # pragma: no cover - compiled
     """Pass 1 of :func:`visible_triangles` over the triangles ``ranges[r, 0]:ranges[r, 1]`` in turn (one piece of
-    the work), into ``depth[row]``, the calling thread's row (the other thread's is ``depth[1 - row]``); the
+    the work), into ``depth[row]``, the calling thread's row (the other threads' rows are read as they write); the
     triangles with a sample point in reach (or a corner not in front of the camera) are listed for pass 2 in
     ``listed[start[slot]:start[slot] + listed_count[slot]]``, the piece's place. With ``skip_hidden``, one whose
-    nearest corner lies behind the depth reached so far (both rows, by more than ``slack``) at every sample point in
+    nearest corner lies behind the depth reached so far (any row, by more than ``slack``) at every sample point in
     its reach is left out. Returns early once ``stop[0]`` is set. A sample point is at ``(i + ox[k], j + oy[k])`` in
     pixel (i, j)."""
-    out = depth[row]
-    seen = depth[1 - row]  # the other thread's: read while it writes (a depth only ever comes nearer)
+    out = depth[row]  # the other rows are read while their threads write (a depth only ever comes nearer)
     count = ox.shape[0]
     found = start[slot]  # the candidates go to listed[start[slot]:found]
     done = 0
@@ -603,7 +612,7 @@ def _fronts(ranges, row, slot, triangles, neighbours, screen, width, height, ox,
                 look = done + _LOOK_EVERY
             done += s1 - s0
             # a block of nearby triangles all behind the depth reached so far: left out at once (each would be)
-            if skip_hidden and _block_hidden(s0, s1, triangles, screen, width, height, ox, oy, delta, out, seen,
+            if skip_hidden and _block_hidden(s0, s1, triangles, screen, width, height, ox, oy, delta, depth,
                                              slack):
                 continue
             for t in range(s0, s1):
@@ -624,7 +633,7 @@ def _fronts(ranges, row, slot, triangles, neighbours, screen, width, height, ox,
                 # have none and are left out (pass 2 keeps a triangle over more than 25 pixels untested: listed)
                 near = min(za, zb, zc) / (1.0 + slack) if skip_hidden and (i1 - i0 + 1) * (j1 - j0 + 1) <= 25 \
                     else -np.inf
-                if not _reached(x0, x1, y0, y1, i0, i1, j0, j1, near, delta, width, ox, oy, out, seen):
+                if not _reached(x0, x1, y0, y1, i0, i1, j0, j1, near, delta, width, ox, oy, depth):
                     continue
                 listed[found] = t
                 found += 1
