@@ -175,11 +175,12 @@ def _check_mesh(vertices: Any, triangles: Any) -> tuple[np.ndarray, np.ndarray]:
     return vertices, triangles.astype(np.int64, copy=False)
 
 
-def _draw(vertices: np.ndarray, triangles: np.ndarray, area2: np.ndarray, n: int,
+def _draw(vertices: np.ndarray, triangles: np.ndarray, area2: np.ndarray, total: float, n: int,
           rng: np.random.Generator) -> SurfaceSample:
-    """``n`` points drawn by area: the triangles first, then the corners and cross products of those alone."""
+    """``n`` points drawn by area (``total`` is ``area2.sum()``): the triangles first, then the corners and cross
+    products of those alone."""
     faces = np.empty(n, dtype=np.int64)
-    _picks_by_area(area2, float(area2.sum()), rng.random(n), faces)
+    _picks_by_area(area2, total, rng.random(n), faces)
     r1, r2 = rng.random(n), rng.random(n)
     s = np.sqrt(r1)
     u, v = 1.0 - s, s * (1.0 - r2)  # barycentric weights of a and b
@@ -270,15 +271,15 @@ def sample_surface(
     if not np.isfinite(total):
         raise InputError("cannot sample a mesh this large: its triangles' areas overflow (scale it down)")
     if not outer:
-        return _draw(vertices, triangles, area2, n, rng)
+        return _draw(vertices, triangles, area2, total, n, rng)
     inside = _InteriorTest(vertices, triangles)
     if not inside.containers:
-        return _draw(vertices, triangles, area2, n, rng)
+        return _draw(vertices, triangles, area2, total, n, rng)
     kept: list[SurfaceSample] = []
     count, drawn, accepted = 0, 0, 0
     for _ in range(_OUTER_ROUNDS):
         share = max(accepted / drawn, 0.05) if drawn else 1.0
-        batch = _draw(vertices, triangles, area2, int(np.ceil(1.1 * (n - count) / share)) + 16, rng)
+        batch = _draw(vertices, triangles, area2, total, int(np.ceil(1.1 * (n - count) / share)) + 16, rng)
         keep = ~inside(batch.points, batch.normals, batch.faces)
         drawn, accepted = drawn + len(keep), accepted + int(keep.sum())
         kept.append(SurfaceSample(batch.points[keep], batch.normals[keep], batch.faces[keep]))

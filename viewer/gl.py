@@ -689,16 +689,16 @@ def _fronts(ranges, row, slot, triangles, neighbours, screen, width, height, ox,
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _showing(half, triangles, screen, width, height, ox, oy, delta, front, slack, listed, start, listed_count, keep,
+def _showing(slot, triangles, screen, width, height, ox, oy, delta, front, slack, listed, start, listed_count, keep,
              stop):  # pragma: no cover - compiled
-    """Pass 2 of :func:`visible_triangles` over the triangles that pass 1 listed in its slot ``half`` (``keep``
+    """Pass 2 of :func:`visible_triangles` over the triangles that pass 1 listed in its slot ``slot`` (``keep``
     holds False for the others); returns early once ``stop[0]`` is set."""
     count = ox.shape[0]
     # a drawn corner strays by at most delta along each axis, so by at most this far: the triangle drawn lies within
     # this distance of the one projected (each drawn corner does, and so does their convex hull)
     stray = delta * math.sqrt(2.0)
-    lo = start[half]
-    for n in range(lo, lo + listed_count[half]):
+    lo = start[slot]
+    for n in range(lo, lo + listed_count[slot]):
         if (n - lo) % _LOOK_EVERY == 0 and stop[0] != 0:
             return
         t = listed[n]
