@@ -71,6 +71,8 @@ class Model:
                  parallel_graphs: bool = True) -> None:
         import onnxruntime as ort
 
+        if hasattr(ort, "disable_telemetry_events"):  # onnxruntime started before kpd (ORT_DISABLE_TELEMETRY unseen)
+            ort.disable_telemetry_events()
         self.bundle = bundle
         options = ort.SessionOptions()
         options.log_severity_level = 3
