@@ -19,7 +19,8 @@ model's frame, so without ``--scan``), at 960x720:
 * ``full_frame_ms``: the whole mesh's frames after the rig is ready, ``draw_ms`` on the main thread (upload, draw,
   swap); for a large mesh, ``prepare_ms`` is its preparation on the frame thread before (deformation, normals, the
   triangles that show, colours) and ``after_pause_ms`` the time from the pause (0.3 s after the last input) to the end
-  of the frame (target <= 500 ms at 1.3M vertices).
+  of the frame (target <= 500 ms at 1.3M vertices): after the scripted session, and after each of ``--pauses`` more
+  nudges of a keypoint (arrow keys), each left to be drawn whole before the next (median and max over them).
 * ``latency_ms``: over a scripted session of at least 50 drags and key presses sent with xdotool, the time from
   sending an input (taken before the xdotool process starts, so it errs long) to the end of the frame that shows it
   (median, max; target max <= 250 ms); ``lost``: whether the last frame showed the final state.
@@ -124,7 +125,7 @@ def bench_render(case: Case, runs: int, folder: Path) -> dict:
 
 
 
-def bench_editor(case: Case, drags: int, folder: Path) -> dict:
+def bench_editor(case: Case, drags: int, folder: Path, pauses: int = 0) -> dict:
     from kpd.viewer.app import read_events, wait_for
     from kpd.viewer.render import private_display, project
 
@@ -173,6 +174,11 @@ def bench_editor(case: Case, drags: int, folder: Path) -> dict:
             # (a frame that was being drawn when the redo key arrived ends after it but shows the state before it)
             wait_for(lambda: [f for f in read_events(events) if f["event"] == "frame" and f["time"] > redo["time"]
                               and f["serial"] >= len(sent) and not f.get("stand_in")], 60, "the last frame")
+            for pause in range(pauses):  # a nudge at a time, each left to be drawn whole after the pause
+                xdo("key", "Right" if pause % 2 == 0 else "Left", kind="key")
+                wait_for(lambda: [f for f in read_events(events) if f["event"] == "frame"
+                                  and f["serial"] >= len(sent) and not f.get("stand_in")], 60, "a whole frame")
+                time.sleep(0.2)
             time.sleep(0.5)
             log = read_events(events)
         finally:
@@ -209,7 +215,7 @@ def bench_editor(case: Case, drags: int, folder: Path) -> dict:
         before = [e["time"] for e in log if e["event"] == "input" and e["time"] < f["time"]]
         if "prepare_ms" in f and before:
             after_pause.append(1000 * (f["time"] - before[-1] - 0.3))
-    final = [e for e in log if e["event"] == "redo"][-1]["keypoints"]
+    final = [e for e in log if e["event"] in ("redo", "nudge")][-1]["keypoints"]  # the last state asked for
 
     def summary(values: list, digits: int = 2) -> dict:
         if not values:
@@ -241,6 +247,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=5, help="fresh kpd render processes per case")
     parser.add_argument("--drags", type=int, default=8, help="drags per editor session (8 drags: 74 inputs)")
+    parser.add_argument("--pauses", type=int, default=5, help="nudges after the drags, each drawn whole after its "
+                        "pause (after_pause_ms over them all)")
     parser.add_argument("--sizes", default="10k,100k", help="10k, 100k, shapenet (few vertices, many triangles), 1.3M "
                                                              "(a CAD chair), scan (a real scan, 1.28M vertices)")
     parser.add_argument("--loads", default="quiet,loaded")
@@ -259,7 +267,7 @@ def main() -> None:
                 time.sleep(0.5 if burner else 0)
                 for size in args.sizes.split(","):
                     case = meshes[size]
-                    editor = bench_editor(case, args.drags, folder)
+                    editor = bench_editor(case, args.drags, folder, args.pauses)
                     editor["vertices"] = len(read_mesh(case.mesh).vertices)
                     results.append({"load": load, "mesh": size, "model": case.model, "vertices": editor.pop("vertices"),
                                     "load_average_1min": round(os.getloadavg()[0], 2),
