@@ -8,6 +8,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import textwrap
 
 import numpy as np
@@ -52,7 +53,9 @@ def torchrun(args, nproc=2, module=("-m", "kpd.cli")) -> subprocess.CompletedPro
     """``torchrun --standalone --nproc_per_node N -m kpd.cli ARGS`` (a free local port; one node)."""
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc),
                *module, *args]
-    return subprocess.run(command, capture_output=True, text=True, env=clean_env(), timeout=600)
+    with tempfile.TemporaryDirectory(prefix="kpd-torchrun-") as temporary:  # torchrun leaves its log folder there
+        return subprocess.run(command, capture_output=True, text=True, env=dict(clean_env(), TMPDIR=temporary),
+                              timeout=600)
 
 
 def single(args) -> None:
