@@ -512,7 +512,24 @@ class ScanAligner:
                     & (np.abs(a_new - am).max(axis=1) < 1e-5) & (np.abs(t_new - tm).max(axis=1) < 1e-5))
             a[moving], r[moving], t[moving] = a_new, r_new, t_new
             moving = moving[~done]
-        return [(a[h], r[h], t[h], self._score(scan, a[h], r[h], t[h], n)) for h in range(count)]
+        return [(a[h], r[h], t[h], score) for h, score in enumerate(self._scores(scan, a, r, t, n))]
+
+    def _scores(self, scan: _Cloud, a: np.ndarray, r: np.ndarray, t: np.ndarray, n: int) -> list[float]:
+        """:meth:`_score` of each hypothesis ((H, 3), (H, 3, 3), (H, 3)), with one query each way for all."""
+        ref = self.reference_
+        ref_points, scan_points = ref.points[:n], scan.points[:n]
+        count = len(a)
+        d1, _ = ref.tree3.query(((scan_points @ r.transpose(0, 2, 1)) * a[:, None] + t[:, None]).reshape(-1, 3))
+        _, i2 = scan.tree3.query((((ref_points - t[:, None]) / a[:, None]) @ r).reshape(-1, 3))
+        matched = scan.points[i2.reshape(count, -1)]  # (H, m, 3)
+        d2 = np.linalg.norm((matched @ r.transpose(0, 2, 1)) * a[:, None] + t[:, None] - ref_points, axis=2)
+        d1 = d1.reshape(count, -1)
+
+        def trimmed(d: np.ndarray) -> np.ndarray:
+            k = max(1, int(self.score_trim * d.shape[1]))
+            return (np.partition(d, k - 1, axis=1)[:, :k] ** 2).mean(axis=1)
+
+        return [math.sqrt(0.5 * (u + v)) for u, v in zip(trimmed(d1).tolist(), trimmed(d2).tolist())]
 
     def _score(self, scan: _Cloud, a: np.ndarray, r: np.ndarray, t: np.ndarray, n: int | None = None) -> float:
         """Trimmed symmetric RMS distance between positions (working units) of the first ``n`` points of each shape:
