@@ -199,9 +199,10 @@ class ScanAligner:
     distinct_angle : the runner-up must differ from the best by more than this many degrees.
     ambiguity_margin : relative margin (runner-up score / best score - 1) below which the result is flagged ambiguous.
     seed : seeds the subsets and RANSAC.
-    threads : hypotheses fitted at a time (the same result whatever the number). Two suit ``kpd scan``'s full
-        search; the frame check's light search is held by the GIL for most of its time, and one thread does it for
-        less CPU in the same time.
+    threads : refined hypotheses fitted at a time (the same result whatever the number; the coarse stage fits all
+        its starts at once, see :meth:`_icp_together`, unless ``up`` is given or ``scaling`` is not ``'axes'``). Two
+        suit ``kpd scan``'s full search; the frame check's light search is held by the GIL for most of its time, and
+        one thread does it for less CPU in the same time.
     """
 
     def __init__(
