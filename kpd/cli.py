@@ -8,6 +8,7 @@ import gc
 import importlib
 import logging
 import os
+import signal
 import sys
 import threading
 
@@ -48,6 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     code = _main(argv)
     if argv is None:  # the program itself
+        for signum, previous in _HANDLED.items():  # from here on a signal ends the program as it did before
+            signal.signal(signum, previous)
         _end_program(code)
     return code
 
@@ -86,6 +89,8 @@ def _main(argv: list[str] | None) -> int:
         # vertices)
         gc.freeze()
         _keep_freed_memory()
+        if args.command != "train":  # torchrun stops its ranks itself
+            _end_on_termination()
     handler = logging.StreamHandler()
     handler.setFormatter(_Formatter())
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, handlers=[handler])
@@ -108,6 +113,37 @@ def _main(argv: list[str] | None) -> int:
         _close_progress_bars()
         print(f"kpd {args.command}: interrupted", file=sys.stderr)
         return 130
+    except _Terminated as exc:
+        _close_progress_bars()
+        print(f"kpd {args.command}: stopped by signal {exc.signum} ({signal.Signals(exc.signum).name})",
+              file=sys.stderr)
+        return 128 + exc.signum
+
+
+class _Terminated(BaseException):
+    """Raised in the main thread when the program is asked to end (SIGTERM, SIGHUP): it unwinds as an interrupt does,
+    so that outputs being written are taken back, windows close and the program's temporary folders go."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+_HANDLED: dict = {}  # signal -> the handler it had before _end_on_termination
+
+
+def _end_on_termination() -> None:
+    """SIGTERM and SIGHUP (a ``kill``, the end of a session or terminal) end a command as Ctrl+C does, with status
+    128 + the signal, instead of at once (which left a window's temporary folder and any output half written). A
+    signal the program was started to ignore (``nohup``) stays ignored."""
+
+    def stop(signum: int, frame) -> None:
+        raise _Terminated(signum)
+
+    for name in ("SIGTERM", "SIGHUP"):
+        signum = getattr(signal, name, None)
+        if signum is not None and signal.getsignal(signum) == signal.SIG_DFL:
+            _HANDLED[signum] = signal.signal(signum, stop)
 
 
 _MMAP_THRESHOLD = 1 << 30

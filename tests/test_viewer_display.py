@@ -65,3 +65,36 @@ def test_a_picture_leaves_no_runtime_folder_behind(data_dir, tmp_path):
     assert done.returncode == 0, done.stderr
     assert out.stat().st_size > 0
     assert list(temporary.iterdir()) == []
+
+
+def test_the_editor_asked_to_end_closes_and_leaves_nothing_behind(data_dir, tmp_path):
+    """``kill`` (SIGTERM) ends ``kpd view`` as Ctrl+C does: the window closes, its private runtime folder goes, one
+    line says why, and the status is 128 + 15 (before, the process died at once and left the folder)."""
+    import json
+    import signal
+    import sys
+    import time
+
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    events = tmp_path / "events.jsonl"
+    chair = data_dir / "modelnet10" / "chair" / "test" / "chair_0956.ply"
+    with private_display(1200, 800) as display:
+        env = {k: v for k, v in os.environ.items() if k != "XDG_RUNTIME_DIR"}
+        env.update(DISPLAY=display, TMPDIR=str(temporary))
+        editor = subprocess.Popen([sys.executable, "-m", "kpd.cli", "view", "chair", str(chair), "--events",
+                                   str(events)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.time() + 120
+            while not (events.exists() and '"ready"' in events.read_text()):
+                assert editor.poll() is None and time.time() < deadline, "the editor did not get ready"
+                time.sleep(0.2)
+            editor.send_signal(signal.SIGTERM)
+            _, err = editor.communicate(timeout=60)
+        finally:
+            if editor.poll() is None:
+                editor.kill()
+    assert editor.returncode == 128 + signal.SIGTERM, err
+    assert err.strip().splitlines()[-1] == "kpd view: stopped by signal 15 (SIGTERM)"
+    assert [json.loads(line)["event"] for line in events.read_text().splitlines()][-1] == "close"
+    assert list(temporary.iterdir()) == []
