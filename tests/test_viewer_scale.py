@@ -197,6 +197,49 @@ def test_a_frame_of_the_visible_triangles_is_the_picture_of_all_of_them(dense_ch
             view.close()
 
 
+def test_a_picture_culled_without_edge_pairs_is_the_same_and_skips_finding_them(dense_chair, monkeypatch):
+    """A mesh drawn once (kpd render, render_rig) is culled without pairing triangles across their edges: the same
+    pixels as with the pairs, more triangles kept (each of those kept with them among them), and the edges'
+    neighbours never looked for."""
+    from kpd.rig import Rig
+    from kpd.viewer import gl
+    from kpd.viewer.display import gl_display
+    from kpd.viewer.gl import GLView, ShadedMesh
+    from kpd.viewer.render import ViewSettings, camera_pose, render_rig
+
+    mesh = dense_chair
+    width, height = 400, 300
+    paired, alone = ShadedMesh(mesh), ShadedMesh(mesh, edge_pairs=False)
+    assert paired.parts[0].layout_for_culling.neighbours is not None
+    assert alone.parts[0].layout_for_culling.neighbours is None
+    with gl_display("egl", width, height):
+        view = GLView(width, height)
+        try:
+            view.set_box(mesh.vertices)
+            for azimuth, elevation, zoom in [(30, 20, 1.0), (200, -40, 1.0), (75, 60, 4.0)]:
+                camera = camera_pose(mesh.vertices, ViewSettings(width=width, height=height, azimuth=azimuth,
+                                                                 elevation=elevation, zoom=zoom))
+                pictures, kept = [], []
+                for shaded in (paired, alone):
+                    shaded.set_vertices(mesh.vertices, camera, view.viewport(camera))
+                    for i, part in enumerate(shaded.geometries):
+                        view.put(f"mesh:{i}", part)
+                    view.set_camera(camera)
+                    pictures.append(view.capture())
+                    kept.append(shaded.parts[0].keep.copy())
+                np.testing.assert_array_equal(pictures[1], pictures[0])
+                assert not (kept[0] & ~kept[1]).any() and kept[1].sum() > kept[0].sum(), (kept[0].sum(),
+                                                                                           kept[1].sum())
+        finally:
+            view.close()
+    calls = []
+    monkeypatch.setattr(gl, "edge_neighbours", lambda *a: calls.append(1) or pytest.fail("looked for neighbours"))
+    keypoints = mesh.vertices[[0, 100, 2000, 30000]]
+    image = render_rig(Rig.bind(mesh, keypoints), settings=ViewSettings(width=width, height=height),
+                       backend="egl")
+    assert calls == [] and (image != 255).any(axis=2).mean() > 0.05
+
+
 def test_a_triangle_is_kept_wherever_its_corners_may_be_drawn():
     """Pass 2 keeps a triangle when a sample point lies within the distance its drawn corners may stray (delta along
     each axis) of it: whatever corners within that reach are drawn, the triangle covers no sample point of one left

@@ -98,8 +98,10 @@ def render_frames(rig: Any, keypoint_sets: Sequence[Any], *, settings: ViewSetti
 
 def _render_gl(rig: Any, frames: list[Frame], settings: ViewSettings, camera: Camera, *,
                on_display: bool = False, shaded: Any = None) -> list[np.ndarray]:
-    from kpd.viewer.gl import GLView, RigDrawing
+    from kpd.viewer.gl import GLView, RigDrawing, ShadedMesh
 
+    if shaded is None:  # each picture drawn once: the culling judges each triangle alone (CullingLayout)
+        shaded = ShadedMesh(rig.mesh, settings.mesh_color, edge_pairs=False)
     view = GLView(settings.width, settings.height, background=settings.background, on_display=on_display)
     try:
         drawing = RigDrawing(view, rig.mesh, rig.num_keypoints, rig.cage.faces, settings=settings, digits=False,

@@ -85,6 +85,7 @@ def bind_beside_drawing(rig, settings):
     from kpd.viewer.gl import ShadedMesh
 
     with ThreadPoolExecutor(1, thread_name_prefix="kpd-render-mesh") as pool:
-        shaded = pool.submit(ShadedMesh, rig.mesh, settings.mesh_color)
+        # one picture: the culling judges each triangle alone (CullingLayout's edge_pairs)
+        shaded = pool.submit(ShadedMesh, rig.mesh, settings.mesh_color, edge_pairs=False)
         bound = rig.bind()
         return bound, shaded.result()
