@@ -197,10 +197,10 @@ def test_a_frame_of_the_visible_triangles_is_the_picture_of_all_of_them(dense_ch
             view.close()
 
 
-def test_a_picture_culled_without_edge_pairs_is_the_same_and_skips_finding_them(dense_chair, monkeypatch):
-    """A mesh drawn once (kpd render, render_rig) is culled without pairing triangles across their edges: the same
-    pixels as with the pairs, more triangles kept (each of those kept with them among them), and the edges'
-    neighbours never looked for."""
+def test_a_mesh_drawn_once_is_culled_in_its_own_order_to_the_same_picture(dense_chair, monkeypatch):
+    """A mesh drawn once (kpd render, render_rig) is culled in its own order, each triangle judged alone, with
+    neither a CullingLayout nor the edges' neighbours made: the same pixels as the editor's culling, more
+    triangles kept (each of those the editor keeps among them)."""
     from kpd.rig import Rig
     from kpd.viewer import gl
     from kpd.viewer.display import gl_display
@@ -209,9 +209,8 @@ def test_a_picture_culled_without_edge_pairs_is_the_same_and_skips_finding_them(
 
     mesh = dense_chair
     width, height = 400, 300
-    paired, alone = ShadedMesh(mesh), ShadedMesh(mesh, edge_pairs=False)
-    assert paired.parts[0].layout_for_culling.neighbours is not None
-    assert alone.parts[0].layout_for_culling.neighbours is None
+    paired, alone = ShadedMesh(mesh), ShadedMesh(mesh, once=True)
+    assert paired.parts[0].layout_for_culling is not None and alone.parts[0].layout_for_culling is None
     with gl_display("egl", width, height):
         view = GLView(width, height)
         try:
@@ -219,25 +218,29 @@ def test_a_picture_culled_without_edge_pairs_is_the_same_and_skips_finding_them(
             for azimuth, elevation, zoom in [(30, 20, 1.0), (200, -40, 1.0), (75, 60, 4.0)]:
                 camera = camera_pose(mesh.vertices, ViewSettings(width=width, height=height, azimuth=azimuth,
                                                                  elevation=elevation, zoom=zoom))
-                pictures, kept = [], []
+                pictures, drawn = [], []
                 for shaded in (paired, alone):
                     shaded.set_vertices(mesh.vertices, camera, view.viewport(camera))
                     for i, part in enumerate(shaded.geometries):
                         view.put(f"mesh:{i}", part)
                     view.set_camera(camera)
                     pictures.append(view.capture())
-                    kept.append(shaded.parts[0].keep.copy())
+                    part = shaded.parts[0]  # the verdicts on its triangles (the same in both)
+                    drawn.append((part.keep if part.layout_for_culling is not None else part.scratch["keep"]).copy())
+                np.testing.assert_array_equal(alone.parts[0].triangles, paired.parts[0].triangles)
                 np.testing.assert_array_equal(pictures[1], pictures[0])
-                assert not (kept[0] & ~kept[1]).any() and kept[1].sum() > kept[0].sum(), (kept[0].sum(),
-                                                                                           kept[1].sum())
+                # fewer kept with the pairs, all among those kept alone; and culled all the same
+                assert not (drawn[0] & ~drawn[1]).any() and drawn[1].sum() > drawn[0].sum()
+                assert drawn[1].mean() < 0.5, drawn[1].mean()
         finally:
             view.close()
-    calls = []
-    monkeypatch.setattr(gl, "edge_neighbours", lambda *a: calls.append(1) or pytest.fail("looked for neighbours"))
+    made = []
+    monkeypatch.setattr(gl, "edge_neighbours", lambda *a: made.append("neighbours"))
+    monkeypatch.setattr(gl, "CullingLayout", lambda *a: made.append("layout"))
     keypoints = mesh.vertices[[0, 100, 2000, 30000]]
     image = render_rig(Rig.bind(mesh, keypoints), settings=ViewSettings(width=width, height=height),
                        backend="egl")
-    assert calls == [] and (image != 255).any(axis=2).mean() > 0.05
+    assert made == [] and (image != 255).any(axis=2).mean() > 0.05
 
 
 def test_a_triangle_is_kept_wherever_its_corners_may_be_drawn():

@@ -819,16 +819,11 @@ class CullingLayout:
     mesh's order and 0.23 s and 0.07 s in this one (two threads).
 
     ``order`` (T,) the part's triangles in that order, ``used`` (V',) the vertices they use in order of first use,
-    ``triangles`` (T, 3) int32 the ordered triangles indexing ``used``, ``neighbours`` their :func:`edge_neighbours`
-    (None without ``edge_pairs``), ``cells`` (C + 1,) where the triangles of each cell start: pass 1 takes the cells
-    nearest the camera first.
-
-    ``edge_pairs=False`` leaves the neighbours out: the culling then keeps more triangles (171k against 133k of the
-    1.37M-vertex chair seen whole), which costs a window's redraws but not one picture (its capture took as long),
-    while finding the neighbours takes 0.2-0.3 s.
+    ``triangles`` (T, 3) int32 the ordered triangles indexing ``used``, ``neighbours`` their :func:`edge_neighbours`,
+    ``cells`` (C + 1,) where the triangles of each cell start: pass 1 takes the cells nearest the camera first.
     """
 
-    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, *, edge_pairs: bool = True) -> None:
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
         vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         triangles = np.ascontiguousarray(triangles, dtype=np.int64)
         self.order = np.empty(len(triangles), dtype=np.int64)
@@ -838,7 +833,7 @@ class CullingLayout:
         n, c = _near_layout(vertices, triangles, _LAYOUT_CELLS, self.order, self.triangles, used, starts)
         self.used = used[:n].copy()
         self.cells = starts[:c + 1].copy()  # (C + 1,) the runs of triangles in one cell
-        self.neighbours = edge_neighbours(self.triangles, n) if edge_pairs else None
+        self.neighbours = edge_neighbours(self.triangles, n)
 
     def visible(self, vertices: np.ndarray, viewport: Viewport, keep: np.ndarray, *, scratch: dict | None = None,
                 stop: np.ndarray | None = None) -> np.ndarray | None:
@@ -921,15 +916,16 @@ class _Part:
     their base colours (per vertex of the whole mesh, or one colour; None for a texture) and corner UVs."""
 
     def __init__(self, geometry: Any, vertices: np.ndarray, triangles: np.ndarray, albedo: np.ndarray | None,
-                 uvs: np.ndarray | None, *, edge_pairs: bool = True) -> None:
+                 uvs: np.ndarray | None, *, once: bool = False) -> None:
         self.geometry, self.triangles, self.albedo, self.uvs = geometry, triangles, albedo, uvs
         self.layout: tuple[np.ndarray, np.ndarray] | None = None  # (used, local) of all triangles, once uploaded
         self.scratch: dict = {}  # visible_triangles' arrays, reused frame after frame
         self.sided: np.ndarray | None = None  # of the triangles, those drawn only from the front (material_sides)
-        # where a frame draws only the triangles that show: the order it judges them in, and a buffer of the verdicts
-        self.layout_for_culling = CullingLayout(vertices, triangles, edge_pairs=edge_pairs) \
-            if len(triangles) > CULL_TRIANGLES else None
-        self.keep = np.empty(len(triangles), dtype=np.bool_) if self.layout_for_culling is not None else None
+        # where a frame draws only the triangles that show: a buffer of the verdicts, and the order they are judged in
+        # (in the part's own order, each triangle alone, for a mesh drawn once: see ShadedMesh)
+        culled = len(triangles) > CULL_TRIANGLES
+        self.keep = np.empty(len(triangles), dtype=np.bool_) if culled else None
+        self.layout_for_culling = CullingLayout(vertices, triangles) if culled and not once else None
 
 
 class ShadedMesh:
@@ -943,12 +939,14 @@ class ShadedMesh:
     ----------
     mesh : kpd.io.Mesh (its colours, UVs and textures are drawn).
     color : (3,) RGB in [0, 1] for a mesh with neither colours nor a texture (or to override them).
-    edge_pairs : whether the culling pairs triangles across their shared edges (:class:`CullingLayout`): fewer
-        triangles to redraw in a window; a picture drawn once is made sooner without.
+    once : a mesh drawn once (a picture) is culled in its own order with each triangle judged alone: a
+        :class:`CullingLayout` costs more to make than it saves in one frame (of a 1.37M-vertex chair, 0.17 s to
+        make and no faster a frame; 1.0 s and 0.2 s faster with its triangles shuffled), and the neighbours it
+        pairs across edges (0.2-0.3 s) make fewer triangles to draw, not a faster picture.
     """
 
     def __init__(self, mesh: Any, color: Sequence[float] = (0.80, 0.80, 0.82), *, override: bool = False,
-                 edge_pairs: bool = True) -> None:
+                 once: bool = False) -> None:
         import open3d as o3d
 
         self.mesh = mesh
@@ -997,7 +995,7 @@ class ShadedMesh:
                 albedo = np.asarray(mesh.vertex_colors, dtype=np.float32)  # (V, 3)
             else:
                 albedo = np.asarray(color, dtype=np.float32)[:3]  # (3,)
-            self.parts.append(_Part(part, mesh.vertices, triangles[chosen], albedo, uvs, edge_pairs=edge_pairs))
+            self.parts.append(_Part(part, mesh.vertices, triangles[chosen], albedo, uvs, once=once))
             if sided is not None and chosen is not None and sided[chosen].any():
                 self.parts[-1].sided = np.flatnonzero(sided[chosen])
         drawn = (self.parts[0].triangles if len(self.parts) == 1 else np.concatenate([p.triangles for p in self.parts])
@@ -1044,8 +1042,10 @@ class ShadedMesh:
                       viewport: Viewport | None, stop: np.ndarray | None = None) -> _Upload | None:
         layout = part.layout
         triangles = uvs = keep = None
-        if viewport is not None and part.layout_for_culling is not None:
-            keep = part.layout_for_culling.visible(vertices, viewport, part.keep, scratch=part.scratch, stop=stop)
+        if viewport is not None and part.keep is not None:
+            keep = visible_triangles(vertices, part.triangles, viewport, scratch=part.scratch, stop=stop) \
+                if part.layout_for_culling is None else \
+                part.layout_for_culling.visible(vertices, viewport, part.keep, scratch=part.scratch, stop=stop)
             if keep is None:
                 return None
         if part.sided is not None:  # one side of a face with two materials: drawn when its front faces the camera
@@ -1809,7 +1809,7 @@ def render_shots(shots: Sequence[Shot], settings: Any, *, view: GLView | None = 
                                                     layer.color or (0.3, 0.3, 0.3)))
                 else:
                     shaded = ShadedMesh(layer.mesh, layer.color or settings.mesh_color,
-                                        override=layer.color is not None, edge_pairs=False)  # drawn once
+                                        override=layer.color is not None, once=True)
                     shaded.set_vertices(layer.mesh.vertices, camera, view.viewport(camera))
                     for j, part in enumerate(shaded.geometries):
                         view.put(f"layer:{i}:{j}", part)

@@ -100,8 +100,8 @@ def _render_gl(rig: Any, frames: list[Frame], settings: ViewSettings, camera: Ca
                on_display: bool = False, shaded: Any = None) -> list[np.ndarray]:
     from kpd.viewer.gl import GLView, RigDrawing, ShadedMesh
 
-    if shaded is None:  # each picture drawn once: the culling judges each triangle alone (CullingLayout)
-        shaded = ShadedMesh(rig.mesh, settings.mesh_color, edge_pairs=False)
+    if shaded is None:  # each picture drawn once
+        shaded = ShadedMesh(rig.mesh, settings.mesh_color, once=True)
     view = GLView(settings.width, settings.height, background=settings.background, on_display=on_display)
     try:
         drawing = RigDrawing(view, rig.mesh, rig.num_keypoints, rig.cage.faces, settings=settings, digits=False,

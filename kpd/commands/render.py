@@ -85,7 +85,6 @@ def bind_beside_drawing(rig, settings):
     from kpd.viewer.gl import ShadedMesh
 
     with ThreadPoolExecutor(1, thread_name_prefix="kpd-render-mesh") as pool:
-        # one picture: the culling judges each triangle alone (CullingLayout's edge_pairs)
-        shaded = pool.submit(ShadedMesh, rig.mesh, settings.mesh_color, edge_pairs=False)
+        shaded = pool.submit(ShadedMesh, rig.mesh, settings.mesh_color, once=True)  # one picture
         bound = rig.bind()
         return bound, shaded.result()
