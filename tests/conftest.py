@@ -14,6 +14,18 @@ def _data_root() -> Path:
     return Path(os.environ.get("KPD_DATA", REPO.parent / "shared" / "data"))
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _torch_compiler_cache(tmp_path_factory):
+    """torch's exporter (``dynamo=True``) makes its compiler's cache folder, ``/tmp/torchinductor_<user>`` unless
+    told otherwise: the tests keep it in their own temporary folder (their processes' children too)."""
+    if "TORCHINDUCTOR_CACHE_DIR" in os.environ:
+        yield
+        return
+    os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(tmp_path_factory.mktemp("torchinductor"))
+    yield
+    os.environ.pop("TORCHINDUCTOR_CACHE_DIR", None)
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     """The real data folder; absence skips the test locally and fails it under CI=true."""
