@@ -109,6 +109,19 @@ def _main(argv: list[str] | None) -> int:
         print(f"kpd {args.command}: error: {_one_line(describe_os_error(exc, exc.filename or 'a file'))}",
               file=sys.stderr)
         return 2
+    except MemoryError as exc:  # the memory ran out where kpd could not tell beforehand (what else runs, ulimit -v)
+        _close_progress_bars()
+        detail = _one_line(exc)
+        print(f"kpd {args.command}: error: out of memory{': ' + detail if detail else ''} (free memory, raise the "
+              f"limit, or give a smaller input)", file=sys.stderr)
+        return 2
+    except RuntimeError as exc:
+        if "can't start new thread" not in str(exc):
+            raise
+        _close_progress_bars()
+        print(f"kpd {args.command}: error: the system would not start another thread (a limit on threads or on "
+              f"memory: ulimit -u, ulimit -v)", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         _close_progress_bars()
         print(f"kpd {args.command}: interrupted", file=sys.stderr)

@@ -1472,12 +1472,14 @@ def _edit_rows(basis_t, offsets, rest, rows, out):  # pragma: no cover - compile
         out[v, 2] = z
 
 
-# What binding holds at its peak, fitted on the 1.37M-vertex, 5.5M-triangle chair of docs/scale.md (3.2 GB resident
-# with the model; 1.2 GB at 344k) and rounded up: the mesh and its copies, the surface sample, the basis, and the
-# straightening's system and factorisations (CAD meshes, full of slivers, are the worst case).
-_BIND_BYTES = 200 * 2**20
-_BIND_BYTES_PER_VERTEX = 700
-_BIND_BYTES_PER_TRIANGLE = 400
+# What binding adds at its peak to a process that has read the mesh and loaded the model (the surface sample, the
+# mesh's copies, the basis and the straightening's system and factorisations; CAD meshes, full of slivers, are the
+# worst case), about twice what was measured (2026-12-06, Model.rig and one edit, 12 keypoints): 572 MiB for the
+# 1.37M-vertex, 5.5M-triangle CAD chair of docs/scale.md, 198 MiB for it at 344k, 427 MiB for the 1.28M-vertex
+# scan; the margin also holds a picture's or the editor's drawing of the mesh (kpd render of the chair: 825 MiB).
+_BIND_BYTES = 150 * 2**20
+_BIND_BYTES_PER_VERTEX = 150
+_BIND_BYTES_PER_TRIANGLE = 80
 _BIND_BYTES_PER_KEYPOINT_VERTEX = 24  # the (V, K) basis in float64 and its corrected copy
 
 
@@ -1489,8 +1491,8 @@ def bind_memory(vertices: int, triangles: int, keypoints: int) -> int:
 
 
 def available_memory() -> int | None:
-    """Bytes of memory this process can still use (Linux: MemAvailable, capped by a cgroup limit), or None when
-    the system does not say."""
+    """Bytes of memory this process can still use (Linux: MemAvailable, capped by a cgroup limit and by a limit on
+    the process's address space, ``ulimit -v``, less what it maps already), or None when the system does not say."""
     available = None
     try:
         with open("/proc/meminfo") as fh:
@@ -1516,7 +1518,26 @@ def available_memory() -> int | None:
         if limit.isdigit() and int(limit) < 1 << 60:
             available = min(available, int(limit) - usage)
         break
-    return available
+    mapped = _address_space_left()
+    return available if mapped is None else min(available, mapped)
+
+
+def _address_space_left() -> int | None:
+    """Bytes the process may still map under its address-space limit (``RLIMIT_AS``, as ``ulimit -v`` and some
+    batch schedulers set it), or None without a limit."""
+    try:
+        import resource
+
+        limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if limit == resource.RLIM_INFINITY:
+            return None
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmSize:"):
+                    return limit - int(line.split()[1]) * 1024
+    except (ImportError, OSError, ValueError):
+        pass
+    return None
 
 
 def check_bind_memory(vertices: int, triangles: int, keypoints: int) -> None:
@@ -1525,9 +1546,12 @@ def check_bind_memory(vertices: int, triangles: int, keypoints: int) -> None:
     need = bind_memory(vertices, triangles, keypoints)
     have = available_memory()
     if have is not None and need > have:
+        left = _address_space_left()
+        limited = left is not None and left < need  # the process's own limit refuses it, whatever the machine has
+        where = ("of address space is left under this process's limit (simplify the mesh, or raise the limit: "
+                 "ulimit -v)" if limited else "of memory is available (simplify the mesh, or free memory)")
         raise InputError(f"a mesh of {vertices:,} vertices and {triangles:,} triangles needs about "
-                         f"{_size(need)} to bind; {_size(max(have, 0))} of memory is available "
-                         f"(simplify the mesh, or free memory)")
+                         f"{_size(need)} to bind; {_size(max(have, 0))} {where}")
 
 
 def _size(count: int) -> str:

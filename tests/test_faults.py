@@ -303,6 +303,39 @@ def test_permission_denied(inputs, tmp_path, capfd, monkeypatch):
     assert_fault(result, before, denied, inputs, match="permission denied")
 
 
+# --- memory and threads running out mid-command ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("failure", ["memory", "thread"])
+def test_memory_or_threads_refused_mid_command(failure, inputs, tmp_path, capfd, monkeypatch):
+    """Memory or a thread refused where kpd could not tell beforehand (other programs' use, ``ulimit -v`` or ``-u``):
+    one line naming it, exit 2, nothing written. The memory is a real allocation numpy cannot make."""
+    from kpd.rig import Rig
+
+    def refused(cls, *args, **kwargs):
+        if failure == "memory":
+            return np.empty(1 << 56)  # 512 PiB, beyond any address space: numpy's own MemoryError, with its size
+        raise RuntimeError("can't start new thread")  # what threading.Thread.start raises when refused
+
+    monkeypatch.setattr(Rig, "bind", classmethod(refused))
+    before = snapshot(tmp_path, inputs)
+    result = kpd(capfd, "deform", inputs / "toy.kpd", inputs / "chair.ply", "--move", "0:0,0,1", "--out",
+                 tmp_path / "d.ply")
+    match = "out of memory: Unable to allocate 512. PiB" if failure == "memory" else "would not start another thread"
+    assert_fault(result, before, tmp_path, inputs, match=match)
+
+
+def test_other_runtime_errors_are_not_taken_for_a_failing_environment(inputs, tmp_path, monkeypatch):
+    """A RuntimeError that is not a refused thread is a defect: it keeps its traceback."""
+    from kpd.rig import Rig
+
+    monkeypatch.setattr(Rig, "bind", classmethod(lambda cls, *a, **k: (_ for _ in ()).throw(
+        RuntimeError("a defect"))))
+    with pytest.raises(RuntimeError, match="a defect"):
+        main(["deform", str(inputs / "toy.kpd"), str(inputs / "chair.ply"), "--out", str(tmp_path / "d.ply")])
+    assert not (tmp_path / "d.ply").exists()
+
+
 # --- companion files ----------------------------------------------------------------------------------------------
 
 

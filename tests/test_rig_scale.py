@@ -357,6 +357,37 @@ def test_a_mesh_larger_than_memory_allows_ends_in_one_line(tmp_path, monkeypatch
     assert isinstance(fps_rig(mesh, k=8).cage, Cage)
 
 
+def test_a_limit_on_the_address_space_caps_the_memory_available():
+    """``ulimit -v`` (RLIMIT_AS, as some batch schedulers set it) caps what binding may have: a real limit 300 MiB
+    above what the process maps, and a mesh that needs more is refused in one line naming both."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent("""
+        import resource
+        from kpd.errors import InputError
+        from kpd.rig import available_memory, check_bind_memory
+        unlimited = available_memory()
+        with open("/proc/self/status") as fh:
+            size = next(int(line.split()[1]) * 1024 for line in fh if line.startswith("VmSize:"))
+        resource.setrlimit(resource.RLIMIT_AS, (size + 300 * 2**20, resource.getrlimit(resource.RLIMIT_AS)[1]))
+        print(unlimited, available_memory())
+        try:
+            check_bind_memory(2_000_000, 4_000_000, 12)
+        except InputError as exc:
+            print(exc)
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    first, message = proc.stdout.splitlines()
+    unlimited, limited = map(int, first.split())
+    assert 250 * 2**20 < limited <= 300 * 2**20 < unlimited
+    assert message.startswith("a mesh of 2,000,000 vertices and 4,000,000 triangles needs about 1.3 GiB to bind; ")
+    assert message.endswith("MiB of address space is left under this process's limit (simplify the mesh, or raise "
+                            "the limit: ulimit -v)")
+
+
 def test_deforming_some_rows_writes_those_rows_only():
     rig = fps_rig(box_mesh(), k=8, straighten=False)
     keypoints = rig.moved({2: [0.1, 0.2, -0.3]})
