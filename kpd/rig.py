@@ -1474,12 +1474,12 @@ def _edit_rows(basis_t, offsets, rest, rows, out):  # pragma: no cover - compile
 
 # What binding adds at its peak to a process that has read the mesh and loaded the model (the surface sample, the
 # mesh's copies, the basis and the straightening's system and factorisations; CAD meshes, full of slivers, are the
-# worst case), about twice what was measured (2026-12-06, Model.rig and one edit, 12 keypoints): 572 MiB for the
-# 1.37M-vertex, 5.5M-triangle CAD chair of docs/scale.md, 198 MiB for it at 344k, 427 MiB for the 1.28M-vertex
-# scan; the margin also holds a picture's or the editor's drawing of the mesh (kpd render of the chair: 825 MiB).
+# worst case), with what the commands that bind add to draw it: measured 2026-12-06 (12 keypoints) for the
+# 1.37M-vertex, 5.5M-triangle CAD chair of docs/scale.md, Model.rig and one edit 572 MiB (198 MiB at 344k; the
+# 1.28M-vertex scan 427 MiB), kpd render 825 MiB, the editor about 1.16 GiB once bound; this gives 1.28 GiB.
 _BIND_BYTES = 150 * 2**20
-_BIND_BYTES_PER_VERTEX = 150
-_BIND_BYTES_PER_TRIANGLE = 80
+_BIND_BYTES_PER_VERTEX = 200
+_BIND_BYTES_PER_TRIANGLE = 100
 _BIND_BYTES_PER_KEYPOINT_VERTEX = 24  # the (V, K) basis in float64 and its corrected copy
 
 

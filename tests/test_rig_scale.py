@@ -383,7 +383,7 @@ def test_a_limit_on_the_address_space_caps_the_memory_available():
     first, message = proc.stdout.splitlines()
     unlimited, limited = map(int, first.split())
     assert 250 * 2**20 < limited <= 300 * 2**20 < unlimited
-    assert message.startswith("a mesh of 2,000,000 vertices and 4,000,000 triangles needs about 1.3 GiB to bind; ")
+    assert message.startswith("a mesh of 2,000,000 vertices and 4,000,000 triangles needs about 1.4 GiB to bind; ")
     assert message.endswith("MiB of address space is left under this process's limit (simplify the mesh, or raise "
                             "the limit: ulimit -v)")
 
