@@ -921,11 +921,12 @@ class _Part:
         self.layout: tuple[np.ndarray, np.ndarray] | None = None  # (used, local) of all triangles, once uploaded
         self.scratch: dict = {}  # visible_triangles' arrays, reused frame after frame
         self.sided: np.ndarray | None = None  # of the triangles, those drawn only from the front (material_sides)
-        # where a frame draws only the triangles that show: a buffer of the verdicts, and the order they are judged in
-        # (in the part's own order, each triangle alone, for a mesh drawn once: see ShadedMesh)
-        culled = len(triangles) > CULL_TRIANGLES
-        self.keep = np.empty(len(triangles), dtype=np.bool_) if culled else None
-        self.layout_for_culling = CullingLayout(vertices, triangles) if culled and not once else None
+        # whether a frame draws only the triangles that show; the order they are judged in and a buffer of the
+        # verdicts in the part's order (a mesh drawn once is judged in its own order, each triangle alone, into
+        # visible_triangles' scratch: see ShadedMesh)
+        self.culled = len(triangles) > CULL_TRIANGLES
+        self.layout_for_culling = CullingLayout(vertices, triangles) if self.culled and not once else None
+        self.keep = np.empty(len(triangles), dtype=np.bool_) if self.layout_for_culling is not None else None
 
 
 class ShadedMesh:
@@ -1042,7 +1043,7 @@ class ShadedMesh:
                       viewport: Viewport | None, stop: np.ndarray | None = None) -> _Upload | None:
         layout = part.layout
         triangles = uvs = keep = None
-        if viewport is not None and part.keep is not None:
+        if viewport is not None and part.culled:
             keep = visible_triangles(vertices, part.triangles, viewport, scratch=part.scratch, stop=stop) \
                 if part.layout_for_culling is None else \
                 part.layout_for_culling.visible(vertices, viewport, part.keep, scratch=part.scratch, stop=stop)
