@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from kpd.errors import InputError, WriteError
+from kpd.grouping import compiled_on_first_call
 from kpd.io.atomic import atomic_files
 from kpd.io.common import incomplete, verify_companion
 from kpd.io.images import read_image
@@ -77,155 +78,349 @@ class ObjSource:
 
 
 _SPACE, _TAB, _HASH, _SLASH, _NEWLINE = 32, 9, 35, 47, 10
-_V, _F, _T, _N = ord("v"), ord("f"), ord("t"), ord("n")
+_V, _F, _T, _N, _U, _M = ord("v"), ord("f"), ord("t"), ord("n"), ord("u"), ord("m")
+_USEMTL, _MTLLIB = np.frombuffer(b"usemtl", np.uint8).copy(), np.frombuffer(b"mtllib", np.uint8).copy()
 _KINDS = {"v": 1, "vt": 2, "vn": 3, "f": 4, "usemtl": 5, "mtllib": 6, "other": 0}
 
 
 def _scan(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Line starts, ends (before ``\\r\\n`` or ``\\n``), the first non-blank byte of each line and each line's kind
-    (:data:`_KINDS`), all (L,) int64, found with numpy over the whole file."""
+    (:data:`_KINDS`), all (L,) int64: numpy finds the line breaks, a compiled pass the rest (:func:`_line_table`)."""
     buf = np.frombuffer(data, dtype=np.uint8)
-    breaks = np.flatnonzero(buf == _NEWLINE)
-    starts = np.concatenate([[0], breaks + 1]).astype(np.int64)
-    ends = np.concatenate([breaks, [len(buf)]]).astype(np.int64)
-    if len(starts) > 1 and starts[-1] == len(buf):
-        starts, ends = starts[:-1], ends[:-1]
-    cr = (ends > starts) & (buf[np.maximum(ends - 1, 0)] == 13)
-    ends = ends - cr
-    first = starts.copy()
-    padded = np.concatenate([buf, np.zeros(3, dtype=np.uint8)])
-    blank = (ends > first) & np.isin(padded[first], (_SPACE, _TAB))
-    for i in np.flatnonzero(blank):  # indented lines: rare, found one by one
-        j = first[i]
-        while j < ends[i] and padded[j] in (_SPACE, _TAB):
+    return _line_table(buf, np.flatnonzero(buf == _NEWLINE))
+
+
+@compiled_on_first_call
+def _line_table(buf, breaks):  # pragma: no cover - compiled
+    n = len(buf)
+    count = len(breaks) + 1
+    if count > 1 and breaks[-1] == n - 1:  # a last line break ends the last line; no empty line follows
+        count -= 1
+    starts = np.empty(count, np.int64)
+    ends = np.empty(count, np.int64)
+    first = np.empty(count, np.int64)
+    kind = np.zeros(count, np.int64)
+    for line in range(count):
+        start = breaks[line - 1] + 1 if line else 0
+        end = breaks[line] if line < len(breaks) else n
+        if end > start and buf[end - 1] == 13:
+            end -= 1
+        j = start
+        while j < end and (buf[j] == _SPACE or buf[j] == _TAB):
             j += 1
-        first[i] = j
-    c0, c1, c2 = padded[first], padded[first + 1], padded[first + 2]
-    white1 = np.isin(c1, (_SPACE, _TAB)) & (first + 1 < ends)
-    white2 = np.isin(c2, (_SPACE, _TAB)) & (first + 2 < ends)
-    kind = np.zeros(len(starts), dtype=np.int64)
-    kind[(c0 == _V) & white1] = _KINDS["v"]
-    kind[(c0 == _V) & (c1 == _T) & white2] = _KINDS["vt"]
-    kind[(c0 == _V) & (c1 == _N) & white2] = _KINDS["vn"]
-    kind[(c0 == _F) & white1] = _KINDS["f"]
-    for i in np.flatnonzero(np.isin(c0, (ord("u"), ord("m")))).tolist():  # few lines
-        word = data[first[i] : first[i] + 7]
-        if word[:6] in (b"usemtl", b"mtllib") and (len(word) == 6 or word[6:7] in (b" ", b"\t")):
-            kind[i] = _KINDS[word[:6].decode()]
+        starts[line], ends[line], first[line] = start, end, j
+        c0 = buf[j] if j < n else 0
+        c1 = buf[j + 1] if j + 1 < n else 0
+        c2 = buf[j + 2] if j + 2 < n else 0
+        white1 = (c1 == _SPACE or c1 == _TAB) and j + 1 < end
+        white2 = (c2 == _SPACE or c2 == _TAB) and j + 2 < end
+        if c0 == _V and white1:
+            kind[line] = 1
+        elif c0 == _V and c1 == _T and white2:
+            kind[line] = 2
+        elif c0 == _V and c1 == _N and white2:
+            kind[line] = 3
+        elif c0 == _F and white1:
+            kind[line] = 4
+        elif (c0 == _U or c0 == _M) and j + 6 <= n:  # usemtl / mtllib, then a blank or the file's end
+            word = 5 if c0 == _U else 6
+            for k in range(6):
+                if buf[j + k] != (_USEMTL[k] if word == 5 else _MTLLIB[k]):
+                    word = 0
+                    break
+            if word and (j + 6 == n or buf[j + 6] == _SPACE or buf[j + 6] == _TAB):
+                kind[line] = word
     return starts, ends, first, kind
 
 
-def _runs(rows: np.ndarray) -> list[tuple[int, int]]:
-    """(start, stop) positions in ``rows`` of its runs of consecutive line numbers."""
-    if not len(rows):
-        return []
-    cut = np.flatnonzero(np.diff(rows) != 1) + 1
-    edges = np.concatenate([[0], cut, [len(rows)]])
-    return list(zip(edges[:-1].tolist(), edges[1:].tolist()))
+# powers of ten that float64 holds exactly: a decimal whose digits make an integer below 2**53, times or over one of
+# them, is one correctly rounded operation, the value Python's float() gives (Clinger's fast path); any other word is
+# read by Python
+_POW10 = np.array([10.0**k for k in range(23)])
+_EXACT_MANTISSA = 2**53
+_BLANKS = np.array([b in b" \t\n\r\x0b\x0c" for b in range(256)])  # what bytes.split() splits at
 
 
-def _segments(data: bytes, starts, ends, first, rows, prefix: int):
-    """Per run of consecutive lines of one kind: (the run's bytes with each line's keyword and comment blanked,
-    the lines' offsets in it (n,), the run's rows)."""
-    for a, b in _runs(rows):
-        r = rows[a:b]
-        base = starts[r[0]]
-        segment = bytearray(data[base : ends[r[-1]] + 1])
-        view = np.frombuffer(segment, dtype=np.uint8)
-        heads = first[r] - base
-        for k in range(prefix):
-            view[heads + k] = _SPACE
-        if _HASH in segment:  # comments after the values: blank to the end of their line
-            line_ends = np.append(ends[r] - base, len(segment))
-            for h in np.flatnonzero(view == _HASH).tolist():
-                if view[h] == _HASH:
-                    stop = line_ends[np.searchsorted(line_ends, h)]
-                    view[h:stop] = _SPACE
-        yield segment, starts[r] - base, r
+@compiled_on_first_call
+def _numbers(buf, begin, stop, out, counts, exact):  # pragma: no cover - compiled
+    """Row r's numbers, the blank-separated words of ``buf[begin[r]:stop[r]]`` up to a ``#``: the first
+    ``out.shape[1]`` into ``out[r]``, how many into ``counts[r]``, and ``exact[r]`` False when some word is not a
+    plain decimal (sign, digits, point, exponent) within the fast path's reach (Python then reads the row)."""
+    width = out.shape[1]
+    for r in range(len(begin)):
+        i, end = begin[r], stop[r]
+        k = 0
+        good = True
+        while True:
+            while i < end and _BLANKS[buf[i]]:
+                i += 1
+            if i >= end or buf[i] == _HASH:
+                break
+            j = i
+            while j < end and not _BLANKS[buf[j]] and buf[j] != _HASH:
+                j += 1
+            # the word buf[i:j]
+            negative = False
+            if buf[i] == 43 or buf[i] == 45:  # + -
+                negative = buf[i] == 45
+                i += 1
+            mantissa = 0
+            digits = 0  # significant digits in the mantissa
+            exponent = 0
+            seen = False
+            cut = False  # a non-zero digit beyond the 18 the mantissa holds
+            while i < j and 48 <= buf[i] <= 57:
+                seen = True
+                d = buf[i] - 48
+                if digits < 18:
+                    if mantissa or d:
+                        mantissa = mantissa * 10 + d
+                        digits += 1
+                else:
+                    exponent += 1
+                    cut |= d != 0
+                i += 1
+            if i < j and buf[i] == 46:  # .
+                i += 1
+                while i < j and 48 <= buf[i] <= 57:
+                    seen = True
+                    d = buf[i] - 48
+                    if digits < 18:
+                        if mantissa or d:
+                            mantissa = mantissa * 10 + d
+                            digits += 1
+                        exponent -= 1
+                    else:
+                        cut |= d != 0
+                    i += 1
+            if seen and i < j and (buf[i] == 101 or buf[i] == 69):  # e E
+                i += 1
+                down = False
+                if i < j and (buf[i] == 43 or buf[i] == 45):
+                    down = buf[i] == 45
+                    i += 1
+                seen = i < j
+                e = 0
+                while i < j and 48 <= buf[i] <= 57:
+                    if e < 100000:
+                        e = e * 10 + buf[i] - 48
+                    i += 1
+                exponent += -e if down else e
+            value = 0.0
+            ok = seen and i == j and not cut and mantissa <= _EXACT_MANTISSA
+            if ok and mantissa:
+                if 0 <= exponent <= 22:
+                    value = float(mantissa) * _POW10[exponent]
+                elif -22 <= exponent < 0:
+                    value = float(mantissa) / _POW10[-exponent]
+                elif 22 < exponent <= 37 and mantissa <= _EXACT_MANTISSA // 10 ** (exponent - 22):
+                    value = float(mantissa * 10 ** (exponent - 22)) * _POW10[22]  # still an exact integer
+                else:
+                    ok = False
+            if k < width:
+                out[r, k] = -value if negative else value
+            k += 1
+            good &= ok
+            i = j
+        counts[r] = k
+        exact[r] = good
 
 
 def _values(p: Path, data: bytes, lines, rows: np.ndarray, prefix: int, widths: tuple,
             kind: str) -> tuple[np.ndarray, bool]:
     """(n, w) float64 of the lines ``rows`` of one kind, and whether all lines hold w numbers (one of ``widths``);
-    when they hold different counts, the first ``widths[0]`` numbers of each (the rest is their tail)."""
+    when they hold different counts, the first ``widths[0]`` numbers of each (the rest is their tail).
+
+    Compiled (:func:`_numbers`); a word beyond its fast path (more than 15 significant digits, ``nan``, a stray
+    character) is read by Python's ``float``, so every value is the correctly rounded one."""
     starts, ends, first, _ = lines
     n = len(rows)
     if not n:
         return np.zeros((0, widths[0])), True
-    text = b" ".join(bytes(s) for s, _, _ in _segments(data, starts, ends, first, rows, prefix))
-    try:
-        values = np.fromstring(text, dtype=np.float64, sep=" ")  # noqa: NPY201 (text mode is not deprecated)
-    except ValueError:
-        values = None
-    if values is not None and values.size % n == 0 and values.size // n in widths:
-        return values.reshape(n, values.size // n), True
-    out = np.zeros((n, widths[0]))
-    for j, i in enumerate(rows.tolist()):  # lines of different lengths, or a bad number: line by line
-        parts = _strip_comment(data[first[i] + prefix : ends[i]]).split()
+    out = np.zeros((n, max(widths)))
+    counts = np.empty(n, dtype=np.int64)
+    exact = np.empty(n, dtype=np.bool_)
+    _numbers(np.frombuffer(data, dtype=np.uint8), first[rows] + prefix, ends[rows], out, counts, exact)
+    for j in np.flatnonzero(~exact).tolist():  # rare: words Python reads, or reports
+        i = int(rows[j])
         try:
-            numbers = [float(x) for x in parts]
+            numbers = [float(x) for x in _strip_comment(data[first[i] + prefix:ends[i]]).split()]
         except ValueError:
             raise InputError(f"{p}: line {i + 1}: a '{kind}' line holds something that is not a number") from None
-        if len(numbers) < widths[0]:
-            raise InputError(f"{p}: line {i + 1}: a '{kind}' line needs {widths[0]} numbers; got {len(numbers)}")
-        out[j] = numbers[: widths[0]]
-    return out, False
+        out[j, :min(len(numbers), out.shape[1])] = numbers[:out.shape[1]]
+    low, high = int(counts.min()), int(counts.max())
+    if low == high and low in widths:
+        return out[:, :low], True
+    if low < widths[0]:
+        i = int(rows[np.argmax(counts < widths[0])])
+        raise InputError(f"{p}: line {i + 1}: a '{kind}' line needs {widths[0]} numbers; got {low}")
+    return out[:, :widths[0]], False
 
 
-def _faces(p: Path, data: bytes, lines, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(T, 3, 3) int64 corner indices (v, vt, vn; 1-based, negative relative, 0 none) of the triangles of the face
-    lines, and (T,) the line of each. A face of c > 3 corners (Blender's quads and n-gons) gives c - 2 triangles, a
-    fan from its first corner; the file keeps the face as it is."""
-    starts, ends, first, _ = lines
-    pieces: list[tuple[np.ndarray, np.ndarray]] = []
-    short = [0, len(data)]  # count, first line
-    for segment, offsets, r in _segments(data, starts, ends, first, rows, 1):
-        view = np.frombuffer(segment, dtype=np.uint8)
-        bounds = np.append(offsets, len(segment))
-        word = view > _SPACE  # a corner is a run of non-blank bytes
-        edges = np.flatnonzero(np.diff(np.concatenate([[False], word, [False]]).astype(np.int8)))
-        word_starts, word_ends = edges[0::2], edges[1::2]  # (W,) each
-        corners = np.diff(np.searchsorted(word_starts, bounds))  # (n,) corners per line
-        slash = np.flatnonzero(view == _SLASH)
-        per_word = np.searchsorted(slash, word_ends) - np.searchsorted(slash, word_starts)  # (W,) slashes
-        if (corners < 3).any():
-            wrong = corners < 3
-            short[0] += int(wrong.sum())
-            short[1] = min(short[1], int(r[np.argmax(wrong)]) + 1)
+# what _face_corners reports of a line
+_FACE_FINE, _FACE_SHORT, _FACE_MIXED, _FACE_NOT_INDEX, _FACE_FORM = 0, 1, 2, 3, 4
+
+
+@compiled_on_first_call
+def _face_forms(buf, begin, stop, corners, forms, status):  # pragma: no cover - compiled
+    """Per face line r: its corners (blank-separated words up to a ``#``) into ``corners[r]``, the slashes of each
+    corner (0 ``v``, 1 ``v/vt``, 2 ``v/vt/vn`` or ``v//vn``) into ``forms[r]``, and ``status[r]``: fine, short
+    (fewer than 3 corners) or mixed (corners of different forms, or more than 2 slashes)."""
+    for r in range(len(begin)):
+        i, end = begin[r], stop[r]
+        c = 0
+        form = -1
+        mixed = False
+        while True:
+            while i < end and buf[i] <= _SPACE:
+                i += 1
+            if i >= end or buf[i] == _HASH:
+                break
+            slashes = 0
+            while i < end and buf[i] > _SPACE and buf[i] != _HASH:
+                slashes += buf[i] == _SLASH
+                i += 1
+            if form < 0:
+                form = slashes
+            mixed |= slashes != form or slashes > 2
+            c += 1
+        corners[r] = c
+        forms[r] = max(form, 0)
+        status[r] = _FACE_SHORT if c < 3 else (_FACE_MIXED if mixed else _FACE_FINE)
+
+
+@compiled_on_first_call
+def _face_corners(buf, begin, stop, forms, first_triangle, v, vt, vn, status):  # pragma: no cover - compiled
+    """The triangles of face line r from ``first_triangle[r]`` on: their corners' indices in ``v``, ``vt`` and
+    ``vn`` (T, 3) each (0 where a corner has none; ``vt`` and ``vn`` may be empty when no line has them), a fan
+    from the first corner for a polygon. ``status[r]`` becomes not-an-index for a word
+    that is not signed integers and slashes, or wrong-form for an index missing anywhere but the middle of
+    ``v//vn``."""
+    for r in range(len(begin)):
+        if status[r] != _FACE_FINE:
             continue
-        first_word = np.concatenate([[0], np.cumsum(corners)[:-1]])  # (n,) index of each line's first word
-        low, high = np.minimum.reduceat(per_word, first_word), np.maximum.reduceat(per_word, first_word)
-        mixed = (low != high) | (high > 2)
+        i, end = begin[r], stop[r]
+        width = forms[r] + 1
+        c = 0
+        t = first_triangle[r]
+        v0 = t0 = n0 = v1 = t1 = n1 = 0
+        while True:
+            while i < end and buf[i] <= _SPACE:
+                i += 1
+            if i >= end or buf[i] == _HASH:
+                break
+            a = b = e = 0
+            for part in range(width):
+                negative = False
+                if i < end and (buf[i] == 43 or buf[i] == 45):
+                    negative = buf[i] == 45
+                    i += 1
+                digits = 0
+                value = 0
+                while i < end and 48 <= buf[i] <= 57:
+                    value = value * 10 + (buf[i] - 48) if digits < 18 else value
+                    digits += 1
+                    i += 1
+                last = part == width - 1
+                follows = i < end and buf[i] > _SPACE and buf[i] != _HASH  # more of the word
+                if digits > 18 or (follows and (last or buf[i] != _SLASH)):
+                    status[r] = _FACE_NOT_INDEX
+                elif digits == 0 and (negative or not (width == 3 and part == 1)):
+                    status[r] = _FACE_FORM
+                if status[r] != _FACE_FINE:
+                    break
+                if not last:
+                    i += 1  # the slash
+                value = -value if negative else value
+                if part == 0:
+                    a = value
+                elif part == 1:
+                    b = value
+                else:
+                    e = value
+            if status[r] != _FACE_FINE:
+                break
+            if c == 0:
+                v0, t0, n0 = a, b, e
+            elif c >= 2:
+                v[t, 0], v[t, 1], v[t, 2] = v0, v1, a
+                if len(vt):
+                    vt[t, 0], vt[t, 1], vt[t, 2] = t0, t1, b
+                if len(vn):
+                    vn[t, 0], vn[t, 1], vn[t, 2] = n0, n1, e
+                t += 1
+            v1, t1, n1 = a, b, e
+            c += 1
+
+
+def _faces(p: Path, data: bytes, lines, rows: np.ndarray) -> tuple[list, np.ndarray]:
+    """The corner indices of the triangles of the face lines, ``[v, vt, vn]``, each (T, 3) int64 (1-based, negative
+    relative, 0 none) or None when no line has it, and (T,) the line of each triangle. A face of c > 3 corners
+    (Blender's quads and n-gons) gives c - 2 triangles, a fan from its first corner; the file keeps the face as it is.
+    Two compiled passes: the corners and form of each line (:func:`_face_forms`), then the indices
+    (:func:`_face_corners`)."""
+    starts, ends, first, _ = lines
+    n = len(rows)
+    buf = np.frombuffer(data, dtype=np.uint8)
+    begin, stop = first[rows] + 1, ends[rows]
+    corners = np.empty(n, dtype=np.int64)
+    forms = np.empty(n, dtype=np.int64)
+    status = np.empty(n, dtype=np.int64)
+    _face_forms(buf, begin, stop, corners, forms, status)
+    first_triangle = np.concatenate([[0], np.cumsum(np.maximum(corners - 2, 0))]).astype(np.int64)
+    T = int(first_triangle[-1])
+    widest = int(forms.max()) if n else 0
+    indices = [np.zeros((T if widest >= k else 0, 3), dtype=np.int64) for k in range(3)]
+    _face_corners(buf, begin, stop, forms, first_triangle, *indices, status)
+    if status.any():
+        _face_error(p, data, lines, rows, status, corners, forms)
+    return [index if len(index) else None for index in indices], np.repeat(rows, corners - 2)
+
+
+def _face_error(p: Path, data: bytes, lines, rows: np.ndarray, status: np.ndarray, corners: np.ndarray,
+                forms: np.ndarray) -> None:
+    """Raise the error of the first face line that has one, as runs of consecutive face lines are judged: a run with
+    a face of fewer than 3 corners is counted (all such faces are reported after the other runs), a run with corners
+    of mixed forms is reported at its first such line, else the first line whose indices cannot be read."""
+    starts, ends, first, _ = lines
+    run = np.cumsum(np.diff(rows, prepend=rows[0]) != 1)  # (n,) the run of consecutive lines of each face line
+    short = status == _FACE_SHORT
+    judged = (status != _FACE_FINE) & ~short & ~np.isin(run, run[short])
+    if judged.any():
+        j = int(np.argmax(judged))
+        mixed = (run == run[j]) & (status == _FACE_MIXED)
         if mixed.any():
-            i = int(r[np.argmax(mixed)])
+            j = int(np.argmax(mixed))
+        i = int(rows[j])
+        if status[j] == _FACE_MIXED:
             raise InputError(f"{p}: line {i + 1}: the corners of a face must all have the same form (v, v/vt, "
                              f"v/vt/vn or v//vn); got {data[first[i]:ends[i]].decode(errors='replace')!r}")
-        key = corners * 3 + low  # (n,) one value per (corner count, form)
-        cuts = np.concatenate([[0], np.flatnonzero(np.diff(key)) + 1, [len(key)]])
-        for a, b in zip(cuts[:-1].tolist(), cuts[1:].tolist()):
-            c, width = int(corners[a]), int(low[a]) + 1
-            stop = offsets[b] if b < len(offsets) else len(segment)
-            text = bytes(segment[offsets[a] : stop]).replace(b"//", b"/0/").replace(b"/", b" ")
-            try:
-                numbers = np.fromstring(text, dtype=np.int64, sep=" ")  # noqa: NPY201
-            except ValueError:
-                raise InputError(f"{p}: a face line near line {int(r[a]) + 1} holds something that is not an "
-                                 "index") from None
-            if numbers.size != c * width * (b - a):
-                raise InputError(f"{p}: a face line near line {int(r[a]) + 1} does not hold {c} corners of {width} "
-                                 "indices")
-            faces = numbers.reshape(b - a, c, width)
-            if c > 3:  # fan: (0, i, i + 1)
-                fan = np.stack([np.zeros(c - 2, np.int64), np.arange(1, c - 1), np.arange(2, c)], axis=1)
-                faces = faces[:, fan].reshape(-1, 3, width)
-            tri = np.zeros((len(faces), 3, 3), dtype=np.int64)
-            tri[:, :, :width] = faces
-            pieces.append((tri, np.repeat(r[a:b], c - 2)))
-    if short[0]:
-        raise InputError(f"{p}: {count_phrase(short[0], 'faces')} fewer than 3 vertices (first: line {short[1]})")
-    if not pieces:
-        return np.zeros((0, 3, 3), dtype=np.int64), np.zeros(0, dtype=np.int64)
-    return np.concatenate([t for t, _ in pieces]), np.concatenate([r for _, r in pieces])
+        if status[j] == _FACE_NOT_INDEX:
+            raise InputError(f"{p}: line {i + 1}: a face line holds something that is not an index")
+        raise InputError(f"{p}: line {i + 1}: a face line does not hold {int(corners[j])} corners of "
+                         f"{int(forms[j]) + 1} indices")
+    raise InputError(f"{p}: {count_phrase(int(short.sum()), 'faces')} fewer than 3 vertices (first: line "
+                     f"{int(rows[np.argmax(short)]) + 1})")
+
+
+@compiled_on_first_call
+def _indices(index, n, out):  # pragma: no cover - compiled
+    """``out`` (T, 3) = the 0-based indices ``index - 1`` of the positive ones of ``index`` (T, 3) (-1 where 0); returns
+    how many are negative (relative: ``out`` then incomplete), how many are 0, and how many triangles have one above
+    ``n``."""
+    relative = 0
+    missing = 0
+    bad = 0
+    for t in range(index.shape[0]):
+        wrong = False
+        for c in range(3):
+            x = index[t, c]
+            out[t, c] = x - 1 if x > 0 else -1
+            relative += x < 0
+            missing += x == 0
+            wrong |= x > n
+        bad += wrong
+    return relative, missing, bad
 
 
 def _keyword_lines(data: bytes, lines, keyword: str) -> list[tuple[int, bytes]]:
@@ -255,15 +450,21 @@ def parse(p: Path, data: bytes, points: bool = False) -> tuple[dict, ObjSource |
         vt = np.hstack([vt, np.zeros_like(vt)])
     vt = vt[:, :2]
     vn = _values(p, data, lines, vn_rows, 2, (3,), "vn")[0]
-    corner, face_rows = _faces(p, data, lines, f_rows)  # (T, 3, 3), (T,) the line of each triangle
+    corner, face_rows = _faces(p, data, lines, f_rows)  # [v, vt, vn] (T, 3) or None, (T,) the line of each
     T = len(face_rows)
 
-    def resolve(index: np.ndarray, rows: np.ndarray, kind: str, n: int, optional: bool) -> np.ndarray:
+    def resolve(index: np.ndarray | None, rows: np.ndarray, kind: str, n: int, optional: bool) -> np.ndarray:
+        out = np.empty((T, 3), dtype=np.int64)  # 0-based, -1 where missing
+        if index is None:
+            out.fill(-1)
+            return out
+        relative, missing, bad = _indices(index, n, out)
+        if not (relative or (missing and not optional) or bad):
+            return out
         out = index - 1
-        negative = index < 0
-        if negative.any():  # relative to the elements defined before the face
+        if relative:  # negative: relative to the elements defined before the face
             before = np.searchsorted(rows, face_rows)[:, None]
-            out = np.where(negative, before + index, out)
+            out = np.where(index < 0, before + index, out)
         missing = index == 0
         if not optional and missing.any():
             raise InputError(f"{p}: a face has the vertex index 0 (OBJ counts from 1)")
@@ -273,9 +474,9 @@ def parse(p: Path, data: bytes, points: bool = False) -> tuple[dict, ObjSource |
                              f"{kind} outside 1..{n}")
         return np.where(missing, -1, out)
 
-    triangles = resolve(corner[:, :, 0], v_rows, "vertex", len(vertices), False)
-    uv_index = resolve(corner[:, :, 1], vt_rows, "texture coordinate", len(vt), True)
-    normal_index = resolve(corner[:, :, 2], vn_rows, "normal", len(vn), True)
+    triangles = resolve(corner[0], v_rows, "vertex", len(vertices), False)
+    uv_index = resolve(corner[1], vt_rows, "texture coordinate", len(vt), True)
+    normal_index = resolve(corner[2], vn_rows, "normal", len(vn), True)
     has_uv = (uv_index >= 0).all(axis=1)  # (T,) a face with coordinates on some corners only counts as without
     uvs = None
     if has_uv.any():
@@ -301,7 +502,11 @@ def parse(p: Path, data: bytes, points: bool = False) -> tuple[dict, ObjSource |
     if usemtl:
         names = [None] + [text.decode("utf-8", "replace") for _, text in usemtl]
         which = np.searchsorted(np.array([i for i, _ in usemtl], dtype=np.int64), face_rows)  # 0: before any
-        face_material = [names[w] for w in which.tolist()]
+        used: dict = {}  # the names the faces use, in order of first use (which never decreases)
+        lookup = np.full(len(names), -1, dtype=np.int64)
+        for w in which[np.flatnonzero(np.diff(which, prepend=-1))].tolist():
+            lookup[w] = used.setdefault(names[w], len(used))
+        face_material = (list(used), lookup[which])
     libraries = [(int(starts[i]), int(ends[i]), text.decode("utf-8", "replace"))
                  for i, text in _keyword_lines(data, lines, "mtllib")]
     source = ObjSource(path=p, data=data, v_spans=np.stack([starts[v_rows], ends[v_rows]], axis=1),
@@ -428,8 +633,7 @@ def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | P
     textures, ids, texture_files = [], None, []
     face_material = arrays["face_material"]
     if face_material is not None and materials:
-        used = list(dict.fromkeys(face_material))
-        index = {m: i for i, m in enumerate(used)}
+        used, face_ids = face_material
         images, colors = [], []
         cache: dict[Path, np.ndarray | None] = {}
         for m in used:
@@ -448,7 +652,7 @@ def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | P
                 if image is None:
                     image = np.round(np.array(kd, dtype=np.float64) * 255).astype(np.uint8).reshape(1, 1, 3)
                 textures.append(image)
-            ids = np.array([index[m] for m in face_material], dtype=np.int64)
+            ids = face_ids
     uvs, mask = arrays["triangle_uvs"], arrays["uv_mask"]
     if textures and uvs is None:
         uvs = np.zeros((3 * T, 2), dtype=np.float64)  # plain colours only: every face samples its 1x1 texture
