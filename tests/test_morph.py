@@ -12,6 +12,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from kpd.cli import main
+from kpd import morph
 from kpd.io import Mesh, read_mesh, write_mesh
 from kpd.morph import MorphRig, read_gltf, up_rotation, write_gltf
 from kpd.runtime import Model
@@ -274,3 +275,19 @@ def test_refusals_are_one_line(argv, message, chair_file, tmp_path, capfd):
     assert code == 2 and message in err and len(err.splitlines()) == 1, err
     assert sorted(p.name for p in tmp_path.iterdir()) == before
     assert (tmp_path / "exists.glb").read_bytes() == b"mine"
+
+
+@pytest.mark.parametrize("n", [1, 5000, 30001])  # one thread, and two (the halves meet mid-way)
+def test_displacements_are_the_product_stored_per_target(n):
+    rng = np.random.default_rng(n)
+    V, K, targets = n + 7, 12, 5
+    basis = rng.normal(size=(V, K))
+    source = rng.permutation(V)[:n]
+    stacked = rng.normal(size=(K, 3 * targets))
+    moved, low, high = morph._displacements(basis, source, stacked)
+    want = (basis[source] @ stacked).reshape(n, targets, 3).transpose(1, 0, 2)  # (targets, n, 3)
+    assert moved.dtype == np.float32 and moved.shape == (targets, n, 3)
+    np.testing.assert_allclose(moved, want, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(low, want.min(axis=1), rtol=1e-6)
+    np.testing.assert_allclose(high, want.max(axis=1), rtol=1e-6)
+    assert (low <= moved.min(axis=1)).all() and (high >= moved.max(axis=1)).all()
