@@ -57,7 +57,10 @@ def test_lines_equal_a_line_by_line_reading(pieces):
         np.testing.assert_array_equal(got, want)
 
 
-def test_lines_of_real_files_equal_a_line_by_line_reading(data_dir):
+@pytest.mark.parametrize("halves", [False, True])
+def test_lines_of_real_files_equal_a_line_by_line_reading(data_dir, monkeypatch, halves):
+    if halves:  # the kernels' two halves on two threads, at any size
+        monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
     files = sorted((data_dir / "shapenetcore_obj").rglob("*.obj"))[:6] + sorted((data_dir / "scans").rglob("*.obj"))[:2]
     assert len(files) >= 6
     for f in files:
@@ -89,7 +92,10 @@ def random_words(rng: random.Random, n: int) -> list[str]:
     return words
 
 
-def test_numbers_are_the_values_python_reads_to_the_bit(tmp_path):
+@pytest.mark.parametrize("halves", [False, True])
+def test_numbers_are_the_values_python_reads_to_the_bit(tmp_path, monkeypatch, halves):
+    if halves:
+        monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
     rng = random.Random(7)
     with localcontext() as context:
         context.prec = 80  # the half-way decimals exactly
@@ -119,8 +125,11 @@ def faces_reference(lines: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return table[:, :, 0], table[:, :, 1], table[:, :, 2]
 
 
+@pytest.mark.parametrize("halves", [False, True])
 @pytest.mark.parametrize("form", ["v", "v/vt", "v/vt/vn", "v//vn"])
-def test_faces_equal_a_word_by_word_reading(tmp_path, form):
+def test_faces_equal_a_word_by_word_reading(tmp_path, monkeypatch, form, halves):
+    if halves:
+        monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
     rng = random.Random(form)
     n = 50
     head = [f"v {i} {i % 7} {i % 3}" for i in range(n)] + [f"vt {i / n} 0.5" for i in range(n)] + \

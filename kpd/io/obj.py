@@ -83,24 +83,41 @@ _USEMTL, _MTLLIB = np.frombuffer(b"usemtl", np.uint8).copy(), np.frombuffer(b"mt
 _KINDS = {"v": 1, "vt": 2, "vn": 3, "f": 4, "usemtl": 5, "mtllib": 6, "other": 0}
 
 
+_THREADED_ROWS = 65536  # lines below which a second thread costs more than it saves
+
+
+def _in_halves(kernel, n: int, *args) -> None:
+    """``kernel(lo, hi, *args)`` over the rows [0, n): in two halves on two threads for many rows (the kernels let go
+    of the interpreter's lock)."""
+    kernel(0, 0, *args)  # compiled (or loaded) here, once
+    if n < _THREADED_ROWS or (os.cpu_count() or 1) < 2:
+        kernel(0, n, *args)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(1, thread_name_prefix="kpd-obj") as pool:
+        other = pool.submit(kernel, n // 2, n, *args)
+        kernel(0, n // 2, *args)
+        other.result()
+
+
 def _scan(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Line starts, ends (before ``\\r\\n`` or ``\\n``), the first non-blank byte of each line and each line's kind
     (:data:`_KINDS`), all (L,) int64: numpy finds the line breaks, a compiled pass the rest (:func:`_line_table`)."""
     buf = np.frombuffer(data, dtype=np.uint8)
-    return _line_table(buf, np.flatnonzero(buf == _NEWLINE))
+    breaks = np.flatnonzero(buf == _NEWLINE)
+    count = len(breaks) + 1
+    if count > 1 and breaks[-1] == len(buf) - 1:  # a last line break ends the last line; no empty line follows
+        count -= 1
+    table = tuple(np.empty(count, np.int64) for _ in range(4))
+    _in_halves(_line_table, count, buf, breaks, *table)
+    return table
 
 
 @compiled_on_first_call
-def _line_table(buf, breaks):  # pragma: no cover - compiled
+def _line_table(lo, hi, buf, breaks, starts, ends, first, kind):  # pragma: no cover - compiled
     n = len(buf)
-    count = len(breaks) + 1
-    if count > 1 and breaks[-1] == n - 1:  # a last line break ends the last line; no empty line follows
-        count -= 1
-    starts = np.empty(count, np.int64)
-    ends = np.empty(count, np.int64)
-    first = np.empty(count, np.int64)
-    kind = np.zeros(count, np.int64)
-    for line in range(count):
+    for line in range(lo, hi):
         start = breaks[line - 1] + 1 if line else 0
         end = breaks[line] if line < len(breaks) else n
         if end > start and buf[end - 1] == 13:
@@ -109,6 +126,7 @@ def _line_table(buf, breaks):  # pragma: no cover - compiled
         while j < end and (buf[j] == _SPACE or buf[j] == _TAB):
             j += 1
         starts[line], ends[line], first[line] = start, end, j
+        kind[line] = 0
         c0 = buf[j] if j < n else 0
         c1 = buf[j + 1] if j + 1 < n else 0
         c2 = buf[j + 2] if j + 2 < n else 0
@@ -142,12 +160,12 @@ _BLANKS = np.array([b in b" \t\n\r\x0b\x0c" for b in range(256)])  # what bytes.
 
 
 @compiled_on_first_call
-def _numbers(buf, begin, stop, out, counts, exact):  # pragma: no cover - compiled
+def _numbers(lo, hi, buf, begin, stop, out, counts, exact):  # pragma: no cover - compiled
     """Row r's numbers, the blank-separated words of ``buf[begin[r]:stop[r]]`` up to a ``#``: the first
     ``out.shape[1]`` into ``out[r]``, how many into ``counts[r]``, and ``exact[r]`` False when some word is not a
     plain decimal (sign, digits, point, exponent) within the fast path's reach (Python then reads the row)."""
     width = out.shape[1]
-    for r in range(len(begin)):
+    for r in range(lo, hi):
         i, end = begin[r], stop[r]
         k = 0
         good = True
@@ -240,7 +258,7 @@ def _values(p: Path, data: bytes, lines, rows: np.ndarray, prefix: int, widths: 
     out = np.zeros((n, max(widths)))
     counts = np.empty(n, dtype=np.int64)
     exact = np.empty(n, dtype=np.bool_)
-    _numbers(np.frombuffer(data, dtype=np.uint8), first[rows] + prefix, ends[rows], out, counts, exact)
+    _in_halves(_numbers, n, np.frombuffer(data, dtype=np.uint8), first[rows] + prefix, ends[rows], out, counts, exact)
     for j in np.flatnonzero(~exact).tolist():  # rare: words Python reads, or reports
         i = int(rows[j])
         try:
@@ -262,11 +280,11 @@ _FACE_FINE, _FACE_SHORT, _FACE_MIXED, _FACE_NOT_INDEX, _FACE_FORM = 0, 1, 2, 3, 
 
 
 @compiled_on_first_call
-def _face_forms(buf, begin, stop, corners, forms, status):  # pragma: no cover - compiled
+def _face_forms(lo, hi, buf, begin, stop, corners, forms, status):  # pragma: no cover - compiled
     """Per face line r: its corners (blank-separated words up to a ``#``) into ``corners[r]``, the slashes of each
     corner (0 ``v``, 1 ``v/vt``, 2 ``v/vt/vn`` or ``v//vn``) into ``forms[r]``, and ``status[r]``: fine, short
     (fewer than 3 corners) or mixed (corners of different forms, or more than 2 slashes)."""
-    for r in range(len(begin)):
+    for r in range(lo, hi):
         i, end = begin[r], stop[r]
         c = 0
         form = -1
@@ -290,13 +308,13 @@ def _face_forms(buf, begin, stop, corners, forms, status):  # pragma: no cover -
 
 
 @compiled_on_first_call
-def _face_corners(buf, begin, stop, forms, first_triangle, v, vt, vn, status):  # pragma: no cover - compiled
+def _face_corners(lo, hi, buf, begin, stop, forms, first_triangle, v, vt, vn, status):  # pragma: no cover
     """The triangles of face line r from ``first_triangle[r]`` on: their corners' indices in ``v``, ``vt`` and
     ``vn`` (T, 3) each (0 where a corner has none; ``vt`` and ``vn`` may be empty when no line has them), a fan
     from the first corner for a polygon. ``status[r]`` becomes not-an-index for a word
     that is not signed integers and slashes, or wrong-form for an index missing anywhere but the middle of
     ``v//vn``."""
-    for r in range(len(begin)):
+    for r in range(lo, hi):
         if status[r] != _FACE_FINE:
             continue
         i, end = begin[r], stop[r]
@@ -366,12 +384,12 @@ def _faces(p: Path, data: bytes, lines, rows: np.ndarray) -> tuple[list, np.ndar
     corners = np.empty(n, dtype=np.int64)
     forms = np.empty(n, dtype=np.int64)
     status = np.empty(n, dtype=np.int64)
-    _face_forms(buf, begin, stop, corners, forms, status)
+    _in_halves(_face_forms, n, buf, begin, stop, corners, forms, status)
     first_triangle = np.concatenate([[0], np.cumsum(np.maximum(corners - 2, 0))]).astype(np.int64)
     T = int(first_triangle[-1])
     widest = int(forms.max()) if n else 0
     indices = [np.zeros((T if widest >= k else 0, 3), dtype=np.int64) for k in range(3)]
-    _face_corners(buf, begin, stop, forms, first_triangle, *indices, status)
+    _in_halves(_face_corners, n, buf, begin, stop, forms, first_triangle, *indices, status)
     if status.any():
         _face_error(p, data, lines, rows, status, corners, forms)
     return [index if len(index) else None for index in indices], np.repeat(rows, corners - 2)
