@@ -138,3 +138,104 @@ def test_same_corners_names_the_first_triangle_over_the_same_corners():
                 assert same[t] == np.flatnonzero((corners[: t + 1] == corners[t]).all(axis=1))[0]
 
     check()
+
+
+def test_the_direct_table_equals_the_sort_on_integer_keys():
+    from kpd.grouping import _direct_groups, _sorted_groups
+
+    @settings(max_examples=80, deadline=None)
+    @given(n=st.integers(1, 400), spread=st.integers(1, 2000), seed=st.integers(0, 2**16),
+           dtype=st.sampled_from([np.int64, np.int32, np.uint16, np.uint64]), column=st.booleans())
+    def check(n, spread, seed, dtype, column):
+        keys = np.random.default_rng(seed).integers(0, spread, n).astype(dtype)  # repeats wherever spread < n
+        first, index = _direct_groups(keys, int(keys.max()) + 1)
+        want = _sorted_groups(keys[:, None] if column else keys)
+        assert first.dtype == index.dtype == want.first.dtype == want.index.dtype == np.int64
+        np.testing.assert_array_equal(first, want.first)
+        np.testing.assert_array_equal(index, want.index)
+
+    check()
+    first, index = _direct_groups(np.zeros(0, np.int64), 1)
+    assert first.shape == index.shape == (0,) and first.dtype == index.dtype == np.int64
+    first, index = _direct_groups(np.array([7]), 8)
+    assert first.tolist() == [0] and index.tolist() == [0]
+
+
+def test_integer_keys_take_the_table_exactly_within_its_bound(monkeypatch):
+    import kpd.grouping as grouping
+
+    tables = []
+    direct = grouping._direct_groups
+    monkeypatch.setattr(grouping, "_direct_groups", lambda keys, top: tables.append(top) or direct(keys, top))
+    rows = grouping._DIRECT_ROWS
+    bound = grouping._direct_bound(rows)
+    assert bound == 4 * rows + 1024
+    rng = np.random.default_rng(3)
+    for largest, tabled in ((bound - 1, True), (bound, False)):  # keys up to 4 R + 1023 take the table
+        keys = rng.integers(0, rows // 3, rows)
+        keys[rng.integers(rows)] = largest
+        for shaped in (keys, keys[:, None], keys.astype(np.int32), keys.astype(np.uint32)):
+            got, want = first_occurrence_groups(shaped), grouping._sorted_groups(shaped)
+            assert got.first.dtype == got.index.dtype == np.int64
+            np.testing.assert_array_equal(got.first, want.first)
+            np.testing.assert_array_equal(got.index, want.index)
+        assert tables == ([largest + 1] * 4 if tabled else [])
+        tables.clear()
+    keys = rng.integers(0, 100, rows)
+    # too few, a negative one, two columns, bool, big-endian: sorted
+    for sorted_keys in (keys[:-1], np.r_[keys[:-1], -1], np.c_[keys, keys], keys.astype(bool), keys.astype(">i8")):
+        got, want = first_occurrence_groups(sorted_keys), grouping._sorted_groups(sorted_keys)
+        np.testing.assert_array_equal(got.first, want.first)
+        np.testing.assert_array_equal(got.index, want.index)
+    assert tables == []
+    got = first_occurrence_groups(np.zeros((0, 1), np.int64))
+    assert got.first.shape == got.index.shape == (0,) and got.first.dtype == got.index.dtype == np.int64
+
+
+def test_vertex_value_groups_equal_the_groups_of_the_joined_rows():
+    from kpd.grouping import _sorted_groups, vertex_value_groups
+
+    @settings(max_examples=80, deadline=None)
+    @given(n=st.integers(0, 300), vertices=st.integers(1, 40), values=st.integers(1, 6), seed=st.integers(0, 2**16),
+           far=st.booleans())
+    def check(n, vertices, values, seed, far):
+        rng = np.random.default_rng(seed)
+        vertex = rng.integers(0, vertices, n)
+        if far and n:  # a vertex number beyond the table's bound: the rows' own grouping
+            vertex[rng.integers(n)] = 4 * n + 1024
+        levels = np.array([0.0, -0.0, 0.5, -1.25, 3.0, 1e-300])[:values]  # zeros of both signs are one value
+        uv = levels[rng.integers(0, len(levels), (n, 2))]
+        got = vertex_value_groups(vertex, uv)
+        want = _sorted_groups(np.hstack([vertex[:, None], uv]))
+        assert got.first.dtype == got.index.dtype == np.int64
+        np.testing.assert_array_equal(got.first, want.first)
+        np.testing.assert_array_equal(got.index, want.index)
+
+    check()
+
+
+def test_vertex_value_groups_of_a_pole_with_a_value_per_row_give_up_the_search():
+    """One vertex with 20,000 distinct UVs (a sphere's pole, mapped per triangle): the search would compare about
+    2e8 pairs; past its budget it stops, and the groups are still the joined rows' groups."""
+    from kpd import grouping
+    from kpd.grouping import _sorted_groups, vertex_value_groups
+
+    n = 20_000
+    vertex = np.zeros(n, dtype=np.int64)
+    uv = np.stack([np.arange(n, dtype=np.float64), np.zeros(n)], axis=1)
+    assert not grouping._vertex_value_groups(vertex, uv, 1, 16 * n + 4096)[2]  # the budget runs out
+    got, want = vertex_value_groups(vertex, uv), _sorted_groups(np.hstack([vertex[:, None], uv]))
+    np.testing.assert_array_equal(got.first, want.first)
+    np.testing.assert_array_equal(got.index, want.index)
+
+
+def test_float32_positions_take_the_hash_table_with_the_sorts_groups():
+    from kpd.grouping import _sorted_groups
+
+    for count, seed, levels in ((0, 0, 3), (1, 1, 3), (500, 2, 3), (500, 3, 1000)):
+        rows = rows_with_ties(count, seed, levels).astype(np.float32)  # zeros of both signs, many ties
+        rows = np.concatenate([rows, rows[: count // 3]])
+        got, want = first_occurrence_groups(rows), _sorted_groups(rows)
+        np.testing.assert_array_equal(got.first, want.first)
+        np.testing.assert_array_equal(got.index, want.index)
+        np.testing.assert_array_equal(coincident_first(rows), coincident_first(rows.astype(np.float64)))

@@ -66,6 +66,10 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
         mesh = ply.read_mesh(p, os.fspath(path)) if _has_faces(p) else None
         if mesh is not None:
             return mesh
+    if ext == ".stl":  # a binary STL through numpy, welded as Open3D's reader and stl.weld weld it; ASCII by Open3D
+        welded = stl.read(p)
+        if welded is not None:
+            return Mesh(*welded, path=os.fspath(path))
     m = _read_open3d_mesh(p, ext)
     if len(m.triangles) == 0:
         raise InputError(
@@ -149,6 +153,10 @@ def _read_open3d_mesh(p: Path, ext: str) -> "open3d.geometry.TriangleMesh":
         ply.check_complete(p)
     elif ext == ".off":
         off.check_complete(p)
+    elif ext == ".stl":  # a binary STL through numpy (stl.read), ASCII by Open3D
+        welded = stl.read(p)
+        if welded is not None:
+            return stl.to_open3d(*welded)
     m = _open3d_read(lambda: o3d.io.read_triangle_mesh(str(p)), p, "a mesh")
     if len(m.vertices) == 0:
         raise InputError(f"{p}: no vertices (empty geometry)")

@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from kpd.errors import InputError
-from kpd.grouping import first_occurrence_groups
+from kpd.grouping import first_occurrence_groups, vertex_value_groups
 from kpd.io.atomic import atomic_files, atomic_output
 from kpd.io.common import verify_companion
 from kpd.io.images import encode_png
@@ -126,12 +126,14 @@ def primitive_groups(mesh: Mesh) -> list[Primitive]:
         groups = [(m, r, True) for m, r in groups]
     out = []
     for material, rows, has_uv in groups:
+        if rows is not None and len(rows) == len(mesh.triangles):
+            rows = None  # every triangle, in order: read in place, not copied
         tri = mesh.triangles if rows is None else mesh.triangles[rows]  # (t, 3)
         corner_vertex = tri.reshape(-1)  # (3t,)
         if mesh.triangle_uvs is not None and has_uv:
             uv = mesh.triangle_uvs.reshape(-1, 3, 2)
             corner_uv = (uv if rows is None else uv[rows]).reshape(-1, 2)  # (3t, 2)
-            first, index = first_occurrence_groups(np.hstack([corner_vertex[:, None], corner_uv]))
+            first, index = vertex_value_groups(corner_vertex, corner_uv)
             uvs = corner_uv[first]
         else:
             first, index = first_occurrence_groups(corner_vertex[:, None])
@@ -267,10 +269,20 @@ def _write_gltf(target: Path, mesh: Mesh, *, binary: bool, name: str) -> None:
         doc["buffers"] = [{"byteLength": buffer.length}]
         with open(target, "wb") as fh:
             write_glb(fh, doc, buffer)
-    else:
-        doc["buffers"] = [{"byteLength": buffer.length, "uri": "data:application/octet-stream;base64,"
-                           + base64.b64encode(buffer.to_bytes()).decode("ascii")}]
-        target.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+    else:  # the buffer as a data URI, the document's last value, written in pieces of base64 into the JSON text
+        prefix = "data:application/octet-stream;base64,"
+        doc["buffers"] = [{"byteLength": buffer.length, "uri": prefix}]
+        text = json.dumps(doc, indent=1)
+        cut = text.rindex(prefix) + len(prefix)
+        data = memoryview(buffer.to_bytes())
+        with open(target, "w", encoding="utf-8") as fh:
+            fh.write(text[:cut])
+            for start in range(0, len(data), _BASE64_PIECE):
+                fh.write(base64.b64encode(data[start : start + _BASE64_PIECE]).decode("ascii"))
+            fh.write(text[cut:])
+
+
+_BASE64_PIECE = 3 << 20  # bytes of the buffer encoded at a time (a multiple of 3: the pieces join without padding)
 
 
 def read_gltf_json(p: Path) -> tuple[dict, bytes | None]:
