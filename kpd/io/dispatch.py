@@ -296,6 +296,10 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh) -> None:
         with atomic_output(p, verify=lambda tmp: _verify_mesh_file(p, tmp, mesh, ext)) as target:
             ply.write_mesh(target, mesh)
         return
+    if ext == ".off":  # by kpd.io.text, what Open3D writes with 9 significant digits instead of 6
+        with atomic_output(p, verify=lambda tmp: _verify_mesh_file(p, tmp, mesh, ext)) as target:
+            off.write_mesh(target, mesh)
+        return
     m = mesh.to_open3d()
     if ext == ".stl":
         m.compute_triangle_normals()

@@ -187,30 +187,25 @@ def _numbers(lo, hi, buf, begin, stop, out, counts, exact):  # pragma: no cover 
             exponent = 0
             seen = False
             cut = False  # a non-zero digit beyond the 18 the mantissa holds
-            while i < j and 48 <= buf[i] <= 57:
+            point = False
+            while i < j:
+                if buf[i] == 46 and not point:  # .
+                    point = True
+                    i += 1
+                    continue
+                if not 48 <= buf[i] <= 57:
+                    break
                 seen = True
                 d = buf[i] - 48
                 if digits < 18:
                     if mantissa or d:
                         mantissa = mantissa * 10 + d
                         digits += 1
+                    exponent -= point
                 else:
-                    exponent += 1
+                    exponent += not point
                     cut |= d != 0
                 i += 1
-            if i < j and buf[i] == 46:  # .
-                i += 1
-                while i < j and 48 <= buf[i] <= 57:
-                    seen = True
-                    d = buf[i] - 48
-                    if digits < 18:
-                        if mantissa or d:
-                            mantissa = mantissa * 10 + d
-                            digits += 1
-                        exponent -= 1
-                    else:
-                        cut |= d != 0
-                    i += 1
             if seen and i < j and (buf[i] == 101 or buf[i] == 69):  # e E
                 i += 1
                 down = False
@@ -722,8 +717,12 @@ def _is_image(texture: np.ndarray) -> bool:
     return texture.shape[0] * texture.shape[1] > 1
 
 
-def _fmt(rows: np.ndarray) -> list[bytes]:
-    return [b"%.9g %.9g %.9g" % (a, b, c) for a, b, c in rows.tolist()]
+def _fmt(rows: np.ndarray, prefix: bytes, tails: list | None = None) -> tuple:
+    """(n, 3) float64 rows as ``prefix`` and ``%.9g %.9g %.9g`` (and `` tail`` where a row has one), without line
+    breaks, as a stream of :func:`kpd.io.text.write_spliced`: the text (B,) uint8 and the rows' (n + 1,) offsets."""
+    from kpd.io import text
+
+    return text.float_rows(rows, 9, prefix=prefix, suffix=b"", tails=tails)
 
 
 def _source_companions(stem: str, source: ObjSource) -> tuple[dict, dict]:
@@ -774,43 +773,35 @@ def _map_statements(data: bytes) -> list[tuple[int, bytes]]:
 
 
 def _write_from_source(target: Path, mesh: Mesh, source: ObjSource) -> None:
-    data = source.data
+    """The source's bytes with its ``v`` lines (and referenced ``vn`` lines) rewritten when the positions changed and
+    its ``mtllib`` statements naming the copied libraries, spliced by :func:`kpd.io.text.write_spliced`."""
+    from kpd.io import text
+
     libs, images = _source_companions(target.stem, source)
-    changed = not np.array_equal(mesh.vertices, source.vertices)
-    edits: list[tuple[int, int, bytes]] = []
-    if changed:
-        text = _fmt(mesh.vertices)
-        if source.v_tails is not None:
-            text = [t + (b" " + tail if tail else b"") for t, tail in zip(text, source.v_tails)]
-        edits += [(int(s), int(e), b"v " + t) for (s, e), t in zip(source.v_spans, text)]
+    streams = []  # (spans, text, offsets), each in file order
+    if not np.array_equal(mesh.vertices, source.vertices):
+        streams.append((source.v_spans, *_fmt(mesh.vertices, b"v ", source.v_tails)))
         if len(source.vn_spans):
             normals = turned_normals(source.vertices, mesh.vertices, mesh.triangles, source.corner_normals,
                                      source.normals)
             referenced = np.zeros(len(normals), dtype=bool)
             referenced[source.corner_normals[source.corner_normals >= 0]] = True
-            text = _fmt(normals)
-            edits += [(int(s), int(e), b"vn " + t)
-                      for (s, e), t, r in zip(source.vn_spans, text, referenced) if r]
+            streams.append((source.vn_spans[referenced], *_fmt(normals[referenced], b"vn ")))
     lib_names = {}
     for _, _, names in source.libraries:
         for lib_name, lib in _library_files(source.path, names):
             if lib is not None:
                 lib_names[lib_name] = libs[lib][0]
-    for start, end, names in source.libraries:
+    statements = []
+    for _, _, names in source.libraries:
         files = [lib_names[n] for n, lib in _library_files(source.path, names) if lib is not None]
-        edits.append((start, end, ("mtllib " + " ".join(files)).encode("utf-8") if files else b"# mtllib " +
-                      names.encode("utf-8") + b" (missing when kpd read the file)"))
-    edits.sort()
-    parts, at = [], 0
-    for start, end, new in edits:
-        parts.append(data[at:start])
-        parts.append(new)
-        at = end
-    parts.append(data[at:])
-    out = b"".join(parts)
-    if not out.endswith(b"\n"):
-        out += b"\n"
-    target.write_bytes(out)
+        statements.append(("mtllib " + " ".join(files)).encode("utf-8") if files else b"# mtllib " +
+                          names.encode("utf-8") + b" (missing when kpd read the file)")
+    spans = np.array([(start, end) for start, end, _ in source.libraries], dtype=np.int64).reshape(-1, 2)
+    streams.append((spans, *text.joined(statements)))
+    with open(target, "wb") as fh:
+        if text.write_spliced(fh, source.data, streams) != b"\n":
+            fh.write(b"\n")
     for lib, (new, renames) in libs.items():
         target.parent.joinpath(new).write_bytes(_renamed_library(lib.read_bytes(), renames))
     for image, new in images.items():
@@ -831,58 +822,47 @@ def _renamed_library(data: bytes, renames: dict) -> bytes:
 
 
 def _write_arrays(target: Path, mesh: Mesh) -> None:
-    """An OBJ (and its .mtl and PNGs) from the mesh's arrays alone."""
+    """An OBJ (and its .mtl and PNGs) from the mesh's arrays alone, its rows formatted by :mod:`kpd.io.text` and
+    written a block at a time."""
+    from kpd.grouping import first_occurrence_groups
+    from kpd.io import text
+
     stem = target.stem
     T = len(mesh.triangles)
-    out: list[bytes] = [b"# written by kpd\n"]
     materials = bool(mesh.textures)
-    if materials:
-        out.append(f"mtllib {stem}.mtl\n".encode("utf-8"))
-    v = _fmt(mesh.vertices)
-    if mesh.vertex_colors is not None:
-        v = [t + b" %.6g %.6g %.6g" % tuple(c) for t, c in zip(v, mesh.vertex_colors.tolist())]
-    out.append(b"".join(b"v " + t + b"\n" for t in v))
-    uv_index = None
-    mask = np.ones(T, dtype=bool) if mesh.triangle_uv_mask is None else mesh.triangle_uv_mask
-    if mesh.triangle_uvs is not None and mask.any():
-        corners = mesh.triangle_uvs.reshape(T, 3, 2)[mask].reshape(-1, 2)
-        from kpd.grouping import first_occurrence_groups
-
-        first, index = first_occurrence_groups(corners)
-        out.append(b"".join(b"vt %.9g %.9g\n" % (a, b) for a, b in corners[first].tolist()))
-        uv_index = np.full((T, 3), -1, dtype=np.int64)
-        uv_index[mask] = index.reshape(-1, 3)
-    if mesh.vertex_normals is not None:
-        out.append(b"".join(b"vn " + t + b"\n" for t in _fmt(mesh.vertex_normals)))
-    ids = mesh.triangle_material_ids
-    if materials and ids is None:
-        ids = np.zeros(T, dtype=np.int64)
-    # faces in runs of one material and one form (with or without UVs), each run formatted at once
-    has_uv = np.zeros(T, dtype=bool) if uv_index is None else uv_index[:, 0] >= 0
-    key = has_uv.astype(np.int64) if ids is None else ids * 2 + has_uv
-    cuts = np.concatenate([[0], np.flatnonzero(np.diff(key)) + 1, [T]]).tolist()
-    normals = mesh.vertex_normals is not None
-    tri = mesh.triangles + 1
-    lines = []
-    current = None
-    for a, b in zip(cuts[:-1], cuts[1:]):
-        if materials and ids[a] != current:
-            current = int(ids[a])
-            lines.append(f"usemtl material_{current}".encode())
-        v = tri[a:b]
-        if has_uv[a]:
-            t = uv_index[a:b] + 1
-            if normals:
-                table, form = np.stack([v, t, v], axis=2), b"f %d/%d/%d %d/%d/%d %d/%d/%d"
-            else:
-                table, form = np.stack([v, t], axis=2), b"f %d/%d %d/%d %d/%d"
-        elif normals:
-            table, form = np.stack([v, v], axis=2), b"f %d//%d %d//%d %d//%d"
+    with open(target, "wb") as fh:
+        fh.write(b"# written by kpd\n")
+        if materials:
+            fh.write(f"mtllib {stem}.mtl\n".encode("utf-8"))
+        if mesh.vertex_colors is None:
+            text.write_float_rows(fh, [mesh.vertices], prefix=b"v ")
         else:
-            table, form = v, b"f %d %d %d"
-        lines.append(b"\n".join(map(form.__mod__, map(tuple, table.reshape(b - a, -1).tolist()))))
-    out.append(b"\n".join(lines) + b"\n")
-    target.write_bytes(b"".join(out))
+            text.write_float_rows(fh, [mesh.vertices, mesh.vertex_colors], (9, 9, 9, 6, 6, 6), prefix=b"v ")
+        uv_index = None
+        mask = np.ones(T, dtype=bool) if mesh.triangle_uv_mask is None else mesh.triangle_uv_mask
+        if mesh.triangle_uvs is not None and mask.any():
+            corners = mesh.triangle_uvs.reshape(T, 3, 2)[mask].reshape(-1, 2)
+            first, index = first_occurrence_groups(corners)
+            text.write_float_rows(fh, [corners[first]], prefix=b"vt ")
+            uv_index = np.full((T, 3), -1, dtype=np.int64)
+            uv_index[mask] = index.reshape(-1, 3)
+        normals = mesh.vertex_normals is not None
+        if normals:
+            text.write_float_rows(fh, [mesh.vertex_normals], prefix=b"vn ")
+        ids = mesh.triangle_material_ids
+        if materials and ids is None:
+            ids = np.zeros(T, dtype=np.int64)
+        # faces in runs of one material and one form (with or without UVs)
+        has_uv = np.zeros(T, dtype=bool) if uv_index is None else uv_index[:, 0] >= 0
+        key = has_uv.astype(np.int64) if ids is None else ids * 2 + has_uv
+        cuts = np.concatenate([[0], np.flatnonzero(np.diff(key)) + 1, [T]]).tolist()
+        current = None
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            if materials and ids[a] != current:
+                current = int(ids[a])
+                fh.write(f"usemtl material_{current}\n".encode())
+            v = mesh.triangles[a:b]
+            text.write_index_rows(fh, v, uv=uv_index[a:b] if has_uv[a] else None, normal=v if normals else None)
     if materials:
         from kpd.io.images import encode_png
 
@@ -900,12 +880,13 @@ def _write_arrays(target: Path, mesh: Mesh) -> None:
 
 
 def _verify(p: Path, tmp: Path, mesh: Mesh, T: int) -> None:
-    """The written file holds every vertex and its ``T`` face lines, and ends with a line break."""
+    """The written file holds every vertex and its ``T`` face lines, and ends with a line break (its lines counted
+    over its bytes as :func:`parse` finds them, by :func:`kpd.io.text.count_obj_lines`)."""
+    from kpd.io import text
+
     V = len(mesh.vertices)
-    data = tmp.read_bytes()
-    kind = _scan(data)[3]
-    v, f = int((kind == _KINDS["v"]).sum()), int((kind == _KINDS["f"]).sum())
-    if v != V or f != T or not data.endswith(b"\n"):
+    v, f, ends_with_break = text.count_obj_lines(tmp)
+    if v != V or f != T or not ends_with_break:
         raise incomplete(p, f"{v} of {V} vertices and {f} of {T} faces")
     for companion in tmp.parent.iterdir():
         if companion != tmp:
