@@ -1,6 +1,7 @@
 """kpd.grouping: one answer to "which rows are the same?", -0.0 and 0.0 included."""
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
@@ -239,3 +240,15 @@ def test_float32_positions_take_the_hash_table_with_the_sorts_groups():
         np.testing.assert_array_equal(got.first, want.first)
         np.testing.assert_array_equal(got.index, want.index)
         np.testing.assert_array_equal(coincident_first(rows), coincident_first(rows.astype(np.float64)))
+
+
+@pytest.mark.parametrize("width", [1, 2])
+def test_many_uv_rows_take_the_hash_table_with_the_sorts_groups(width):
+    from kpd.grouping import _DIRECT_ROWS, _sorted_groups
+
+    rng = np.random.default_rng(width)
+    levels = np.array([0.0, -0.0, 0.25, 1.0, -3.5, 1e-300, 0.1])  # zeros of both signs are one value
+    rows = levels[rng.integers(0, len(levels), (_DIRECT_ROWS + 100, width))]
+    got, want = first_occurrence_groups(rows), _sorted_groups(rows)
+    np.testing.assert_array_equal(got.first, want.first)
+    np.testing.assert_array_equal(got.index, want.index)
