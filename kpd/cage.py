@@ -13,9 +13,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from kpd._compiled import compiled_on_first_call
 from kpd.errors import InputError, KpdError
 from kpd.geometry import as_points
-from kpd.grouping import compiled_on_first_call
 
 __all__ = [
     "Cage",

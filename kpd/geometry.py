@@ -9,8 +9,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from kpd._compiled import compiled_on_first_call
 from kpd.errors import InputError, NotFittedError
-from kpd.grouping import compiled_on_first_call
 from kpd.triangles import cross as triangle_cross
 from kpd.triangles import unit_normals
 

@@ -15,35 +15,16 @@ and UVs in 0.22 s (the hash table of the joined rows took 1.3 s), the float32 po
 
 from __future__ import annotations
 
-import functools
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
+
+from kpd._compiled import compiled_on_first_call
 
 __all__ = ["coincident_first", "first_occurrence_groups", "merge_coincident", "same_corners", "vertex_value_groups",
            "Groups"]
 
 _KEY_LIMIT = 2**63 - 1  # the largest int64: rank keys of more distinct combinations fall back to a lexicographic sort
-
-
-def compiled_on_first_call(function: Callable) -> Callable:
-    """``numba.njit(cache=True, nogil=True)(function)``, made on the first call: importing a module whose kernels
-    are defined this way (every mesh reader imports this one) does not import numba, which takes half a second.
-
-    The kernel is compiled once per machine and cached next to its source file, as numba's ``cache=True`` does.
-    """
-    dispatcher = None
-
-    @functools.wraps(function)
-    def call(*args):
-        nonlocal dispatcher
-        if dispatcher is None:
-            import numba
-
-            dispatcher = numba.njit(cache=True, nogil=True)(function)
-        return dispatcher(*args)
-
-    return call
 
 
 class Groups(NamedTuple):

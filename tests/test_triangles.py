@@ -1,8 +1,9 @@
 """kpd.triangles: cross products, areas, normals and vertex normals against hand-computed values."""
 
 import numpy as np
+import pytest
 
-from kpd.triangles import areas, cross, turned_normals, unit_normals, vertex_normals
+from kpd.triangles import _face_sums, areas, cross, turned_normals, unit_normals, vertex_normals
 
 # a unit right triangle in the xy plane and a degenerate one (all corners on a line)
 V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0], [3, 0, 0]])
@@ -42,3 +43,36 @@ def test_turned_normals_keep_an_artists_offset_from_the_surface():
     new = vertices[:, [2, 1, 0]] * [1, 1, -1]  # the face turned to face +x
     turned = turned_normals(vertices, new, triangles, np.zeros((1, 3), np.int64), tilted)
     np.testing.assert_allclose(turned[0] @ [1.0, 0, 0], np.cos(0.3), atol=1e-12)  # still 0.3 rad off the face
+
+
+def face_sums_reference(vertices, triangles, slots, n):
+    """``np.bincount`` of the corners' slots weighted by their triangles' cross products (the former formula)."""
+    face = cross(vertices, triangles)  # (T, 3)
+    used = slots >= 0
+    weights = np.repeat(face[:, None, :], 3, axis=1)[used]  # (c, 3), corners in order
+    return np.stack([np.bincount(slots[used], weights=weights[:, k], minlength=n) for k in range(3)],
+                    axis=1).astype(np.float64)
+
+
+@pytest.mark.parametrize("dtype", [np.int32, np.int64])
+def test_face_sums_equal_the_bincount_of_the_corners(dtype):
+    rng = np.random.default_rng(1)
+    vertices = rng.normal(size=(500, 3)) * 10.0 ** rng.integers(-3, 3, (500, 1))
+    triangles = rng.integers(0, 500, (3000, 3)).astype(dtype)
+    triangles[:10, 1] = triangles[:10, 0]  # degenerate triangles add zero
+    slots = rng.integers(-1, 200, (3000, 3))
+    np.testing.assert_array_equal(_face_sums(vertices, triangles, slots, 200),
+                                  face_sums_reference(vertices, triangles, slots, 200))
+
+
+def test_vertex_normals_with_and_without_groups_are_the_summed_unit_normals():
+    rng = np.random.default_rng(2)
+    vertices = rng.normal(size=(300, 3))
+    triangles = rng.integers(0, 300, (1000, 3))
+    groups = rng.integers(0, 120, 300)
+    for g, n in ((None, 300), (groups, 120)):
+        slots = triangles if g is None else g[triangles]
+        summed = face_sums_reference(vertices, triangles, slots, n)
+        length = np.linalg.norm(summed, axis=1, keepdims=True)
+        want = np.divide(summed, length, out=np.zeros_like(summed), where=length > 0)
+        np.testing.assert_array_equal(vertex_normals(vertices, triangles, g), want if g is None else want[g])

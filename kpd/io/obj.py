@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from kpd.errors import InputError, WriteError
-from kpd.grouping import compiled_on_first_call
+from kpd._compiled import compiled_on_first_call
 from kpd.io.atomic import atomic_files
 from kpd.io.common import incomplete, verify_companion
 from kpd.io.images import read_image
