@@ -61,8 +61,10 @@ def first_occurrence_groups(keys: np.ndarray) -> Groups:
     Positions, (R, 3) float64 or float32, go through :func:`coincident_first`'s hash table, and so do (R, 1) and
     (R, 2) float rows (UVs) of at least ``_DIRECT_ROWS`` rows, padded with zeros (16.5M random UVs in 2.9 s against
     19 s for the sort, on a busy machine); integer keys, (R,) or (R, 1), of at least ``_DIRECT_ROWS`` rows
-    whose values lie in [0, 4 R + 1024) through a table indexed by the value (:func:`_direct_groups`); other keys
-    through a sort (:func:`_sorted_groups`). The same groups either way.
+    whose values lie in [0, 4 R + 1024) through a table indexed by the value (:func:`_direct_groups`); as many
+    float rows of more than three columns (positions and normals) by their first three's groups, then the rest
+    within each (:func:`vertex_value_groups`); other keys through a sort (:func:`_sorted_groups`). The same groups
+    either way.
     """
     a = np.asarray(keys)
     if a.ndim == 2 and a.shape[1] in (1, 2) and a.dtype in (np.float64, np.float32) and len(a) >= _DIRECT_ROWS:
@@ -72,6 +74,13 @@ def first_occurrence_groups(keys: np.ndarray) -> Groups:
         starts = same == np.arange(len(same))
         rank = np.cumsum(starts) - 1  # (R,) each first row's group, in order of first occurrence
         return Groups(np.flatnonzero(starts), rank[same])
+    if a.ndim == 2 and a.shape[1] > 3 and a.dtype.kind == "f" and len(a) >= _DIRECT_ROWS:
+        # positions and more (a normal): the positions' groups, then each one's distinct rest
+        position = first_occurrence_groups(a[:, :3]).index
+        first, index, done = _vertex_value_groups(position, np.ascontiguousarray(a[:, 3:], dtype=np.float64),
+                                                  len(a), 16 * len(a) + 4096)
+        if done:
+            return Groups(first, index)
     one_integer = a.dtype.kind in "iu" and a.dtype.isnative and a.ndim in (1, 2) and a.size == len(a)  # per row
     if one_integer and len(a) >= _DIRECT_ROWS:
         column = a.reshape(-1)

@@ -252,3 +252,23 @@ def test_many_uv_rows_take_the_hash_table_with_the_sorts_groups(width):
     got, want = first_occurrence_groups(rows), _sorted_groups(rows)
     np.testing.assert_array_equal(got.first, want.first)
     np.testing.assert_array_equal(got.index, want.index)
+
+
+@pytest.mark.parametrize("crowded", [False, True])
+def test_many_positions_with_normals_group_as_the_joined_rows(crowded):
+    """(R, 6) rows, positions and normals, above the table's threshold: grouped by position, then by normal within
+    each; with one position holding a normal per row the search runs out of budget and the rows are sorted."""
+    from kpd.grouping import _DIRECT_ROWS, _sorted_groups
+
+    rng = np.random.default_rng(7)
+    n = _DIRECT_ROWS + 500
+    positions = rng.integers(0, 5, (n, 3)).astype(np.float64)
+    positions[::5] *= -0.0  # zeros of both signs are one position
+    normals = np.array([[0.0, 0, 1], [0, 1, 0], [-0.0, 0, 1]])[rng.integers(0, 3, n)]
+    if crowded:
+        positions[:] = 0.0
+        normals = np.stack([np.arange(n, dtype=np.float64), np.zeros(n), np.ones(n)], axis=1)
+    rows = np.hstack([positions, normals])
+    got, want = first_occurrence_groups(rows), _sorted_groups(rows)
+    np.testing.assert_array_equal(got.first, want.first)
+    np.testing.assert_array_equal(got.index, want.index)

@@ -436,6 +436,22 @@ def _indices(index, n, out):  # pragma: no cover - compiled
     return relative, missing, bad
 
 
+@compiled_on_first_call
+def _normal_sums(triangles, normal_index, vn, n):  # pragma: no cover - compiled
+    """(n, 3) float64: per vertex, the sum of the ``vn`` its corners use (``normal_index`` (T, 3), -1 none), added
+    corner by corner in order (``np.bincount`` of them, to the bit, without the (3T, 3) gathered normals)."""
+    out = np.zeros((n, 3))
+    for t in range(triangles.shape[0]):
+        for k in range(3):
+            j = normal_index[t, k]
+            if j >= 0:
+                v = triangles[t, k]
+                out[v, 0] += vn[j, 0]
+                out[v, 1] += vn[j, 1]
+                out[v, 2] += vn[j, 2]
+    return out
+
+
 def _keyword_lines(data: bytes, lines, keyword: str) -> list[tuple[int, bytes]]:
     """(line index, argument text) of the ``usemtl`` or ``mtllib`` lines."""
     starts, ends, first, kind = lines
@@ -501,13 +517,12 @@ def parse(p: Path, data: bytes, points: bool = False) -> tuple[dict, ObjSource |
     if (normal_index >= 0).any():
         from kpd.triangles import vertex_normals
 
-        used = normal_index >= 0
-        corners_v, corners_n = triangles[used], vn[normal_index[used]]
-        normals = np.stack([np.bincount(corners_v, weights=corners_n[:, k], minlength=len(vertices))
-                            for k in range(3)], axis=1)
+        normals = _normal_sums(triangles, normal_index, vn, len(vertices))  # (V, 3) the corners' vn summed
         length = np.linalg.norm(normals, axis=1, keepdims=True)
-        fallback = vertex_normals(vertices, triangles)
-        normals = np.where(length > 1e-12, normals / np.maximum(length, 1e-300), fallback)
+        normals = normals / np.maximum(length, 1e-300)
+        weak = ~(length[:, 0] > 1e-12)  # no normal, ones that cancel (or not a number): the faces' own
+        if weak.any():
+            normals[weak] = vertex_normals(vertices, triangles)[weak]
 
     # materials: the last 'usemtl' before each face
     usemtl = _keyword_lines(data, lines, "usemtl")
