@@ -15,9 +15,11 @@ OBJ's vertices are its ``v`` lines in order, its faces keep their texture coordi
 in ``Mesh.triangle_uv_mask``), every material is kept (its map, or its ``Kd`` colour as a 1x1 texture), and a mesh
 read from an OBJ or glTF file is written back in that file's own structure with only the positions (and the normals,
 turned with the surface) changed, its material library and images copied beside the output under the output's
-name. PLY, OFF, STL and point clouds go through Open3D, with the checks Open3D leaves out: Open3D returns an empty
-or half-read geometry with a console warning for a missing, broken or truncated file, and kpd raises
-:class:`~kpd.errors.InputError` naming the file and the problem instead.
+name. Binary PLY, text OFF and binary STL are read (and PLY and OFF written) by kpd too, by numpy or compiled passes
+that give Open3D's mesh (OFF's decimals read exactly, not as float32), fast at the size of a scan
+(docs/scale.md); other PLY, OFF and STL files and point clouds go through Open3D, with the checks Open3D leaves
+out: Open3D returns an empty or half-read geometry with a console warning for a missing, broken or truncated file,
+and kpd raises :class:`~kpd.errors.InputError` naming the file and the problem instead.
 
 Layout
 ------
@@ -33,8 +35,7 @@ Conventions
 - OBJ faces of more than three corners are read as fans of triangles (and written back as the polygons they are, in
   the file's own structure). STL vertices are welded back by position (STL stores no shared vertices). glTF files are y up
   (:func:`file_up`).
-- Precision: PLY keeps float64, PCD and glTF float32, OBJ nine significant digits (float32-exact), OFF (written by
-  Open3D) six significant digits, and
+- Precision: PLY keeps float64, PCD and glTF float32, OBJ and OFF nine significant digits (float32-exact), and
   the text formats kpd writes (``.xyz``, ``.pts``) nine significant digits (float32-exact).
 
 Writes are atomic (:mod:`kpd.io.atomic`, the one writer every kpd output goes through): everything is written

@@ -70,6 +70,10 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
         welded = stl.read(p)
         if welded is not None:
             return Mesh(*welded, path=os.fspath(path))
+    if ext == ".off":  # text OFF by kpd, its numbers exact; binary OFF and words kpd leaves to Open3D by Open3D
+        mesh = off.read_mesh(p, os.fspath(path))
+        if mesh is not None:
+            return mesh
     m = _read_open3d_mesh(p, ext)
     if len(m.triangles) == 0:
         raise InputError(
@@ -135,6 +139,10 @@ def read_shape(path: str | os.PathLike) -> Mesh | PointSet:
         return obj.read(p, os.fspath(path), points=True)
     if ext in (".gltf", ".glb"):
         return gltf.read(p, os.fspath(path), points=True)
+    if ext == ".off":  # text OFF by kpd, as in read_mesh
+        shape = off.read_mesh(p, os.fspath(path), points=True)
+        if shape is not None:
+            return shape
     m = _read_open3d_mesh(p, ext)
     if len(m.triangles) == 0:
         return PointSet(
@@ -188,6 +196,12 @@ def _read_point_arrays(p: Path, ext: str) -> tuple[np.ndarray, np.ndarray | None
             np.array(pc.normals, dtype=np.float64) if pc.has_normals() else None,
             np.array(pc.colors, dtype=np.float64) if pc.has_colors() else None,
         )
+    if ext == ".off":  # text OFF by kpd; what it leaves to Open3D (None) is read below
+        shape = off.read_mesh(p, os.fspath(p), points=True)
+        if isinstance(shape, PointSet):
+            return shape.points, shape.normals, shape.colors
+        if shape is not None:
+            return shape.vertices, shape.vertex_normals, shape.vertex_colors
     if ext in (".obj", ".gltf", ".glb"):
         shape = (obj if ext == ".obj" else gltf).read(p, os.fspath(p), points=True)
         if isinstance(shape, PointSet):
