@@ -11,8 +11,13 @@ Figures (docs/formats.md):
 * ``scale``: an OBJ of about 1M vertices and 2M triangles with one UV per vertex and a material, read by kpd and by
   Open3D, and written by kpd (a deformed copy: the file's own structure) and by Open3D (its OBJ writer), each in a
   fresh process: wall seconds (median of ``--runs``, the two libraries interleaved) and peak resident memory.
+* ``formats``: a scan-sized CAD mesh, the unseen ShapeNet chair ``fe6b3c00...`` subdivided 4 times (1,375,656
+  vertices, 5,505,024 triangles, as ``bench_viewer.py``'s ``1.3M``), written by kpd in each format from its arrays
+  and read back, and the same by Open3D where it reads or writes that format, each in a fresh process: wall seconds
+  of the call alone (median of ``--runs``, interleaved) and the process's peak resident memory.
 
-    .venv/bin/python benchmarks/bench_formats.py [--runs 3] [--resolution 700] > benchmarks/results/formats.json
+    .venv/bin/python benchmarks/bench_formats.py [--runs 3] [--resolution 700] [--skip-formats] \
+        > benchmarks/results/formats.json
 """
 
 from __future__ import annotations
@@ -166,6 +171,19 @@ elif kind == "open3d_write":
     m.vertices = o3d.utility.Vector3dVector(np.asarray(m.vertices) * 1.01)
     start = time.perf_counter()
     o3d.io.write_triangle_mesh(out, m)
+elif kind == "kpd_write_arrays":  # from a PLY's arrays: no file structure to follow
+    from kpd.io import read_mesh, write_mesh
+    m = read_mesh(path)
+    start = time.perf_counter()
+    write_mesh(out, m)
+elif kind == "open3d_write_arrays":
+    import open3d as o3d
+    m = o3d.io.read_triangle_mesh(path)
+    start = time.perf_counter()
+    if out.endswith(".stl"):  # its STL writer needs the facets' normals
+        m.compute_triangle_normals()
+    if not o3d.io.write_triangle_mesh(out, m):
+        raise SystemExit("Open3D could not write " + out)
 seconds = time.perf_counter() - start
 peak = next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmHWM"))  # kB, this process
 print(json.dumps({"seconds": seconds, "peak_mib": peak / 1024}))
@@ -204,11 +222,62 @@ def scale(runs: int, resolution: int) -> dict:
     return result
 
 
+FORMATS = (".ply", ".obj", ".off", ".stl", ".glb", ".gltf")
+
+
+def _child(kind: str, path: Path, out: Path) -> dict | None:
+    """One measurement in a fresh process; None when the library cannot do it (Open3D and glTF writing)."""
+    run = subprocess.run([sys.executable, "-c", _CHILD, kind, str(path), str(out)], capture_output=True, text=True)
+    if run.returncode != 0:
+        return None
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def formats(runs: int) -> dict:
+    """Each format written from the 1.37M-vertex chair's arrays and read back, by kpd and by Open3D."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from bench_viewer import SCAN_SIZED, _subdivided
+
+    result: dict = {}
+    with tempfile.TemporaryDirectory() as folder:
+        folder = Path(folder)
+        source = _subdivided(SCAN_SIZED, folder, "chair", times=4)  # the arrays every format is written from
+        from kpd.io import read_mesh
+
+        mesh = read_mesh(source)
+        result.update(mesh=f"{SCAN_SIZED.parent.name} subdivided 4 times", vertices=len(mesh.vertices),
+                      triangles=len(mesh.triangles))
+        del mesh
+        samples: dict = {}
+        for r in range(runs):
+            for ext in FORMATS:
+                for library in ("kpd", "open3d"):  # interleaved: the machine's load falls on both alike
+                    written = folder / f"{library}{ext}"
+                    write = _child(f"{library}_write_arrays", source, written)
+                    read = _child(f"{library}_read", written, folder / "unused") if written.exists() else None
+                    samples.setdefault(ext, {}).setdefault(library, []).append((write, read))
+                    for p in folder.iterdir():
+                        if p.name.startswith(library) or p.name.startswith("unused"):
+                            p.unlink()
+        for ext, by_library in samples.items():
+            for library, values in by_library.items():
+                entry = {}
+                for step, k in (("write", 0), ("read", 1)):
+                    got = [v[k] for v in values if v[k] is not None]
+                    if got:
+                        entry[step] = {"seconds_median": round(statistics.median(g["seconds"] for g in got), 3),
+                                       "seconds": [round(g["seconds"], 2) for g in got],
+                                       "peak_mib_max": round(max(g["peak_mib"] for g in got))}
+                result.setdefault(ext.lstrip("."), {})[library] = entry or "cannot"
+    return result
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--resolution", type=int, default=700, help="Open3D sphere resolution (700: ~1M vertices)")
     parser.add_argument("--skip-scale", action="store_true")
+    parser.add_argument("--skip-formats", action="store_true")
     args = parser.parse_args()
     import open3d
 
@@ -223,6 +292,8 @@ def main() -> None:
     out["shapenet"] = shapenet()
     if not args.skip_scale:
         out["scale"] = scale(args.runs, args.resolution)
+    if not args.skip_formats:
+        out["formats"] = formats(args.runs)
     print(json.dumps(out, indent=2))
 
 
