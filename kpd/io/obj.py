@@ -417,10 +417,10 @@ def _face_error(p: Path, data: bytes, lines, rows: np.ndarray, status: np.ndarra
 
 
 @compiled_on_first_call
-def _indices(index, n, out):  # pragma: no cover - compiled
-    """``out`` (T, 3) = the 0-based indices ``index - 1`` of the positive ones of ``index`` (T, 3) (-1 where 0); returns
-    how many are negative (relative: ``out`` then incomplete), how many are 0, and how many triangles have one above
-    ``n``."""
+def _indices(index, n):  # pragma: no cover - compiled
+    """``index`` (T, 3) made 0-based in place (``index - 1``: -1 where a corner has none); returns how many were
+    negative (relative: the caller then resolves them from the file's values, ``index + 1``), how many were 0, and how
+    many triangles have one above ``n``."""
     relative = 0
     missing = 0
     bad = 0
@@ -428,7 +428,7 @@ def _indices(index, n, out):  # pragma: no cover - compiled
         wrong = False
         for c in range(3):
             x = index[t, c]
-            out[t, c] = x - 1 if x > 0 else -1
+            index[t, c] = x - 1
             relative += x < 0
             missing += x == 0
             wrong |= x > n
@@ -483,13 +483,13 @@ def parse(p: Path, data: bytes, points: bool = False) -> tuple[dict, ObjSource |
     T = len(face_rows)
 
     def resolve(index: np.ndarray | None, rows: np.ndarray, kind: str, n: int, optional: bool) -> np.ndarray:
-        out = np.empty((T, 3), dtype=np.int64)  # 0-based, -1 where missing
+        """(T, 3) 0-based indices, -1 where missing (a read-only view of -1 when no face has this kind)."""
         if index is None:
-            out.fill(-1)
-            return out
-        relative, missing, bad = _indices(index, n, out)
+            return np.broadcast_to(np.int64(-1), (T, 3))
+        relative, missing, bad = _indices(index, n)  # in place: index - 1
         if not (relative or (missing and not optional) or bad):
-            return out
+            return index
+        index += 1  # as the file has them
         out = index - 1
         if relative:  # negative: relative to the elements defined before the face
             before = np.searchsorted(rows, face_rows)[:, None]
