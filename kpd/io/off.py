@@ -48,7 +48,7 @@ import numpy as np
 from kpd._compiled import compiled_on_first_call
 from kpd.errors import InputError
 from kpd.io.common import count_lines
-from kpd.io.obj import _BLANKS, _EXACT_MANTISSA, _POW10, _in_halves
+from kpd.io.obj import _BLANKS, _in_halves, _numbers
 from kpd.mesh import Mesh, PointSet
 
 __all__ = ["check_complete", "read_mesh", "write_mesh"]
@@ -59,10 +59,11 @@ _HEADER = re.compile(rb"(C?N?OFF)(?:[ \t]*(\d.*))?", re.S)  # the keyword, and t
 _COUNT = re.compile(rb"\+?\d{1,18}")
 _UINT_MAX = 2**32 - 1  # Open3D reads the counts as unsigned int
 _FLOAT32_OVERFLOW = 2.0**128 - 2.0**103  # the least value a float32 rounds to infinity: Open3D refuses it
-_HASH, _NEWLINE, _PLUS, _MINUS, _POINT = 35, 10, 43, 45, 46
+_HASH, _NEWLINE, _PLUS = 35, 10, 43
+_DECIMAL = re.compile(rb"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")  # what Open3D reads as a number, kpd too
 
 # what the compiled passes find in a row; the first row (in file order) with one of them decides
-_FINE, _SLOW, _OPEN3D, _SHORT, _FEW_CORNERS, _NOT_COUNT, _NO_EAR = 0, 1, 2, 3, 4, 5, 6
+_FINE, _OPEN3D, _SHORT, _FEW_CORNERS, _NOT_COUNT, _NO_EAR = 0, 2, 3, 4, 5, 6
 
 
 # --- reading -------------------------------------------------------------------------------------------------------
@@ -213,17 +214,28 @@ class _Rows:
         return self.vertices_read == self.V and self.faces_read == self.F
 
     def _vertices(self, block: np.ndarray, ends: np.ndarray, rows: np.ndarray, line: int) -> None:
-        n, at = len(rows), self.vertices_read
+        n, at, width = len(rows), self.vertices_read, self.width
         self.values = _room(self.values, at + n, self.V)
-        status = np.empty(n, np.int8)
-        _in_halves(_vertex_rows, n, block, ends, rows, self.values, at, status)
-        for r in np.flatnonzero(status == _SLOW).tolist():  # rare: words beyond the fast path, read by Python
-            numbers = [float(word) for word in _line(block, ends, rows[r]).split()[: self.width]]
-            if max(abs(x) for x in numbers) >= _FLOAT32_OVERFLOW:
+        values = np.zeros((n, width))
+        counts = np.empty(n, np.int64)
+        exact = np.empty(n, np.bool_)  # every word a decimal within the fast path
+        begin = np.where(rows > 0, ends[rows - 1] + 1, 0)
+        _in_halves(_numbers, n, block, begin, ends[rows], values, counts, exact)  # kpd.io.obj's pass
+        status = np.where(counts < width, _SHORT, _FINE).astype(np.int8)  # the fast path stays below float32's top
+        # rare: a word beyond the fast path, or a `#` (kpd.io.obj's pass ends a line there, Open3D's stream does not)
+        hashed = np.isin(rows, np.searchsorted(ends, np.flatnonzero(block == _HASH)))
+        for r in np.flatnonzero(~exact | hashed).tolist():
+            text = _line(block, ends, rows[r])
+            words = text.split()[:width]
+            plain = [_DECIMAL.fullmatch(word) is not None for word in words]
+            if not all(plain):  # the first word that is not a plain decimal is Open3D's to read
                 status[r] = _OPEN3D
+            elif len(words) < width:
+                status[r] = _SHORT
             else:
-                self.values[at + r] = numbers
-                status[r] = _FINE
+                values[r] = [float(word) for word in words]
+                status[r] = _OPEN3D if np.abs(values[r]).max() >= _FLOAT32_OVERFLOW else _FINE
+        self.values[at:at + n] = values
         self._note(block, ends, rows, line, status, None)
         self.vertices_read += n
 
@@ -311,93 +323,6 @@ def _significant(lo, hi, block, ends, flags):  # pragma: no cover - compiled
         while j < end and _BLANKS[block[j]]:
             j += 1
         flags[i] = j < end and block[j] != _HASH
-
-
-@compiled_on_first_call
-def _vertex_rows(lo, hi, block, ends, rows, out, at, status):  # pragma: no cover - compiled
-    """The first ``w = out.shape[1]`` words of vertex row r (the block's line ``rows[r]``) as numbers into
-    ``out[at + r]``, and ``status[r]``: fine; slow (some word is a plain decimal beyond the fast path: Python reads
-    the row); Open3D's (a word that is not a plain decimal, ``[+-]digits[.digits][(e|E)[+-]digits]``, or a number
-    beyond float32); short (fewer than ``w`` words). The first such word decides; later words are not read."""
-    width = out.shape[1]
-    for r in range(lo, hi):
-        line = rows[r]
-        i = ends[line - 1] + 1 if line else 0
-        end = ends[line]
-        state = _FINE
-        slow = False
-        for k in range(width):
-            while i < end and _BLANKS[block[i]]:
-                i += 1
-            if i >= end:
-                state = _SHORT
-                break
-            j = i
-            while j < end and not _BLANKS[block[j]]:
-                j += 1
-            # the word block[i:j]
-            negative = False
-            if block[i] == _PLUS or block[i] == _MINUS:
-                negative = block[i] == _MINUS
-                i += 1
-            mantissa = 0
-            digits = 0  # significant digits in the mantissa
-            exponent = 0
-            seen = False
-            cut = False  # a non-zero digit beyond the 18 the mantissa holds
-            point = False
-            while i < j:
-                if block[i] == _POINT and not point:
-                    point = True
-                    i += 1
-                    continue
-                if not 48 <= block[i] <= 57:
-                    break
-                seen = True
-                d = block[i] - 48
-                if digits < 18:
-                    if mantissa or d:
-                        mantissa = mantissa * 10 + d
-                        digits += 1
-                    exponent -= point
-                else:
-                    exponent += not point
-                    cut |= d != 0
-                i += 1
-            if seen and i < j and (block[i] == 101 or block[i] == 69):  # e E
-                i += 1
-                down = False
-                if i < j and (block[i] == _PLUS or block[i] == _MINUS):
-                    down = block[i] == _MINUS
-                    i += 1
-                seen = i < j
-                e = 0
-                while i < j and 48 <= block[i] <= 57:
-                    if e < 100000:
-                        e = e * 10 + block[i] - 48
-                    i += 1
-                exponent += -e if down else e
-            if not seen or i != j:
-                state = _OPEN3D
-                break
-            value = 0.0
-            fast = not cut and mantissa <= _EXACT_MANTISSA
-            if fast and mantissa:
-                if 0 <= exponent <= 22:
-                    value = float(mantissa) * _POW10[exponent]
-                elif -22 <= exponent < 0:
-                    value = float(mantissa) / _POW10[-exponent]
-                elif 22 < exponent <= 37 and mantissa <= _EXACT_MANTISSA // 10 ** (exponent - 22):
-                    value = float(mantissa * 10 ** (exponent - 22)) * _POW10[22]  # still an exact integer
-                else:
-                    fast = False
-            if fast and value >= _FLOAT32_OVERFLOW:
-                state = _OPEN3D
-                break
-            slow |= not fast
-            out[at + r, k] = -value if negative else value
-            i = j
-        status[r] = _SLOW if state == _FINE and slow else state
 
 
 @compiled_on_first_call
