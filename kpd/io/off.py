@@ -19,8 +19,9 @@ colours ``c / 255`` in float64). It also reads ModelNet's header, and gives :fun
 naming the file and the line; a word that is not a plain decimal (``nan``, ``0x10``, ``3abc``), a binary OFF and the
 headers Open3D refuses are left to Open3D, which reads or refuses them as before. The file is read once, in blocks
 of whole lines (4 MiB: what is held beside the mesh stays small), each by compiled passes in two halves on two
-threads (:func:`kpd.io.obj._in_halves`): the rows (lines that hold a word), the vertices' numbers, the faces'
-corners, the polygons' ear clipping.
+threads (:func:`kpd.io.obj._in_halves`): the rows (lines that hold a word), the vertices' numbers (by
+:func:`kpd.io.obj._numbers`, the OBJ reader's pass; a row with a word beyond its fast path or a ``#`` is judged in
+Python), the faces' corners, the polygons' ear clipping.
 
 A scan-sized OFF (1,375,656 vertices, 5,505,024 triangles, 178 MB) reads in 1.9 s where Open3D took 5.6 s (a fresh
 process each, median of 3; the reading itself 0.6 s after numba's import and first call, 0.65 s). Its peak, 334 MB,
