@@ -4,6 +4,7 @@ every number is the correctly rounded value Python's float() gives, and a scan-s
 from __future__ import annotations
 
 import random
+import re
 from decimal import Decimal, localcontext
 from pathlib import Path
 
@@ -126,8 +127,9 @@ def faces_reference(lines: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 
 @pytest.mark.parametrize("halves", [False, True])
+@pytest.mark.parametrize("polygons", [False, True])  # triangles only: one pass; with polygons: two
 @pytest.mark.parametrize("form", ["v", "v/vt", "v/vt/vn", "v//vn"])
-def test_faces_equal_a_word_by_word_reading(tmp_path, monkeypatch, form, halves):
+def test_faces_equal_a_word_by_word_reading(tmp_path, monkeypatch, form, polygons, halves):
     if halves:
         monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
     rng = random.Random(form)
@@ -136,7 +138,7 @@ def test_faces_equal_a_word_by_word_reading(tmp_path, monkeypatch, form, halves)
         [f"vn 0 0 {1 + i}" for i in range(n)]
     faces = []
     for _ in range(400):
-        c = rng.choice([3, 3, 3, 4, 5, 8])
+        c = rng.choice([3, 3, 3, 4, 5, 8] if polygons else [3])
         words = []
         for _ in range(c):
             v, t, m = (rng.randint(1, n) if rng.random() < 0.9 else -rng.randint(1, n) for _ in range(3))
@@ -159,6 +161,35 @@ def test_faces_equal_a_word_by_word_reading(tmp_path, monkeypatch, form, halves)
     else:
         assert arrays["triangle_uvs"] is None
     assert source.face_lines == len(faces)
+
+
+@pytest.mark.parametrize("halves", [False, True])
+@pytest.mark.parametrize("odd, error", [
+    ("f 4 5 6 7", None), ("f 4/1 5/2 6/3", None), ("f 4//1 5//2 6//3", None), ("f 4/1/2 5/3/4 6/5/6", None),
+    ("f 4 5 -6 # a comment", None), ("f\t4 5 6\r", None), ("f 4 5 6 7 8 9", None), ("f 4 5 6 7 8 9 1 2 3", None),
+    ("f 4 5", "1 face has fewer than 3 vertices (first: line {line})"),
+    ("f 4/1 5 6", "line {line}: the corners of a face must all have the same form"),
+    ("f 4/ 5/ 6/", "line {line}: a face line does not hold 3 corners of 2 indices"),
+    ("f 4 5 6x", "line {line}: a face line holds something that is not an index"),
+])
+@pytest.mark.parametrize("form", ["{} {} {}", "{}//1 {}//1 {}//1"])
+def test_a_line_unlike_the_first_reads_as_any_file(tmp_path, monkeypatch, form, odd, error, halves):
+    """Triangles of the first line's form are read in one pass; a line that is not one, first, between or last,
+    gives the faces of a word-by-word reading (the two passes), or the error naming its line."""
+    if halves:
+        monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
+    head = [f"v {i} 0 {i % 3}" for i in range(9)] + [f"vt {i / 9} 0.5" for i in range(9)] + ["vn 0 0 1"] * 9
+    plain = ["f " + form.format(1 + i % 7, 2 + i % 7, 3 + i % 7) for i in range(40)]
+    for at in (0, 17, 40):
+        faces = plain[:at] + [odd] + plain[at:]
+        path = tmp_path / f"odd{at}.obj"
+        path.write_bytes(("\n".join(head + faces) + "\n").encode())
+        if error is not None:
+            with pytest.raises(InputError, match=re.escape(error.format(line=len(head) + at + 1))):
+                obj.parse(path, path.read_bytes())
+            continue
+        v = faces_reference(faces)[0]
+        np.testing.assert_array_equal(obj.parse(path, path.read_bytes())[0]["triangles"], np.where(v < 0, 9 + v, v - 1))
 
 
 @pytest.mark.parametrize("text, message", [
