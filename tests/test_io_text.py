@@ -133,6 +133,23 @@ def test_values_near_a_tie_go_to_python_on_a_second_pass():
     assert got.tobytes() == b"".join(text.float_rows_reference(values, prefix=b"v "))
 
 
+def test_two_threads_write_what_one_thread_writes(monkeypatch):
+    rng = np.random.default_rng(12)
+    near = rows_of_three(np.concatenate([log_uniform(rng, 29_997, -30, 30), HARD, exact_ties(rng, 1000)]))
+    assert len(near) % 2  # halves of unequal length
+    tails = [b"" if i % 3 else b"%d 0.5" % i for i in range(len(near))]
+    integers_first = np.concatenate([rng.integers(-999, 999, near.shape), near])  # tie 0.5: its second half to Python
+    cases = [(near, 9, b"v ", b"\n", None), (integers_first, 9, b"v ", b"\n", None), (near, (9, 6, 3), b"", b"", tails)]
+    single = [text._rows(*case, tie) for case in cases for tie in (text._TIE, 0.5)]
+    monkeypatch.setattr(text, "_THREADED_ROWS", 2)
+    monkeypatch.setattr(text.os, "cpu_count", lambda: 2)
+    threaded = [text._rows(*case, tie) for case in cases for tie in (text._TIE, 0.5)]
+    for (want, want_offsets), (got, offsets) in zip(single, threaded):
+        assert got.tobytes() == want.tobytes()
+        np.testing.assert_array_equal(offsets, want_offsets)
+    assert_rows(near, (9, 6, 3), prefix=b"v ", tails=tails)
+
+
 def test_per_column_precisions_prefixes_and_tails():
     rng = np.random.default_rng(2)
     values = rng.standard_normal((5000, 6)) * 10.0 ** rng.integers(-8, 8, (5000, 6))

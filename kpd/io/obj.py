@@ -528,15 +528,17 @@ def parse(p: Path, data: bytes, points: bool = False) -> tuple[dict, ObjSource |
     triangles = resolve(corner[0], v_rows, "vertex", len(vertices), False)
     uv_index = resolve(corner[1], vt_rows, "texture coordinate", len(vt), True)
     normal_index = resolve(corner[2], vn_rows, "normal", len(vn), True)
-    has_uv = (uv_index >= 0).all(axis=1)  # (T,) a face with coordinates on some corners only counts as without
+    has_uv = None  # (T,) a face with coordinates on some corners only counts as without
+    if corner[1] is not None:
+        has_uv = (uv_index >= 0).all(axis=1)
     uvs = None
-    if has_uv.any():
+    if has_uv is not None and has_uv.any():
         uvs = np.zeros((T, 3, 2), dtype=np.float64)
         uvs[has_uv] = vt[uv_index[has_uv]]
         uvs = uvs.reshape(-1, 2)
 
     normals = None
-    if (normal_index >= 0).any():
+    if corner[2] is not None and (normal_index >= 0).any():
         from kpd.triangles import vertex_normals
 
         normals = _normal_sums(triangles, normal_index, vn, len(vertices))  # (V, 3) the corners' vn summed

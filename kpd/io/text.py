@@ -35,6 +35,8 @@ from __future__ import annotations
 
 import functools
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numba
 import numpy as np
@@ -53,6 +55,7 @@ _LOWEST = -1073  # frexp's binary exponent of the smallest subnormal (2^-1074 = 
 _BINADES = 1024 - _LOWEST + 1  # frexp exponents -1073..1024
 _TIE = 2.0**-44  # a fraction this close to one half is checked for an exact tie, or left to Python
 _ROWS = 1 << 16  # rows formatted at a time by the write_* functions
+_THREADED_ROWS = 65536  # rows below which a second thread costs more than it saves
 _CHUNK = 1 << 24  # bytes read or written at a time
 _PAIRS = np.frombuffer(b"".join(b"%02d" % i for i in range(100)), dtype=np.uint8)  # "00" .. "99"
 
@@ -428,7 +431,8 @@ def float_rows(values: np.ndarray, precision=9, *, prefix: bytes = b"", suffix: 
 def _rows(values, precision, prefix: bytes, suffix: bytes, tails: list | None,
           tie: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`float_rows`, leaving to Python the values whose fraction lies within ``tie`` of one half without being
-    a tie (a test makes it large to reach that path)."""
+    a tie (a test makes it large to reach that path). Many rows are written in two halves on two threads (the kernel
+    lets go of the interpreter's lock); a value left to Python in either half has all rows written again, on one."""
     values = np.ascontiguousarray(values, dtype=np.float64)
     if values.ndim != 2:
         raise InputError(f"values must have shape (n, k); got {values.shape}")
@@ -442,13 +446,29 @@ def _rows(values, precision, prefix: bytes, suffix: bytes, tails: list | None,
     width = len(prefix) + len(suffix) + int((precisions + 8).sum())  # a number: its digits and at most 7 bytes more
     out = np.empty(n * width + (int(tail_ends[-1]) + n if tails is not None else 0), dtype=np.uint8)
     offsets = np.empty(n + 1, dtype=np.int64)
-    args = (values, precisions, 10**precisions, scales, _decades(), tie, np.frombuffer(prefix, np.uint8),
-            np.frombuffer(suffix, np.uint8), tail_text, tail_ends)
-    size, count, left = _float_rows(*args, *joined([]), out, offsets)
+    constants = (precisions, 10**precisions, scales, _decades(), tie, np.frombuffer(prefix, np.uint8),
+                 np.frombuffer(suffix, np.uint8), tail_text)
+
+    def part(lo, hi, at, fixes=joined([])):
+        """Rows [lo, hi) into ``out[at:]``, their offsets counted from there."""
+        return _float_rows(values[lo:hi], *constants, tail_ends[lo : hi + 1], *fixes, out[at:], offsets[lo : hi + 1])
+
+    if n < _THREADED_ROWS or (os.cpu_count() or 1) < 2:
+        size, count, left = part(0, n, 0)
+    else:  # the second half written past the first half's widest text, then moved down to follow it
+        half = n // 2
+        start = half * width + (int(tail_ends[half]) + half if tails is not None else 0)
+        with ThreadPoolExecutor(1, thread_name_prefix="kpd-text") as pool:
+            other = pool.submit(part, half, n, start)
+            size, count, left = part(0, half, 0)
+            rest, more, later = other.result()
+        out[size : size + rest] = out[start : start + rest]
+        offsets[half + 1 :] += size
+        offsets[half] = size
+        size, count, left = size + rest, count + more, np.concatenate([left, later + half * k])
     if count:
         flat = values.reshape(-1)
-        fixes = joined([b"%.*g" % (int(precisions[i % k]), flat[i]) for i in left.tolist()])
-        size = _float_rows(*args, *fixes, out, offsets)[0]
+        size = part(0, n, 0, joined([b"%.*g" % (int(precisions[i % k]), flat[i]) for i in left.tolist()]))[0]
     return out[:size], offsets
 
 
