@@ -75,7 +75,9 @@ class Model:
             ort.disable_telemetry_events()
         self.bundle = bundle
         options = ort.SessionOptions()
-        options.log_severity_level = 3
+        # fatal only: an error of onnxruntime reaches the user as the exception kpd reports in one line, not
+        # also as a coloured log line of its own before it (a session that cannot allocate, for one)
+        options.log_severity_level = 4
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         # idle worker threads sleep instead of spinning: on a busy machine (or beside a GUI) spinning threads
         # steal the cores they wait for (5x slower on 2 shared cores); the cost on an idle machine is ~0.3 ms
