@@ -103,13 +103,14 @@ def _in_halves(kernel, n: int, *args) -> None:
 
 def _scan(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Line starts, ends (before ``\\r\\n`` or ``\\n``), the first non-blank byte of each line and each line's kind
-    (:data:`_KINDS`), all (L,) int64: numpy finds the line breaks, a compiled pass the rest (:func:`_line_table`)."""
+    (:data:`_KINDS`), (L,) int64 (the kinds int8): numpy finds the line breaks, a compiled pass the rest
+    (:func:`_line_table`)."""
     buf = np.frombuffer(data, dtype=np.uint8)
     breaks = np.flatnonzero(buf == _NEWLINE)
     count = len(breaks) + 1
     if count > 1 and breaks[-1] == len(buf) - 1:  # a last line break ends the last line; no empty line follows
         count -= 1
-    table = tuple(np.empty(count, np.int64) for _ in range(4))
+    table = (*(np.empty(count, np.int64) for _ in range(3)), np.empty(count, np.int8))
     _in_halves(_line_table, count, buf, breaks, *table)
     return table
 
@@ -393,14 +394,14 @@ def _faces(p: Path, data: bytes, lines, rows: np.ndarray) -> tuple[list, np.ndar
     words = _strip_comment(data[begin[0]:stop[0]]).split() if n else []
     guess = words[0].count(b"/") if words else 3
     if guess <= 2:  # one pass when every line is a triangle of the first line's form, as scanners write them
-        status = np.zeros(n, dtype=np.int64)
+        status = np.zeros(n, dtype=np.int8)
         indices = [np.zeros((n if guess >= k else 0, 3), dtype=np.int64) for k in range(3)]
         _in_halves(_face_corners, n, buf, begin, stop, unread, unread, guess, *indices, status)
         if not status.any():
             return [index if len(index) else None for index in indices], rows
     corners = np.empty(n, dtype=np.int64)
     forms = np.empty(n, dtype=np.int64)
-    status = np.empty(n, dtype=np.int64)
+    status = np.empty(n, dtype=np.int8)
     _in_halves(_face_forms, n, buf, begin, stop, corners, forms, status)
     first_triangle = np.concatenate([[0], np.cumsum(np.maximum(corners - 2, 0))]).astype(np.int64)
     T = int(first_triangle[-1])
