@@ -31,6 +31,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -281,8 +282,12 @@ def main() -> None:
     args = parser.parse_args()
     import open3d
 
+    from kpd.benchmark import machine_speed
+
     out = {"command": "python benchmarks/bench_formats.py " + " ".join(sys.argv[1:]), "machine": platform.machine(),
-           "cpus": os.cpu_count(), "open3d": open3d.__version__}
+           "cpus": os.cpu_count(), "open3d": open3d.__version__,
+           "started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_at_start": os.getloadavg()[0],
+           "speed_at_start": machine_speed()}  # to compare runs of different days
     try:
         import trimesh
 
@@ -294,6 +299,7 @@ def main() -> None:
         out["scale"] = scale(args.runs, args.resolution)
     if not args.skip_formats:
         out["formats"] = formats(args.runs)
+    out.update(load_at_end=os.getloadavg()[0], speed_at_end=machine_speed())
     print(json.dumps(out, indent=2))
 
 
