@@ -15,8 +15,8 @@ OBJ's vertices are its ``v`` lines in order, its faces keep their texture coordi
 in ``Mesh.triangle_uv_mask``), every material is kept (its map, or its ``Kd`` colour as a 1x1 texture), and a mesh
 read from an OBJ or glTF file is written back in that file's own structure with only the positions (and the normals,
 turned with the surface) changed, its material library and images copied beside the output under the output's
-name. Binary PLY, text OFF and binary STL are read (and PLY and OFF written) by kpd too, by numpy or compiled passes
-that give Open3D's mesh (OFF's decimals read exactly, not as float32), fast at the size of a scan
+name. PLY (binary and ASCII), text OFF and binary STL are read (and PLY and OFF written) by kpd too, by numpy or
+compiled passes that give Open3D's mesh (OFF's decimals read exactly, not as float32), fast at the size of a scan
 (docs/scale.md); other PLY, OFF and STL files and point clouds go through Open3D, with the checks Open3D leaves
 out: Open3D returns an empty or half-read geometry with a console warning for a missing, broken or truncated file,
 and kpd raises :class:`~kpd.errors.InputError` naming the file and the problem instead.

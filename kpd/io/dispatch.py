@@ -61,7 +61,7 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
         return obj.read(p, os.fspath(path))
     if ext in (".gltf", ".glb"):
         return gltf.read(p, os.fspath(path))
-    if ext == ".ply":  # a binary PLY through numpy, as Open3D reads it; the rest by Open3D
+    if ext == ".ply":  # a PLY by kpd (numpy; compiled passes for ASCII), as Open3D reads it; the rest by Open3D
         ply.check_complete(p)
         mesh = ply.read_mesh(p, os.fspath(path)) if _has_faces(p) else None
         if mesh is not None:
