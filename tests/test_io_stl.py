@@ -1,16 +1,17 @@
 """kpd.io.stl: STL's unshared corners are welded back into one vertex per position; a binary STL is read through
 numpy into the mesh Open3D's reader and :func:`stl.weld` give (to the bit), an ASCII one by Open3D, and a damaged
-binary file is refused in one InputError naming it."""
+binary file is refused in one InputError naming it; a mesh is written through numpy in the bytes Open3D writes."""
 
 from __future__ import annotations
 
+import errno
 import re
 
 import numpy as np
 import open3d as o3d
 import pytest
 
-from kpd.errors import InputError
+from kpd.errors import InputError, WriteError
 from kpd.io import read_mesh, read_points, read_shape, stl, write_mesh
 from kpd.io.capture import failures, open3d_log
 from kpd.mesh import Mesh
@@ -199,3 +200,79 @@ def test_damaged_binary_stl_is_one_input_error_naming_the_file(tmp_path):
         for read in (read_mesh, read_shape, read_points):
             with pytest.raises(InputError, match=f"^{re.escape(f'{path}: {message}')}$"):
                 read(path)
+
+
+# --- the numpy writer and its twin, Open3D's compute_triangle_normals then write_triangle_mesh ----------------------
+
+
+def open3d_stl(path, vertices, triangles) -> bytes:
+    """The binary STL every mesh gave before the numpy writer."""
+    m = stl.to_open3d(vertices, triangles)
+    m.compute_triangle_normals()
+    assert o3d.io.write_triangle_mesh(str(path), m)
+    return path.read_bytes()
+
+
+@pytest.mark.parametrize("name", REAL)
+def test_written_stl_is_open3d_byte_for_byte_on_real_meshes(name, data_dir, tmp_path):
+    mesh = read_mesh(data_dir / name)
+    write_mesh(tmp_path / "kpd.stl", mesh)
+    want = open3d_stl(tmp_path / "open3d.stl", mesh.vertices, mesh.triangles)
+    assert (tmp_path / "kpd.stl").read_bytes() == want
+    assert want[:80] == b"Created by Open3D".ljust(80, b"\0") and len(want) == 84 + 50 * len(mesh.triangles)
+    back = read_mesh(tmp_path / "kpd.stl")
+    assert_same(back, open3d_welded(tmp_path / "kpd.stl"))  # read back as before
+    np.testing.assert_array_equal(back.vertices[back.triangles],
+                                  mesh.vertices[mesh.triangles].astype(np.float32).astype(np.float64))
+
+
+def test_written_stl_is_open3d_byte_for_byte_on_random_and_degenerate_triangles(tmp_path, monkeypatch):
+    monkeypatch.setattr(stl, "_BLOCK", 1000)  # many blocks, the last one short
+    rng = np.random.default_rng(3)
+    n = 20_000
+    scale = 10.0 ** rng.integers(-170, 17, size=(n, 1))  # down to where the squared norm underflows to 0
+    vertices = rng.normal(size=(n, 3)) * np.where(rng.random((n, 1)) < 0.5, 1.0, scale)
+    vertices[::5] = np.round(vertices[::5])  # cross products that cancel exactly
+    vertices[::9, 1] = -0.0
+    vertices[::4, 2] = 0.0
+    first = np.arange(3, 3000, 3)  # corners p, 2p, 3p: collinear, a cross product zero or nearly
+    vertices[first + 1], vertices[first + 2] = 2 * vertices[first], 3 * vertices[first]
+    triangles = rng.integers(0, n, size=(50_123, 3))
+    triangles[::7, 2] = triangles[::7, 0]  # a repeated corner
+    triangles[::11] = triangles[::11, :1]  # one corner three times
+    triangles[::13, 1] = triangles[::13, 2]
+    triangles[2::17][:len(first)] = first[:, None] + [0, 1, 2]
+    vertices[[0, 1, 2]] = [[0.0, -0.0, 0.0], [-0.0, 0.0, 0.0], [0.0, 0.0, -0.0]]
+    triangles[:2] = [[0, 1, 2], [2, 1, 0]]  # zero cross products with signed zeros
+    write_mesh(tmp_path / "kpd.stl", Mesh(vertices, triangles))
+    assert (tmp_path / "kpd.stl").read_bytes() == open3d_stl(tmp_path / "open3d.stl", vertices, triangles)
+    records = np.fromfile(tmp_path / "kpd.stl", dtype=stl._RECORD, offset=84)
+    assert (records["normal"] == 0).all(axis=1).sum() > len(triangles) // 10  # the degenerate ones
+    back = read_mesh(tmp_path / "kpd.stl")
+    np.testing.assert_array_equal(back.vertices[back.triangles], vertices[triangles].astype(np.float32))
+
+
+def test_written_stl_normal_after_an_overflow_is_open3d_s(tmp_path):
+    # beyond what a Mesh holds (|coordinate| <= 1e18): the cross product or its squared norm overflows
+    vertices = np.array([[0, 0, 0], [1e200, 0, 0], [0, 1e200, 0], [1e308, 1e308, 0], [-1e308, 1e308, 1e308],
+                         [4e38, 0, 0], [0, 5e38, 1]])
+    triangles = np.array([[0, 1, 2], [0, 3, 4], [3, 4, 0], [4, 3, 1], [0, 5, 6]])
+    stl.write(tmp_path / "kpd.stl", vertices, triangles)
+    assert (tmp_path / "kpd.stl").read_bytes() == open3d_stl(tmp_path / "open3d.stl", vertices, triangles)
+    normals = np.fromfile(tmp_path / "kpd.stl", dtype=stl._RECORD, offset=84)["normal"]
+    assert (normals == [0, 0, 1]).all(axis=1).any() and np.isnan(normals).any()
+
+
+def test_failed_stl_write_leaves_the_existing_file_untouched(tmp_path, monkeypatch):
+    mesh = Mesh(np.eye(3), np.array([[0, 1, 2]]))
+    write_mesh(tmp_path / "s.stl", mesh)
+    before = (tmp_path / "s.stl").read_bytes()
+
+    def fail(p, vertices, triangles):  # the disk fills up after the header
+        p.write_bytes(b"\0" * 84)
+        raise OSError(errno.ENOSPC, "No space left on device", str(p))
+
+    monkeypatch.setattr(stl, "write", fail)
+    with pytest.raises(WriteError, match="the disk is full"):
+        write_mesh(tmp_path / "s.stl", mesh.with_vertices(mesh.vertices + 1))
+    assert [f.name for f in tmp_path.iterdir()] == ["s.stl"] and (tmp_path / "s.stl").read_bytes() == before

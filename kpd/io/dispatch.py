@@ -280,8 +280,9 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh) -> None:
     ------
     InputError
         For an unknown extension or a missing target folder.
-    KpdError
-        If Open3D fails to write the file.
+    WriteError
+        If the file cannot be written whole (a full disk, a read-only folder): no partial file is left, and a file
+        already at ``path`` stays as it was.
     """
     if not isinstance(mesh, Mesh):
         raise InputError(f"mesh must be a kpd.io.Mesh; got {type(mesh).__name__}")
@@ -314,11 +315,9 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh) -> None:
         with atomic_output(p, verify=lambda tmp: _verify_mesh_file(p, tmp, mesh, ext)) as target:
             off.write_mesh(target, mesh)
         return
-    m = mesh.to_open3d()
-    if ext == ".stl":
-        m.compute_triangle_normals()
-    with atomic_output(p, verify=lambda tmp: _verify_mesh_file(p, tmp, mesh, ext)) as target:
-        open3d_write(lambda: open3d_module().io.write_triangle_mesh(str(target), m), p, target)
+    if ext == ".stl":  # through numpy, byte for byte what Open3D writes after compute_triangle_normals
+        with atomic_output(p, verify=lambda tmp: _verify_mesh_file(p, tmp, mesh, ext)) as target:
+            stl.write(target, mesh.vertices, mesh.triangles)
 
 
 def mesh_companions(path: str | os.PathLike, mesh: "Mesh") -> list[str]:
