@@ -127,9 +127,9 @@ def faces_reference(lines: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 
 @pytest.mark.parametrize("halves", [False, True])
-@pytest.mark.parametrize("polygons", [False, True])  # triangles only: one pass; with polygons: two
+@pytest.mark.parametrize("sides", [[3], [4], [3, 3, 3, 4, 5, 8]])  # triangles or quads only: one pass; mixed: two
 @pytest.mark.parametrize("form", ["v", "v/vt", "v/vt/vn", "v//vn"])
-def test_faces_equal_a_word_by_word_reading(tmp_path, monkeypatch, form, polygons, halves):
+def test_faces_equal_a_word_by_word_reading(tmp_path, monkeypatch, form, sides, halves):
     if halves:
         monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
     rng = random.Random(form)
@@ -138,7 +138,7 @@ def test_faces_equal_a_word_by_word_reading(tmp_path, monkeypatch, form, polygon
         [f"vn 0 0 {1 + i}" for i in range(n)]
     faces = []
     for _ in range(400):
-        c = rng.choice([3, 3, 3, 4, 5, 8] if polygons else [3])
+        c = rng.choice(sides)
         words = []
         for _ in range(c):
             v, t, m = (rng.randint(1, n) if rng.random() < 0.9 else -rng.randint(1, n) for _ in range(3))
@@ -172,7 +172,7 @@ def test_faces_equal_a_word_by_word_reading(tmp_path, monkeypatch, form, polygon
     ("f 4/ 5/ 6/", "line {line}: a face line does not hold 3 corners of 2 indices"),
     ("f 4 5 6x", "line {line}: a face line holds something that is not an index"),
 ])
-@pytest.mark.parametrize("form", ["{} {} {}", "{}//1 {}//1 {}//1"])
+@pytest.mark.parametrize("form", ["{} {} {}", "{}//1 {}//1 {}//1", "{} {} {} 9"])
 def test_a_line_unlike_the_first_reads_as_any_file(tmp_path, monkeypatch, form, odd, error, halves):
     """Triangles of the first line's form are read in one pass; a line that is not one, first, between or last,
     gives the faces of a word-by-word reading (the two passes), or the error naming its line."""

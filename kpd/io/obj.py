@@ -304,7 +304,7 @@ def _face_forms(lo, hi, buf, begin, stop, corners, forms, status):  # pragma: no
 
 
 @compiled_on_first_call
-def _face_corners(lo, hi, buf, begin, stop, forms, first_triangle, guess, v, vt, vn,
+def _face_corners(lo, hi, buf, begin, stop, forms, first_triangle, guess, sides, v, vt, vn,
                   status):  # pragma: no cover - compiled
     """The triangles of face line r from ``first_triangle[r]`` on: their corners' indices in ``v``, ``vt`` and
     ``vn`` (T, 3) each (0 where a corner has none; ``vt`` and ``vn`` may be empty when no line has them), a fan
@@ -312,23 +312,24 @@ def _face_corners(lo, hi, buf, begin, stop, forms, first_triangle, guess, v, vt,
     that is not signed integers and slashes, or wrong-form for an index missing anywhere but the middle of
     ``v//vn``.
 
-    With ``guess`` (0 to 2) instead of -1, every line is taken for one triangle, triangle r, of corners of
-    ``guess`` slashes (``forms`` and ``first_triangle`` are not read): a line that is not (more or fewer corners,
-    another form, an error) gets a status other than fine and ends the pass over its rows."""
+    With ``guess`` (0 to 2) instead of -1, every line is taken for a face of ``sides`` corners (3 or 4) of ``guess``
+    slashes, its triangles from ``r * (sides - 2)`` on (``forms`` and ``first_triangle`` are not read): a line that
+    is not (more or fewer corners, another form, an error) gets a status other than fine and ends the pass over its
+    rows."""
     for r in range(lo, hi):
         if status[r] != _FACE_FINE:
             continue
         i, end = begin[r], stop[r]
         width = forms[r] + 1 if guess < 0 else guess + 1
         c = 0
-        t = first_triangle[r] if guess < 0 else r
+        t = first_triangle[r] if guess < 0 else r * (sides - 2)
         v0 = t0 = n0 = v1 = t1 = n1 = 0
         while True:
             while i < end and buf[i] <= _SPACE:
                 i += 1
             if i >= end or buf[i] == _HASH:
                 break
-            if guess >= 0 and c == 3:  # a fourth corner
+            if guess >= 0 and c == sides:  # a corner more
                 status[r] = _FACE_FORM
                 break
             a = b = e = 0
@@ -375,7 +376,7 @@ def _face_corners(lo, hi, buf, begin, stop, forms, first_triangle, guess, v, vt,
                 t += 1
             v1, t1, n1 = a, b, e
             c += 1
-        if guess >= 0 and (c != 3 or status[r] != _FACE_FINE):
+        if guess >= 0 and (c != sides or status[r] != _FACE_FINE):
             status[r] = max(status[r], _FACE_SHORT)
             return
 
@@ -384,21 +385,22 @@ def _faces(p: Path, data: bytes, lines, rows: np.ndarray) -> tuple[list, np.ndar
     """The corner indices of the triangles of the face lines, ``[v, vt, vn]``, each (T, 3) int64 (1-based, negative
     relative, 0 none) or None when no line has it, and (T,) the line of each triangle. A face of c > 3 corners
     (Blender's quads and n-gons) gives c - 2 triangles, a fan from its first corner; the file keeps the face as it is.
-    One compiled pass (:func:`_face_corners`) when every line is a triangle whose corners have the first one's form;
-    else two: the corners and form of each line (:func:`_face_forms`), then the indices."""
+    One compiled pass (:func:`_face_corners`) when every line has the first one's corners, 3 or 4, of its form; else
+    two: the corners and form of each line (:func:`_face_forms`), then the indices."""
     starts, ends, first, _ = lines
     n = len(rows)
     buf = np.frombuffer(data, dtype=np.uint8)
     begin, stop = first[rows] + 1, ends[rows]
     unread = np.empty(0, dtype=np.int64)
     words = _strip_comment(data[begin[0]:stop[0]]).split() if n else []
-    guess = words[0].count(b"/") if words else 3
-    if guess <= 2:  # one pass when every line is a triangle of the first line's form, as scanners write them
+    guess = words[0].count(b"/") if 3 <= len(words) <= 4 else 3
+    if guess <= 2:  # one pass when every line is like the first: triangles as scanners write them, Blender's quads
+        sides = len(words)
         status = np.zeros(n, dtype=np.int8)
-        indices = [np.zeros((n if guess >= k else 0, 3), dtype=np.int64) for k in range(3)]
-        _in_halves(_face_corners, n, buf, begin, stop, unread, unread, guess, *indices, status)
+        indices = [np.zeros((n * (sides - 2) if guess >= k else 0, 3), dtype=np.int64) for k in range(3)]
+        _in_halves(_face_corners, n, buf, begin, stop, unread, unread, guess, sides, *indices, status)
         if not status.any():
-            return [index if len(index) else None for index in indices], rows
+            return [index if len(index) else None for index in indices], rows if sides == 3 else np.repeat(rows, 2)
     corners = np.empty(n, dtype=np.int64)
     forms = np.empty(n, dtype=np.int64)
     status = np.empty(n, dtype=np.int8)
@@ -407,7 +409,7 @@ def _faces(p: Path, data: bytes, lines, rows: np.ndarray) -> tuple[list, np.ndar
     T = int(first_triangle[-1])
     widest = int(forms.max()) if n else 0
     indices = [np.zeros((T if widest >= k else 0, 3), dtype=np.int64) for k in range(3)]
-    _in_halves(_face_corners, n, buf, begin, stop, forms, first_triangle, -1, *indices, status)
+    _in_halves(_face_corners, n, buf, begin, stop, forms, first_triangle, -1, 0, *indices, status)
     if status.any():
         _face_error(p, data, lines, rows, status, corners, forms)
     return [index if len(index) else None for index in indices], rows if T == n else np.repeat(rows, corners - 2)
