@@ -8,7 +8,7 @@ from kpd.errors import InputError
 from kpd.geometry import Normalizer, farthest_point_sampling, sample_surface
 from kpd.io import Mesh, read_mesh, write_mesh
 from kpd.io.integrity import HASH_KEY, content_hash
-from kpd.rig import (Rig, _compact_basis, _factorised, _mesh_arrays, _straighten_basis_reference, bind_memory,
+from kpd.rig import (Rig, _compact_basis, _edit, _factorised, _mesh_arrays, _straighten_basis_reference, bind_memory,
                      coincident_mvc_basis, coincident_mvc_weights, straighten_basis)
 
 
@@ -399,3 +399,23 @@ def test_deforming_some_rows_writes_those_rows_only():
     assert (np.delete(out, rows, axis=0) == 7.0).all()
     with pytest.raises(InputError, match=r"rows must be \(P,\) vertex indices in \[0, 8\)"):
         rig.deform(keypoints, rows=np.array([8]))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("count", [0, 1, 255, 256, 257, 1000])
+def test_an_edit_writes_every_vertex_as_the_sum_in_keypoint_order(dtype, count):
+    # _edit writes its output with non-temporal stores, a block of 256 vertices at a time: every row written, each
+    # the rest position plus the moved keypoints' terms in keypoint order, rounded as numpy rounds them
+    rng = np.random.default_rng(count)
+    k = 5
+    basis_t = rng.normal(size=(k, count)).astype(dtype)
+    rest = rng.normal(size=(count, 3)) * 100
+    for moved in ([], [3], [0, 2, 4], list(range(k))):
+        offsets = np.zeros((k, 3))
+        offsets[moved] = rng.normal(size=(len(moved), 3))
+        expected = rest.copy()
+        for j in moved:
+            expected += basis_t[j].astype(np.float64)[:, None] * offsets[j]
+        out = np.full((count, 3), np.nan)
+        _edit(basis_t, offsets, rest, out)
+        np.testing.assert_array_equal(out, expected)
