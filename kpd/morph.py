@@ -260,9 +260,15 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
             st = uv * [1.0, -1.0] + [0.0, 1.0]  # glTF puts the UV origin at the top left
             attributes["TEXCOORD_0"] = builder.accessor(st.astype(np.float32), "VEC2", _FLOAT, _ARRAY_BUFFER)
         indices = builder.accessor(triangles.reshape(-1).astype(np.uint32), "SCALAR", _UINT, _ELEMENT_ARRAY_BUFFER)
-        moved, low, high = _displacements(morph.basis, source, stacked)  # (T, n, 3), (T, 3), (T, 3) float32
-        targets = [{"POSITION": builder.accessor(d, "VEC3", _FLOAT, _ARRAY_BUFFER, bounds=(lo, hi))}
-                   for d, lo, hi in zip(moved, low, high)]
+        # the targets' displacements are made as the file is written, a block of vertices at a time (at 1.37M
+        # vertices, 80 targets are 1.3 GB); their bounds, which the JSON before them holds, by a pass of their own
+        displacements = _Displacements(morph.basis, source, stacked)
+        low, high = displacements.bounds()  # (T, 3) float32 each
+        start = builder.region(displacements.nbytes, displacements.write)
+        size = 12 * len(source)  # bytes of one target: (n, 3) float32
+        targets = [{"POSITION": builder.accessor_at(start + j * size, size, len(source), "VEC3", _FLOAT,
+                                                    _ARRAY_BUFFER, bounds=(lo, hi))}
+                   for j, (lo, hi) in enumerate(zip(low, high))]
         primitive = {"attributes": attributes, "indices": indices, "mode": 4, "targets": targets}
         if material is not None:
             primitive["material"] = material
@@ -302,58 +308,121 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
     return doc, builder
 
 
-def _displacements(basis: np.ndarray, source: np.ndarray, stacked: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Every target's displacement of the written vertices, ``basis[source] @ stacked``, by a compiled loop over the
-    vertices on two threads (:func:`_displace`) that writes each target's rows where the file needs them: 0.3 s for
-    the 80 targets of a 1.37M-vertex chair where a product per block of rows and a copy into the targets' layout
-    took 12 s (``docs/rigs.md``).
+class _Displacements:
+    """Every target's displacement of a primitive's vertices, ``basis[source] @ stacked``, in the file's layout: target
+    after target, each (n, 3) float32 (the sums in keypoint order in float64, by a compiled loop over the vertices on
+    two threads, :func:`_displace`). Made a block of vertices at a time, each block's rows of every target written to
+    their places in the file (:meth:`write`), so that the (T, n, 3) array is never held: 1.3 GB for the 80 targets of
+    a 1.37M-vertex chair (docs/rigs.md)."""
 
-    Returns
-    -------
-    moved : (T, n, 3) float32.
-    low, high : (T, 3) float32, the accessors' bounds (float32 rounding keeps the order, so the bounds of the
-        float64 values, rounded, are the bounds of the float32 data).
-    """
-    n, t = len(source), stacked.shape[1] // 3
-    out = np.empty((t, n, 3), dtype=np.float32)
-    threads = 2 if n >= 2 * _BLOCK and (os.cpu_count() or 1) > 1 else 1
-    cuts = np.linspace(0, n, threads + 1).astype(np.int64).tolist()
-    low, high = np.full((threads, 3 * t), np.inf), np.full((threads, 3 * t), -np.inf)
-    source = np.ascontiguousarray(source, dtype=np.int64)
-    stacked = np.ascontiguousarray(stacked, dtype=np.float64)
-    if threads == 1:
-        _displace(basis, source, stacked, out, low[0], high[0], 0, n)
-    else:
-        from concurrent.futures import ThreadPoolExecutor
+    def __init__(self, basis: np.ndarray, source: np.ndarray, stacked: np.ndarray) -> None:
+        self.basis = basis
+        self.source = np.ascontiguousarray(source, dtype=np.int64)
+        self.stacked = np.ascontiguousarray(stacked, dtype=np.float64)
+        self.n, self.t = len(self.source), self.stacked.shape[1] // 3
+        self.nbytes = 12 * self.n * self.t
 
-        with ThreadPoolExecutor(threads - 1, thread_name_prefix="kpd-morph") as pool:
-            others = [pool.submit(_displace, basis, source, stacked, out, low[k], high[k], cuts[k], cuts[k + 1])
-                      for k in range(1, threads)]
-            _displace(basis, source, stacked, out, low[0], high[0], 0, cuts[1])
-            for other in others:
-                other.result()
-    return (out, low.min(axis=0).reshape(t, 3).astype(np.float32),
-            high.max(axis=0).reshape(t, 3).astype(np.float32))
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(T, 3) float32 each: the accessors' min and max (float32 rounding keeps the order, so the float64 values'
+        bounds, rounded, are the float32 data's)."""
+        low, high = self._run(np.empty((self.t, 0, 3), dtype=np.float32), 0, self.n)
+        return low.reshape(self.t, 3).astype(np.float32), high.reshape(self.t, 3).astype(np.float32)
+
+    def block(self, lo: int, hi: int, out: np.ndarray | None = None) -> np.ndarray:
+        """(T, hi - lo, 3) float32: the displacements of vertices ``source[lo:hi]`` (into ``out``'s first rows)."""
+        out = np.empty((self.t, hi - lo, 3), dtype=np.float32) if out is None else out[:, :hi - lo]
+        self._run(out, lo, hi)
+        return out
+
+    def write(self, fh) -> None:
+        """Write every target's displacements to ``fh`` (seekable, at the targets' start), leaving it at their end."""
+        start = fh.tell()
+        rows = max(1, min(self.n, _WRITE_BYTES // max(12 * self.t, 1)))
+        buffer = np.empty((self.t, rows, 3), dtype=np.float32)
+        for lo in range(0, self.n, rows):
+            hi = min(lo + rows, self.n)
+            block = self.block(lo, hi, buffer)
+            for j in range(self.t):
+                fh.seek(start + 12 * (j * self.n + lo))
+                fh.write(memoryview(block[j]).cast("B"))
+        fh.seek(start + self.nbytes)
+
+    def _run(self, out: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`_displace` of rows [lo, hi) into ``out`` (none stored when it has no rows), on two threads when
+        there are many; returns the (3T,) bounds of the values."""
+        n, c = hi - lo, 3 * self.t
+        threads = 2 if n >= 2 * _BLOCK and (os.cpu_count() or 1) > 1 else 1
+        cuts = np.linspace(lo, hi, threads + 1).astype(np.int64).tolist()
+        low, high = np.full((threads, c), np.inf), np.full((threads, c), -np.inf)
+        args = (self.basis, self.source, self.stacked, out)
+        if threads == 1:
+            _displace(*args, low[0], high[0], lo, hi, lo)
+        else:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(threads - 1, thread_name_prefix="kpd-morph") as pool:
+                others = [pool.submit(_displace, *args, low[k], high[k], cuts[k], cuts[k + 1], lo)
+                          for k in range(1, threads)]
+                _displace(*args, low[0], high[0], cuts[0], cuts[1], lo)
+                for other in others:
+                    other.result()
+        return low.min(axis=0), high.max(axis=0)
+
+
+_WRITE_BYTES = 32 * 2**20  # displacements made and written at a time
 
 
 @compiled_on_first_call
-def _displace(basis, source, stacked, out, low, high, lo, hi):  # pragma: no cover - compiled
-    """``out[:, i] = (basis[source[i]] @ stacked).reshape(T, 3)`` for i in [lo, hi), the sums in keypoint order in
-    float64 and stored as float32; ``low`` and ``high`` (3T,) take the float64 values' bounds."""
+def _displace(basis, source, stacked, out, low, high, lo, hi, base):  # pragma: no cover - compiled
+    """``out[:, i - base] = (basis[source[i]] @ stacked).reshape(T, 3)`` for i in [lo, hi), the sums in keypoint
+    order in float64 and stored as float32 (nothing stored when ``out`` has no rows); ``low`` and ``high`` (3T,) take
+    the float64 values' bounds. Four rows at a time, each of ``stacked``'s values read once for the four, the loops
+    over the 3T columns SIMD code (the bounds by selects, which vectorise where ``min`` does not): half the time of a
+    row at a time. A short last group repeats its last row, which changes no bound and is not stored."""
     K, C = stacked.shape
-    row = np.empty(C)
-    for i in range(lo, hi):
-        s = source[i]
-        row[:] = 0.0
-        for k in range(K):
-            b = basis[s, k]
-            for c in range(C):
-                row[c] += b * stacked[k, c]
+    store = out.shape[1] > 0
+    r0, r1, r2, r3 = np.empty(C), np.empty(C), np.empty(C), np.empty(C)
+    for i in range(lo, hi, 4):
+        m = min(4, hi - i)
+        s0 = source[i]
+        s1 = source[i + min(1, m - 1)]
+        s2 = source[i + min(2, m - 1)]
+        s3 = source[i + min(3, m - 1)]
         for c in range(C):
-            v = row[c]
-            low[c] = min(low[c], v)
-            high[c] = max(high[c], v)
-            out[c // 3, i, c % 3] = v
+            r0[c] = 0.0
+            r1[c] = 0.0
+            r2[c] = 0.0
+            r3[c] = 0.0
+        for k in range(K):
+            b0, b1, b2, b3 = basis[s0, k], basis[s1, k], basis[s2, k], basis[s3, k]
+            for c in range(C):
+                x = stacked[k, c]
+                r0[c] += b0 * x
+                r1[c] += b1 * x
+                r2[c] += b2 * x
+                r3[c] += b3 * x
+        for c in range(C):
+            least, most = low[c], high[c]
+            v = r0[c]
+            least, most = v if v < least else least, v if v > most else most
+            v = r1[c]
+            least, most = v if v < least else least, v if v > most else most
+            v = r2[c]
+            least, most = v if v < least else least, v if v > most else most
+            v = r3[c]
+            least, most = v if v < least else least, v if v > most else most
+            low[c], high[c] = least, most
+        if store:
+            j = i - base
+            for c in range(C):
+                t, a = c // 3, c % 3
+                out[t, j, a] = r0[c]
+                if m > 1:
+                    out[t, j + 1, a] = r1[c]
+                if m > 2:
+                    out[t, j + 2, a] = r2[c]
+                if m > 3:
+                    out[t, j + 3, a] = r3[c]
 
 
 def _version() -> str:

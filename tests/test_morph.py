@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import subprocess
@@ -278,16 +279,29 @@ def test_refusals_are_one_line(argv, message, chair_file, tmp_path, capfd):
 
 
 @pytest.mark.parametrize("n", [1, 5000, 30001])  # one thread, and two (the halves meet mid-way)
-def test_displacements_are_the_product_stored_per_target(n):
+@pytest.mark.parametrize("block_bytes", [120, 40_000, 32 * 2**20])  # a row a block, many blocks, one block
+def test_displacements_are_the_product_written_target_after_target(n, block_bytes, monkeypatch):
     rng = np.random.default_rng(n)
     V, K, targets = n + 7, 12, 5
     basis = rng.normal(size=(V, K))
     source = rng.permutation(V)[:n]
     stacked = rng.normal(size=(K, 3 * targets))
-    moved, low, high = morph._displacements(basis, source, stacked)
     want = (basis[source] @ stacked).reshape(n, targets, 3).transpose(1, 0, 2)  # (targets, n, 3)
+    displacements = morph._Displacements(basis, source, stacked)
+    moved = displacements.block(0, n)
     assert moved.dtype == np.float32 and moved.shape == (targets, n, 3)
     np.testing.assert_allclose(moved, want, rtol=1e-6, atol=1e-6)
+    low, high = displacements.bounds()
     np.testing.assert_allclose(low, want.min(axis=1), rtol=1e-6)
     np.testing.assert_allclose(high, want.max(axis=1), rtol=1e-6)
     assert (low <= moved.min(axis=1)).all() and (high >= moved.max(axis=1)).all()
+    np.testing.assert_array_equal(low, moved.min(axis=1))  # float32 rounding keeps the order
+    np.testing.assert_array_equal(high, moved.max(axis=1))
+    # written block by block, each block's rows of every target in their places, after what came before
+    monkeypatch.setattr(morph, "_WRITE_BYTES", block_bytes)
+    out = io.BytesIO()
+    out.write(b"head")
+    displacements.write(out)
+    assert out.tell() == 4 + displacements.nbytes == 4 + moved.nbytes
+    out.write(b"tail")
+    assert out.getvalue() == b"head" + moved.tobytes() + b"tail"

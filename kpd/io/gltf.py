@@ -24,7 +24,7 @@ import logging
 import struct
 import urllib.parse
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -144,7 +144,8 @@ def primitive_groups(mesh: Mesh) -> list[Primitive]:
 
 class GlbBuffer:
     """A glTF binary buffer built piece by piece (numpy arrays or bytes, each 4-byte aligned, not copied) with its
-    buffer views and accessors."""
+    buffer views and accessors. A piece may also be a region written only when the buffer is (:meth:`region`): data
+    made block by block as it is written, never held whole (a rig's morph targets at scan size)."""
 
     def __init__(self) -> None:
         self.pieces: list[Any] = []
@@ -155,26 +156,51 @@ class GlbBuffer:
     def view(self, data: Any, target: int | None = None) -> int:
         """A buffer view of ``data``; returns its index."""
         nbytes = data.nbytes if isinstance(data, np.ndarray) else len(data)
-        view = {"buffer": 0, "byteOffset": self.length, "byteLength": int(nbytes)}
+        index = self._view_at(self.length, nbytes, target)
+        self.pieces.append(data)
+        self._advance(nbytes)
+        return index
+
+    def _view_at(self, offset: int, nbytes: int, target: int | None) -> int:
+        view = {"buffer": 0, "byteOffset": int(offset), "byteLength": int(nbytes)}
         if target is not None:
             view["target"] = target
-        self.pieces.append(data)
+        self.views.append(view)
+        return len(self.views) - 1
+
+    def _advance(self, nbytes: int) -> None:
         self.length += nbytes
         pad = -nbytes % 4
         if pad:
             self.pieces.append(b"\0" * pad)
             self.length += pad
-        self.views.append(view)
-        return len(self.views) - 1
+
+    def region(self, nbytes: int, write: Callable[[Any], None]) -> int:
+        """Reserve ``nbytes`` of the buffer, filled when the buffer is written by ``write(fh)``: ``fh`` is at the
+        region's start and seekable (a file, or :class:`io.BytesIO`), and ``write`` leaves it at the region's end
+        (it may seek within the region). Returns the region's offset in the buffer, for :meth:`accessor_at`."""
+        offset = self.length
+        self.pieces.append(_Region(int(nbytes), write))
+        self._advance(int(nbytes))
+        return offset
 
     def accessor(self, array: np.ndarray, kind: str, component: int, target: int | None,
                  bounds: bool | tuple = False) -> int:
         """An accessor of ``array``; ``bounds``: write its min and max (True: computed here, or given as a pair)."""
         array = np.ascontiguousarray(array)
-        entry = {"bufferView": self.view(array, target), "componentType": component, "count": len(array),
-                 "type": kind}
         if bounds is True:
             bounds = (array.min(axis=0), array.max(axis=0))
+        return self._accessor(self.view(array, target), len(array), kind, component, bounds)
+
+    def accessor_at(self, offset: int, nbytes: int, count: int, kind: str, component: int, target: int | None,
+                    bounds: tuple | None = None) -> int:
+        """An accessor of ``count`` elements at ``offset`` of the buffer (within a :meth:`region`), ``nbytes``
+        long; ``bounds``: its (min, max), or None."""
+        return self._accessor(self._view_at(offset, nbytes, target), count, kind, component,
+                              False if bounds is None else bounds)
+
+    def _accessor(self, view: int, count: int, kind: str, component: int, bounds: bool | tuple) -> int:
+        entry = {"bufferView": view, "componentType": component, "count": int(count), "type": kind}
         if bounds is not False:
             entry["min"], entry["max"] = [float(x) for x in bounds[0]], [float(x) for x in bounds[1]]
         self.accessors.append(entry)
@@ -182,12 +208,25 @@ class GlbBuffer:
 
     def write(self, fh) -> None:
         for piece in self.pieces:
-            fh.write(memoryview(piece).cast("B") if isinstance(piece, np.ndarray) else piece)
+            if isinstance(piece, _Region):
+                start = fh.tell()
+                piece.write(fh)
+                if fh.tell() != start + piece.nbytes:  # a bug in the region's writer, not the user's input
+                    raise RuntimeError(f"a glTF buffer region wrote {fh.tell() - start} bytes of {piece.nbytes}")
+            else:
+                fh.write(memoryview(piece).cast("B") if isinstance(piece, np.ndarray) else piece)
 
     def to_bytes(self) -> bytes:
         out = io.BytesIO()
         self.write(out)
         return out.getvalue()
+
+
+class _Region(NamedTuple):
+    """Bytes of a :class:`GlbBuffer` made as the buffer is written."""
+
+    nbytes: int
+    write: Callable[[Any], None]
 
 
 def write_glb(fh, doc: dict, buffer: GlbBuffer | bytes) -> None:
