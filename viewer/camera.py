@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable, Iterable, Iterator
 
 import numba
 import numpy as np
@@ -41,8 +41,22 @@ def camera_pose(vertices: Any, settings: ViewSettings, *, margin: float = 0.9) -
     """
     parts = [np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
              for p in (vertices if isinstance(vertices, (list, tuple)) else [vertices])]
-    parts = [p for p in parts if len(p)]
-    lo, hi = box(parts)
+    return camera_pose_over(lambda: parts, settings, margin=margin)
+
+
+def camera_pose_over(parts: Callable[[], Iterable[np.ndarray]], settings: ViewSettings, *, margin: float = 0.9,
+                     bounds: tuple[np.ndarray, np.ndarray] | None = None) -> Camera:
+    """:func:`camera_pose` of points that come in parts: ``parts()`` gives them, (N, 3) float64 arrays, and is
+    called twice (the bounding box, then how far back every point fits; once when ``bounds``, their :func:`box`, is
+    given), so that the parts need not all be held at once (a shape's variants, deformed as they are asked for); the
+    same camera as of the parts joined."""
+    def parts_now() -> Iterator[np.ndarray]:
+        for part in parts():
+            part = np.ascontiguousarray(part, dtype=np.float64).reshape(-1, 3)
+            if len(part):
+                yield part
+
+    lo, hi = box(parts_now()) if bounds is None else bounds
     center = (lo + hi) / 2
     radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
     up = up_axis(settings.up)
@@ -60,14 +74,14 @@ def camera_pose(vertices: Any, settings: ViewSettings, *, margin: float = 0.9) -
     tan_v = math.tan(math.radians(settings.fov) / 2)
     tan_h = tan_v * settings.width / settings.height
     axes = np.stack([right, upward, direction])  # (3, 3)
-    distance = max((_reach(p, center, axes, margin * tan_h, margin * tan_v) for p in parts), default=1.0)
+    distance = max((_reach(p, center, axes, margin * tan_h, margin * tan_v) for p in parts_now()), default=1.0)
     distance = max(distance, 1e-3 * radius) / settings.zoom
     eye = center + distance * direction
     return Camera(center=center, eye=eye, up=up, fov=float(settings.fov), near=max(distance - 3 * radius, distance / 100),
                   far=distance + 3 * radius)
 
 
-def box(parts: list) -> tuple[np.ndarray, np.ndarray]:
+def box(parts: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """(3,) lowest and (3,) highest coordinates of the points of (N, 3) float64 arrays (zeros without points)."""
     boxes = [_box(p) for p in parts if len(p)]
     if not boxes:

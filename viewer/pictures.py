@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from typing import Any, Iterator, Sequence
+from typing import Any, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -113,20 +113,28 @@ def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
     return np.clip(np.rint(blocks.mean(axis=(1, 3))), 0, 255).astype(np.uint8)
 
 
-def _draw_cells(shots: Sequence[Any], settings: Any, radius: float | None) -> list[np.ndarray]:
-    """The shots at ``settings``' size (drawn supersampled), with the keypoint numbers set at the final size."""
+def _draw_cells(shots: Iterable[Any], settings: Any, radius: float | None) -> list[np.ndarray]:
+    """The shots at ``settings``' size (drawn supersampled), with the keypoint numbers set at the final size. The
+    shots are taken once, in order (they may be made as they are asked for)."""
     from kpd.viewer.gl import render_shots
     from kpd.viewer.render import label_image_at
 
     big = settings.replace(width=settings.width * _SUPERSAMPLE, height=settings.height * _SUPERSAMPLE,
                            show_labels=False)
+    labels = []  # each shot's keypoints and camera, for its numbers: not the shot, which may hold a large mesh
+
+    def noted(shots: Iterable[Any]) -> Iterator[Any]:
+        for shot in shots:
+            labels.append((shot.keypoints, shot.camera))
+            yield shot
+
     with picture_display(big.width + 64, big.height + 64):
-        images = render_shots(shots, big, keypoint_radius=radius)
+        images = render_shots(noted(shots), big, keypoint_radius=radius)
     out = []
-    for shot, image in zip(shots, images):
+    for (keypoints, camera), image in zip(labels, images):
         image = _downsample(image, _SUPERSAMPLE)
-        if shot.keypoints is not None and settings.show_labels and settings.show_keypoints and radius is not None:
-            image = label_image_at(image, shot.keypoints, radius, shot.camera)
+        if keypoints is not None and settings.show_labels and settings.show_keypoints and radius is not None:
+            image = label_image_at(image, keypoints, radius, camera)
         out.append(image)
     return out
 
@@ -139,7 +147,8 @@ def render_sheet(meshes: Sequence[Any], path: Any, *, titles: Sequence[str] | No
 
     Parameters
     ----------
-    meshes : kpd.io.Mesh objects in one frame (a shape and its variants, say).
+    meshes : kpd.io.Mesh objects in one frame (a shape and its variants, say): a sequence whose items may be made
+        as they are asked for (each is asked for three times, one at a time).
     path : the PNG to write (atomically).
     titles : one caption per mesh.
     keypoints : per mesh, (K, 3) keypoints or None: numbered markers in the keypoint palette.
@@ -150,8 +159,9 @@ def render_sheet(meshes: Sequence[Any], path: Any, *, titles: Sequence[str] | No
     max_triangles : unused (kept for callers of the former matplotlib sheet; the OpenGL path draws every triangle).
     title : a line across the top.
     """
+    from kpd.viewer.camera import box, camera_pose_over
     from kpd.viewer.gl import Layer, Shot
-    from kpd.viewer.render import ViewSettings, camera_pose, write_png
+    from kpd.viewer.render import ViewSettings, write_png
 
     if not len(meshes):
         raise InputError("a contact sheet needs at least one mesh")
@@ -159,23 +169,31 @@ def render_sheet(meshes: Sequence[Any], path: Any, *, titles: Sequence[str] | No
     axis = str(up or "z").strip().lower()
     settings = ViewSettings(width=pixels, height=pixels, up=axis if axis[0] in "+-" else f"+{axis}", azimuth=30.0,
                             elevation=18.0)
-    everything = [np.asarray(m.vertices) for m in meshes]
-    if keypoints is not None:
-        everything += [np.asarray(k) for k in keypoints if k is not None]
-    points = np.vstack(everything)
-    camera = camera_pose(points, settings)
-    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) or 1.0
+    # framed on everything, each mesh taken as it comes: ``meshes`` may make them as they are asked for (a shape's
+    # variants, never all held at once: 16 variants of a 1.37M-vertex mesh are 0.5 GB of vertices)
+    def everything() -> Iterator[np.ndarray]:
+        for mesh in meshes:
+            yield np.asarray(mesh.vertices)
+        for k in keypoints if keypoints is not None else []:
+            if k is not None:
+                yield np.asarray(k, dtype=np.float64)
+
+    lo, hi = box(np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3) for p in everything())
+    camera = camera_pose_over(everything, settings, bounds=(lo, hi))
+    diagonal = float(np.linalg.norm(hi - lo)) or 1.0
     radius = settings.keypoint_size * diagonal * 1.1
-    shots = []
-    for i, mesh in enumerate(meshes):
-        layers = [Layer(mesh)]
-        if arrows is not None and arrows[i] is not None:
-            for s, e in zip(*(np.asarray(a, dtype=np.float64) for a in arrows[i])):
-                if np.linalg.norm(e - s) > 1e-9 * diagonal:
-                    layers.append(Layer(arrow_mesh(s, e, 0.006 * diagonal), color=(0.12, 0.12, 0.12)))
-        kp = None if keypoints is None or keypoints[i] is None else np.asarray(keypoints[i], dtype=np.float64)
-        shots.append(Shot(layers=layers, keypoints=kp, camera=camera))
-    images = _draw_cells(shots, settings, radius)
+
+    def shots() -> Iterator[Any]:
+        for i, mesh in enumerate(meshes):
+            layers = [Layer(mesh)]
+            if arrows is not None and arrows[i] is not None:
+                for s, e in zip(*(np.asarray(a, dtype=np.float64) for a in arrows[i])):
+                    if np.linalg.norm(e - s) > 1e-9 * diagonal:
+                        layers.append(Layer(arrow_mesh(s, e, 0.006 * diagonal), color=(0.12, 0.12, 0.12)))
+            kp = None if keypoints is None or keypoints[i] is None else np.asarray(keypoints[i], dtype=np.float64)
+            yield Shot(layers=layers, keypoints=kp, camera=camera)
+
+    images = _draw_cells(shots(), settings, radius)
     write_png(path, compose(images, titles=titles, columns=columns, title=title))
 
 

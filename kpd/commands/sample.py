@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -33,6 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import json
+    from concurrent.futures import ThreadPoolExecutor
 
     from kpd.commands.keypoints import load_model
     from kpd.errors import InputError
@@ -52,23 +54,52 @@ def run(args: argparse.Namespace) -> int:
         mesh = read_mesh(args.mesh)
         rig = model.rig(mesh, seed=args.seed)
         keypoint_sets = model.sample_keypoints(rig, args.n, seed=args.sample_seed, scale=args.scale)
-        meshes = [rig.deformed_mesh(keypoints) for keypoints in keypoint_sets]
+        # each variant is deformed when it is written or drawn and let go after (an edit: milliseconds), so that the
+        # command's memory does not grow with --n (16 variants of a 1.37M-vertex mesh held were 0.5 GB)
+        meshes = _Variants(mesh, rig, keypoint_sets)
         staging = outputs.stage(out)
         staging.mkdir()
-        names = []
-        for i, variant in enumerate(meshes):
-            name = f"variant_{i:03d}{suffix}"
-            write_mesh(staging / name, variant)
-            names.append(name)
+        names = [f"variant_{i:03d}{suffix}" for i in range(len(keypoint_sets))]
+
+        def write_variants() -> None:
+            for i, name in enumerate(names):
+                write_mesh(staging / name, meshes[i + 1])
+
+        # the variants are written on a thread of their own while the contact sheet is drawn: a file's write waits
+        # mostly on the disk (16 variants of a 1.37M-vertex mesh: 1.7 GB of PLY, 8 s with their fsyncs)
+        with ThreadPoolExecutor(1, thread_name_prefix="kpd-write") as pool:
+            writing = pool.submit(write_variants)
+            try:
+                render_sheet(meshes, staging / "contact_sheet.png",
+                             titles=["input", *[f"{i:03d}" for i in range(len(keypoint_sets))]],
+                             keypoints=[rig.keypoints, *keypoint_sets], up=file_up(args.mesh) or model.up or "z")
+            finally:
+                writing.result()  # its error first (a full disk), else the sheet's
         record = {"model": str(args.model), "mesh": str(args.mesh), "seed": args.seed, "sample_seed": args.sample_seed,
                   "scale": args.scale, "frame": "input", "source_keypoints": rig.keypoints.tolist(),
                   "variants": [{"file": name, "keypoints": kp.tolist()} for name, kp in zip(names, keypoint_sets)]}
         (staging / "keypoints.json").write_text(json.dumps(record, indent=1) + "\n")
-        render_sheet([mesh, *meshes], staging / "contact_sheet.png",
-                     titles=["input", *[f"{i:03d}" for i in range(len(meshes))]],
-                     keypoints=[rig.keypoints, *keypoint_sets], up=file_up(args.mesh) or model.up or "z")
-    print(f"wrote {len(meshes)} variants, keypoints.json and contact_sheet.png to {out}")
+    print(f"wrote {len(keypoint_sets)} variants, keypoints.json and contact_sheet.png to {out}")
     return 0
+
+
+class _Variants(Sequence):
+    """The input mesh, then its variants: item ``i`` > 0 is the rig deformed to keypoint set ``i - 1``, made each
+    time it is asked for (the same vertices each time)."""
+
+    def __init__(self, mesh: Any, rig: Any, keypoint_sets: Sequence[np.ndarray]) -> None:
+        self.mesh, self.rig, self.keypoint_sets = mesh, rig, keypoint_sets
+
+    def __len__(self) -> int:
+        return 1 + len(self.keypoint_sets)
+
+    def __getitem__(self, i: int) -> Any:
+        if not isinstance(i, int):
+            raise TypeError("variants are indexed by an int")
+        if not -len(self) <= i < len(self):
+            raise IndexError(i)
+        i %= len(self)
+        return self.mesh if i == 0 else self.rig.deformed_mesh(self.keypoint_sets[i - 1])
 
 
 def render_sheet(meshes: Sequence[Any], path: str | Path, **options: Any) -> None:
