@@ -143,6 +143,22 @@ def read_shape(path: str | os.PathLike) -> Mesh | PointSet:
         shape = off.read_mesh(p, os.fspath(path), points=True)
         if shape is not None:
             return shape
+    if ext == ".ply":  # by kpd, as in read_mesh; a PLY without faces as Open3D's mesh reader gives its vertices
+        ply.check_complete(p)
+        if _has_faces(p):
+            mesh = ply.read_mesh(p, os.fspath(path))
+            if mesh is not None:
+                return mesh
+        else:
+            arrays = ply.read_vertices(p)
+            if arrays is not None:
+                if len(arrays[0]) == 0:
+                    raise InputError(f"{p}: no vertices (empty geometry)")
+                return PointSet(*arrays, path=os.fspath(path))
+    if ext == ".stl":  # a binary STL through numpy, as in read_mesh
+        welded = stl.read(p)
+        if welded is not None:
+            return Mesh(*welded, path=os.fspath(path))
     m = _read_open3d_mesh(p, ext)
     if len(m.triangles) == 0:
         return PointSet(
@@ -185,6 +201,13 @@ def _open3d_read(read, p: Path, what: str):
 
 def _read_point_arrays(p: Path, ext: str) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Raw (unchecked) points, normals, colours of a point file."""
+    if ext == ".ply":  # by kpd (numpy; compiled passes for ASCII), as Open3D's point cloud reader reads it
+        ply.check_complete(p)
+        arrays = ply.read_vertices(p)
+        if arrays is not None:
+            if len(arrays[0]) == 0:
+                raise InputError(f"{p}: no points (empty geometry)")
+            return arrays
     if ext in (".ply", ".pcd"):
         o3d = open3d_module()
         (ply.check_complete if ext == ".ply" else pcd.check_complete)(p)
