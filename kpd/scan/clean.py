@@ -132,11 +132,38 @@ def _triangle_pieces(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.nd
     return labels, int(labels.max()) + 1
 
 
-def _distance_to_triangles(vertices: np.ndarray, triangles: np.ndarray, queries: np.ndarray) -> np.ndarray:
-    """(Q,) exact distance from each query point to the surface of the given triangles (Open3D raycasting scene)."""
+def _scene(vertices: np.ndarray, triangles: np.ndarray) -> Any:
+    """Open3D's raycasting scene of the given triangles, for exact distances to their surface (:func:`_distances`)."""
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32)))
+    return scene
+
+
+def _distances(scene: Any, queries: np.ndarray) -> np.ndarray:
+    """(Q,) exact distance from each query point (Q, 3) to the scene's surface."""
     return scene.compute_distance(o3d.core.Tensor(queries.astype(np.float32))).numpy().astype(np.float64)
+
+
+_PROBES = 256  # vertices of each piece looked at first (evenly through its vertices)
+
+
+def _touching(scene: Any, points: np.ndarray, piece: np.ndarray, gap: float) -> np.ndarray:
+    """The pieces (sorted, distinct) with a point within ``gap`` of the scene's triangles: ``points`` (Q, 3), each
+    of piece ``piece`` (Q,). Up to :data:`_PROBES` points of each piece are looked at first, then every point of the
+    pieces not found touching so: the same pieces as looking at every point, for a few thousand distances where
+    most pieces touch (a subdivided CAD chair's parts: 901k points, 2.3 s)."""
+    order = np.argsort(piece, kind="stable")
+    sorted_piece = piece[order]
+    starts = np.flatnonzero(np.r_[True, sorted_piece[1:] != sorted_piece[:-1]])  # each piece's first position
+    counts = np.diff(np.r_[starts, len(order)])
+    rank = np.arange(len(order)) - np.repeat(starts, counts)  # each point's place among its piece's points
+    step = np.repeat(np.maximum(counts // _PROBES, 1), counts)
+    probe = order[rank % step == 0]
+    found = np.unique(piece[probe][_distances(scene, points[probe]) <= gap])
+    rest = ~np.isin(piece, found)
+    if rest.any():
+        found = np.union1d(found, piece[rest][_distances(scene, points[rest]) <= gap])
+    return found
 
 
 def _small_pieces(
@@ -157,14 +184,18 @@ def _small_pieces(
     if small.any() and max_gap > 0:
         lo, hi = bounds(vertices)
         gap = max_gap * float(np.linalg.norm(hi - lo))
-        used = np.unique(triangles)  # vertices of some triangle, and the piece each belongs to
+        # the vertices of some triangle (np.unique's, in order, without its sort or hash of 3T indices: 1.6 s at 5.5M
+        # triangles), and the piece each belongs to
+        in_use = np.zeros(len(vertices), dtype=bool)
+        in_use[triangles.reshape(-1)] = True
+        used = np.flatnonzero(in_use)
         used_piece = np.empty(len(vertices), dtype=np.int64)
         used_piece[triangles.reshape(-1)] = np.repeat(labels, 3)
         used_piece = used_piece[used]
         while small.any():
             query = small[used_piece]  # vertices of the small pieces not yet kept
-            near = _distance_to_triangles(vertices, triangles[~small[labels]], vertices[used[query]])
-            touching = np.unique(used_piece[query][near <= gap])
+            touching = _touching(_scene(vertices, triangles[~small[labels]]), vertices[used[query]], used_piece[query],
+                                 gap)
             if len(touching) == 0:
                 break
             small[touching] = False
