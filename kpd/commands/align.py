@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 HELP = "deform a source mesh to a target shape through their keypoints (source topology, UVs and colours kept)"
 EXAMPLE = "kpd align chair source_chair.obj target_chair.ply --out source_like_target.obj"
@@ -23,7 +24,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from kpd.commands.keypoints import load_model, warn_frame
+    from concurrent.futures import ThreadPoolExecutor
+
+    from kpd.commands.keypoints import frame_lines, load_model, rig_checked
     from kpd.io import MESH_FORMATS, Outputs, mesh_companions, read_mesh, read_shape, write_mesh
 
     with Outputs(force=args.force, inputs=(args.source, args.target)) as outputs:
@@ -35,10 +38,15 @@ def run(args: argparse.Namespace) -> int:
         source = read_mesh(args.source)
         outputs.companions(out, mesh_companions(out, source))
         target = read_shape(args.target)
-        warn_frame(model, source, args.seed, args.source)
-        warn_frame(model, target, args.seed, args.target)
-        rig = model.rig(source, seed=args.seed)
         prediction = model.predict(target, seed=args.seed)
+        # the frame checks beside the binding, each from its shape's one surface sample (rig_checked: the source's on
+        # a thread of its own, its warnings first), as the other commands that bind do
+        with ThreadPoolExecutor(1, thread_name_prefix="kpd-target-check") as pool:
+            target_check = pool.submit(frame_lines, model, target, args.seed, args.target, prediction=prediction)
+            rig = rig_checked(model, source, args.seed, args.source)
+            target_warnings = target_check.result()
+        for line in target_warnings:
+            print(f"warning: {line}", file=sys.stderr)
         target_keypoints = rig.normalizer.invert(prediction.keypoints)  # target's shape, source's frame
         write_mesh(outputs.stage(out), rig.deformed_mesh(target_keypoints))
         if extra is not None:
