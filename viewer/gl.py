@@ -32,7 +32,7 @@ import shutil
 import tempfile
 import threading
 from dataclasses import dataclass, field
-from typing import Any, Callable, NamedTuple, Sequence
+from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
 import numba
 import numpy as np
@@ -1792,9 +1792,10 @@ def _shaded_layer(shaded: dict, slot: int, mesh: Any, color: Sequence[float], *,
     return shaded[slot]
 
 
-def render_shots(shots: Sequence[Shot], settings: Any, *, view: GLView | None = None,
+def render_shots(shots: Iterable[Shot], settings: Any, *, view: GLView | None = None,
                  keypoint_radius: float | None = None) -> list[np.ndarray]:
-    """Draw each shot with one hidden window; a list of (H, W, 3) uint8 with the keypoint numbers drawn in.
+    """Draw each shot with one hidden window; a list of (H, W, 3) uint8 with the keypoint numbers drawn in. The
+    shots are taken once, in order: they may be made as they are asked for.
 
     The caller provides the display (``private_display`` for no screen); ``view`` reuses an open window.
     """
