@@ -149,3 +149,33 @@ def test_touching_pieces_are_those_with_any_point_near_the_surface_probed_first_
         got = clean_module._touching(scene, points, piece, gap)
         np.testing.assert_array_equal(got, every)
         assert set(every) == {p for p in range(len(sizes)) if p % 3}
+
+
+@pytest.mark.parametrize("cells", [256, 3])  # the grid as made, and widened to 3 cells an axis
+def test_distances_within_the_gap_are_the_same_over_the_near_triangles_alone(cells, monkeypatch):
+    """_near_triangles keeps every triangle that may come within the gap of a query point: the points within the gap
+    of the surface are the same over the kept triangles as over all of them (small and large triangles, gaps from a
+    hair to most of the box), and far triangles are left out."""
+    import importlib
+
+    clean_module = importlib.import_module("kpd.scan.clean")
+    monkeypatch.setattr(clean_module, "_GRID_CELLS", cells)
+    rng = np.random.default_rng(cells)
+    dropped = 0
+    for trial in range(12):
+        centres = rng.uniform(-1, 1, size=(400, 3))
+        sizes = rng.choice([0.01, 0.1, 1.0], size=(400, 1, 1))
+        vertices = (centres[:, None, :] + sizes * rng.normal(size=(400, 3, 3))).reshape(-1, 3)
+        triangles = np.arange(len(vertices)).reshape(-1, 3)
+        points = rng.uniform(-1.2, 1.2, size=(300, 3)) * rng.choice([0.2, 1.0])
+        everything = clean_module._scene(vertices, triangles)
+        for gap in (1e-4, 0.02, 0.1, 0.5, 2.0):
+            near = clean_module._near_triangles(vertices, triangles, points, gap)
+            dropped += int((~near).sum())
+            within = clean_module._distances(everything, points) <= gap
+            if near.any():
+                within_near = clean_module._distances(clean_module._scene(vertices, triangles[near]), points) <= gap
+            else:
+                within_near = np.zeros(len(points), dtype=bool)
+            np.testing.assert_array_equal(within_near, within)
+    assert dropped > 0 or cells < 8  # on a grid of 3 cells every cell is next to some point's

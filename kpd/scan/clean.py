@@ -11,6 +11,7 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import ConvexHull
 
+from kpd._compiled import compiled_on_first_call
 from kpd.errors import InputError
 from kpd.geometry import _double_areas, bounds
 from kpd.scan.rotations import parse_axis
@@ -144,6 +145,57 @@ def _distances(scene: Any, queries: np.ndarray) -> np.ndarray:
     return scene.compute_distance(o3d.core.Tensor(queries.astype(np.float32))).numpy().astype(np.float64)
 
 
+_GRID_CELLS = 256  # at most this many cells along an axis in _near_triangles
+
+
+def _near_triangles(vertices: np.ndarray, triangles: np.ndarray, points: np.ndarray, gap: float) -> np.ndarray:
+    """(T,) bool: the triangles that may come within ``gap`` of one of ``points`` (Q, 3), so that the distances up to
+    ``gap`` over them alone are those over all: their search structure costs less to build (a CAD chair's parts at
+    1.37M vertices: 1.0M of 1.9M triangles, 0.6 s against 1.2 s).
+
+    On a grid of cells a little wider than ``gap`` (so that float32 rounding of a distance within ``gap`` stays within
+    a cell), a point of a triangle within ``gap`` of a query point lies in the query point's cell or one next to it;
+    a triangle is kept when its bounding box meets such a cell. Cells are widened to keep the grid within
+    :data:`_GRID_CELLS` along each axis (the property holds for any width above ``gap``)."""
+    lo = np.minimum(points.min(axis=0), vertices.min(axis=0))
+    hi = np.maximum(points.max(axis=0), vertices.max(axis=0))
+    cell = max(1.001 * gap, float((hi - lo).max()) / _GRID_CELLS, 1e-300)
+    shape = (np.floor((hi - lo) / cell).astype(np.int64) + 3)  # a border of one cell on each side
+    near = np.zeros(tuple(shape), dtype=np.bool_)
+    index = np.floor((points - lo) / cell).astype(np.int64) + 1
+    for dx in (-1, 0, 1):  # the points' cells and their neighbours
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                near[index[:, 0] + dx, index[:, 1] + dy, index[:, 2] + dz] = True
+    keep = np.empty(len(triangles), dtype=np.bool_)
+    _boxes_meet(vertices, np.ascontiguousarray(triangles, dtype=np.int64), lo, 1.0 / cell, near, keep)
+    return keep
+
+
+@compiled_on_first_call
+def _boxes_meet(vertices, triangles, lo, inverse_cell, near, keep):  # pragma: no cover - compiled
+    """``keep[t]``: whether triangle t's bounding box meets a cell of ``near`` (cells of 1 / ``inverse_cell`` from
+    ``lo``, with a border of one cell)."""
+    nx, ny, nz = near.shape
+    for t in range(triangles.shape[0]):
+        a0 = a1 = b0 = b1 = c0 = c1 = 0
+        for k in range(3):
+            v = triangles[t, k]
+            i = int(np.floor((vertices[v, 0] - lo[0]) * inverse_cell)) + 1
+            j = int(np.floor((vertices[v, 1] - lo[1]) * inverse_cell)) + 1
+            m = int(np.floor((vertices[v, 2] - lo[2]) * inverse_cell)) + 1
+            if k == 0:
+                a0, a1, b0, b1, c0, c1 = i, i, j, j, m, m
+            else:
+                a0, a1, b0, b1, c0, c1 = min(a0, i), max(a1, i), min(b0, j), max(b1, j), min(c0, m), max(c1, m)
+        found = False
+        for i in range(max(a0, 0), min(a1, nx - 1) + 1):
+            for j in range(max(b0, 0), min(b1, ny - 1) + 1):
+                for m in range(max(c0, 0), min(c1, nz - 1) + 1):
+                    found |= near[i, j, m]
+        keep[t] = found
+
+
 _PROBES = 256  # vertices of each piece looked at first (evenly through its vertices)
 
 
@@ -194,8 +246,12 @@ def _small_pieces(
         used_piece = used_piece[used]
         while small.any():
             query = small[used_piece]  # vertices of the small pieces not yet kept
-            touching = _touching(_scene(vertices, triangles[~small[labels]]), vertices[used[query]], used_piece[query],
-                                 gap)
+            points = vertices[used[query]]
+            surface = triangles[~small[labels]]
+            surface = surface[_near_triangles(vertices, surface, points, gap)]
+            if not len(surface):
+                break
+            touching = _touching(_scene(vertices, surface), points, used_piece[query], gap)
             if len(touching) == 0:
                 break
             small[touching] = False
