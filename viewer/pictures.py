@@ -172,13 +172,13 @@ def render_sheet(meshes: Sequence[Any], path: Any, *, titles: Sequence[str] | No
     # framed on everything, each mesh taken as it comes: ``meshes`` may make them as they are asked for (a shape's
     # variants, never all held at once: 16 variants of a 1.37M-vertex mesh are 0.5 GB of vertices)
     def everything() -> Iterator[np.ndarray]:
-        for mesh in meshes:
-            yield np.asarray(mesh.vertices)
+        for mesh in meshes:  # one mesh at a time
+            yield np.ascontiguousarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
         for k in keypoints if keypoints is not None else []:
             if k is not None:
-                yield np.asarray(k, dtype=np.float64)
+                yield np.ascontiguousarray(k, dtype=np.float64).reshape(-1, 3)
 
-    lo, hi = box(np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3) for p in everything())
+    lo, hi = box(everything())
     camera = camera_pose_over(everything, settings, bounds=(lo, hi))
     diagonal = float(np.linalg.norm(hi - lo)) or 1.0
     radius = settings.keypoint_size * diagonal * 1.1
