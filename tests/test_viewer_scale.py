@@ -520,23 +520,14 @@ def test_kpd_view_applies_a_saved_session_once_the_rig_is_bound(data_dir, tmp_pa
 
 def test_a_sheet_of_variants_draws_each_as_a_new_mesh_would_with_the_triangles_worked_out_once(data_dir, tmp_path,
                                                                                                monkeypatch):
-    """A contact sheet of a textured ShapeNet bench (3 materials) and its variants (the same triangles, moved
-    vertices, coincident ones kept together) makes one ShadedMesh for them all, and one more for a variant where two
-    vertices that were apart now coincide (its welding differs): the same picture as a ShadedMesh made for each."""
+    """A contact sheet of the sneaker scan and its variants (the same triangles, moved vertices, coincident ones kept
+    together) makes one ShadedMesh for them all, and one more for a variant where two vertices that were apart now
+    coincide (its welding differs): the same picture as a ShadedMesh made for each. A mesh drawn in parts (a
+    3-material ShapeNet bench) gets one for each cell, as the legacy renderer's order of parts follows their objects."""
     from kpd.io import read_mesh
     from kpd.viewer import gl
     from kpd.viewer.pictures import render_sheet
 
-    mesh = read_mesh(data_dir / "shapenetcore_obj" / "bench" / "50db85e4889831dff155d75bbf62b80" / "models" /
-                     "model_normalized.obj")
-    assert len(mesh.textures) == 3
-    v = mesh.vertices
-    variants = [mesh.with_vertices(v + 0.05 * np.sin(3 * v[:, [1, 2, 0]])),
-                mesh.with_vertices(v * [1.0, 1.2, 0.9])]
-    first, inverse = mesh.position_groups()
-    merged = v.copy()
-    merged[inverse == inverse[first[1]]] = v[first[0]]  # the second position's vertices moved onto the first's
-    variants.append(mesh.with_vertices(merged))
     made = []
     real = gl.ShadedMesh
 
@@ -545,8 +536,23 @@ def test_a_sheet_of_variants_draws_each_as_a_new_mesh_would_with_the_triangles_w
         return real(*args, **kwargs)
 
     monkeypatch.setattr(gl, "ShadedMesh", counted)
+    mesh = read_mesh(data_dir / "scans" / "sneaker.ply")
+    v = mesh.vertices
+    variants = [mesh.with_vertices(v + 0.05 * np.sin(3 * v[:, [1, 2, 0]])),
+                mesh.with_vertices(v * [1.0, 1.2, 0.9])]
+    first, inverse = mesh.position_groups()
+    merged = v.copy()
+    merged[inverse == inverse[first[1]]] = v[first[0]]  # the second position's vertices moved onto the first's
+    variants.append(mesh.with_vertices(merged))
     render_sheet([mesh, *variants], tmp_path / "reused.png", up="y", cell=2.0)
     assert [id(m) for m in made] == [id(mesh), id(variants[2])]
+    bench = read_mesh(data_dir / "shapenetcore_obj" / "bench" / "50db85e4889831dff155d75bbf62b80" / "models" /
+                      "model_normalized.obj")
+    assert len(bench.textures) == 3
+    made.clear()
+    bench_variants = [bench, bench.with_vertices(bench.vertices * 1.1)]
+    render_sheet(bench_variants, tmp_path / "bench.png", up="y", cell=2.0)
+    assert [id(m) for m in made] == [id(m) for m in bench_variants]
     monkeypatch.setattr(gl, "_shaded_layer", lambda shaded, slot, m, color, *, override: real(
         m, color, override=override, once=True))
     render_sheet([mesh, *variants], tmp_path / "fresh.png", up="y", cell=2.0)
