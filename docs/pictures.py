@@ -185,7 +185,8 @@ def _edits(tmp: Path, category: str, names: list[str]) -> None:
     triangles an edit turned over are drawn red (slivers: thin lines)."""
     from kpd.io import Mesh, read_mesh
     from kpd.metrics import keypoint_roles, semantic_edits
-    from kpd.metrics import _normals, _turned
+    from kpd.metrics.edits import _turned
+    from kpd.triangles import cross as triangle_cross
     from kpd.runtime import Model
     from kpd.viewer.pictures import render_sheet
 
@@ -201,7 +202,7 @@ def _edits(tmp: Path, category: str, names: list[str]) -> None:
             for edit, moves in edits.items():
                 moved = rig.moved({i: np.asarray(o) * rig.normalizer.scale_ for i, o in moves.items()})
                 deformed = rig.normalizer.apply(rig.deform(moved))
-                turned = _turned(_normals(rest, mesh.triangles), _normals(deformed, mesh.triangles))
+                turned = _turned(triangle_cross(rest, mesh.triangles), triangle_cross(deformed, mesh.triangles))
                 corners = mesh.triangles.ravel()  # one vertex per corner, so that a triangle has its own colour
                 colors = np.where(np.repeat(turned, 3)[:, None], [0.85, 0.1, 0.1], [0.78, 0.78, 0.8])
                 meshes.append(Mesh(deformed[corners], np.arange(len(corners)).reshape(-1, 3), vertex_colors=colors))
