@@ -50,7 +50,7 @@ from kpd.io import Mesh, atomic_files, atomic_output
 from kpd.io.gltf import GlbBuffer, primitive_groups, read_accessor, read_buffers, read_gltf_json, write_glb
 from kpd.io.images import encode_png
 
-__all__ = ["MorphRig", "GltfRig", "write_gltf", "gltf_bytes", "read_gltf", "GLTF_FORMATS", "up_rotation"]
+__all__ = ["MorphRig", "GltfRig", "write_gltf", "gltf_bytes", "write_glb_to", "read_gltf", "GLTF_FORMATS", "up_rotation"]
 
 log = logging.getLogger(__name__)
 
@@ -437,10 +437,18 @@ def gltf_bytes(morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z", target
     ``targets`` keeps only the named morph targets in the mesh (``asset.extras.kpd`` still lists every target's
     keypoint offsets): the browser editor sends the keypoint targets alone, whose sums make every other edit.
     """
-    doc, builder = _document(morph, name=name, up=up, bin_uri=None, targets=targets)
     out = io.BytesIO()
-    write_glb(out, doc, builder)
+    write_glb_to(out, morph, name=name, up=up, targets=targets)
     return out.getvalue()
+
+
+def write_glb_to(fh, morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z",
+                 targets: Sequence[str] | None = None) -> int:
+    """Write the GLB of :func:`gltf_bytes` to ``fh`` (a seekable binary file at its start: the targets are written
+    32 MB of vertices at a time, each block's rows to their places), leaving it at the end; returns its length."""
+    doc, builder = _document(morph, name=name, up=up, bin_uri=None, targets=targets)
+    write_glb(fh, doc, builder)
+    return fh.tell()
 
 
 def write_gltf(path: str | os.PathLike, morph: MorphRig, *, name: str | None = None, up: str = "+z",

@@ -286,3 +286,44 @@ def test_save_refusals_and_nothing_served_outside_the_page(chair_file, tmp_path)
     finally:
         process.terminate()
         process.wait(timeout=10)
+
+
+def test_the_page_s_rig_is_sent_from_a_temporary_file_without_a_name(reference):
+    """The GLB the page loads waits in a temporary file without a name (not in memory: 590 MB for a 1.37M-vertex
+    chair) and is sent whole to requests at once, the same bytes as gltf_bytes; closing the editor lets it go."""
+    import os
+    import threading
+    import urllib.request
+
+    from kpd.morph import gltf_bytes
+    from kpd.viewer.browser import BrowserEditor, page_files_missing
+
+    if page_files_missing():
+        pytest.skip("three.js is not installed (make web)")
+    _, morph, _ = reference
+    editor = BrowserEditor(port=0)
+    server = threading.Thread(target=editor.serve_forever, daemon=True)
+    server.start()
+    try:
+        editor.show(morph, name="chair_0890")
+        assert os.fstat(editor.glb.fileno()).st_nlink == 0  # nothing to find, or to leave behind, in the folder
+        expected = gltf_bytes(morph, name="chair_0890", targets=[n for n in morph.names if n.startswith("keypoint_")])
+        assert editor.glb_size == len(expected)
+        answers = [None] * 4
+
+        def fetch(i: int) -> None:
+            with urllib.request.urlopen(editor.url + "rig.glb", timeout=60) as response:
+                answers[i] = (response.headers["Content-Type"], response.read())
+
+        readers = [threading.Thread(target=fetch, args=(i,)) for i in range(len(answers))]
+        for reader in readers:
+            reader.start()
+        for reader in readers:
+            reader.join(timeout=120)
+        assert answers == [("model/gltf-binary", expected)] * len(answers)
+        glb = editor.glb
+        editor.close()
+        assert glb.closed and editor.glb is None
+    finally:
+        editor.shutdown()
+        server.join(timeout=10)

@@ -258,6 +258,29 @@ def test_full_disk_library_writers(full_disk):
         assert snapshot(full_disk) == before
 
 
+def test_browser_page_with_a_full_temporary_folder(inputs, full_disk, capfd, monkeypatch):
+    """kpd view --browser keeps the page's GLB in a temporary file without a name: a full temporary folder ends in
+    one line naming it, before the server starts, and leaves nothing there."""
+    import tempfile
+
+    from kpd.viewer.browser import BrowserEditor, page_files_missing
+
+    if page_files_missing():
+        pytest.skip("three.js is not installed (make web)")
+    if os.statvfs(full_disk).f_bavail * os.statvfs(full_disk).f_frsize >= 1 << 16:
+        pytest.skip("no tmpfs to fill here (not root)")
+    served = []
+    monkeypatch.setattr(BrowserEditor, "serve_forever", lambda self: served.append(self))  # no endless server
+    monkeypatch.setattr(tempfile, "tempdir", str(full_disk))
+    before = snapshot(full_disk, inputs)
+    line = assert_fault(kpd(capfd, "view", inputs / "toy.kpd", inputs / "chair.ply", "--browser", "--port", "0"),
+                        before, full_disk, inputs, match="disk is full")
+    assert str(full_disk) in line and "TMPDIR" in line and not served
+    monkeypatch.setattr(tempfile, "tempdir", str(inputs.parent))
+    assert kpd(capfd, "view", inputs / "toy.kpd", inputs / "chair.ply", "--browser", "--port", "0")[0] == 0
+    assert len(served) == 1 and served[0].glb is None  # let go when the command ends
+
+
 # --- read-only and forbidden folders ------------------------------------------------------------------------------
 
 

@@ -20,11 +20,12 @@ import http.server
 import json
 import logging
 import mimetypes
+import os
 import threading
 from pathlib import Path
 from typing import Any
 
-from kpd.errors import InputError, KpdError
+from kpd.errors import InputError, KpdError, WriteError
 
 __all__ = ["BrowserEditor", "WEB_ROOT", "page_files_missing"]
 
@@ -70,7 +71,8 @@ class BrowserEditor:
         self.name = "shape"
         self.prior_on = False
         self.camera = {"azimuth": 30.0, "elevation": 20.0}
-        self.glb = b""
+        self.glb = None  # the rig's GLB: a temporary file without a name (show)
+        self.glb_size = 0
         self._saved = False
         self._lock = threading.Lock()
         try:
@@ -86,12 +88,29 @@ class BrowserEditor:
              elevation: float = 20.0) -> None:
         """Serve ``morph`` (a :class:`kpd.morph.MorphRig`) under ``name``, its ``up`` axis turned to the page's up;
         ``prior``: start with the prior switch on; ``azimuth``, ``elevation``: the camera's start, in degrees."""
-        from kpd.morph import gltf_bytes
+        import tempfile
+
+        from kpd.io.atomic import describe_os_error
+        from kpd.morph import write_glb_to
 
         keypoint_targets = [n for n in morph.names if n.startswith("keypoint_")]
         # every edit is a sum of keypoint offsets, so the page's mesh needs only the keypoint targets; the others'
-        # offsets travel in asset.extras.kpd
-        self.glb = gltf_bytes(morph, name=name, up=up, targets=keypoint_targets)
+        # offsets travel in asset.extras.kpd. The GLB (hundreds of megabytes for a scan) waits in a temporary file
+        # without a name (gone with the process, however it ends), not in memory, and is sent from there.
+        folder = tempfile.gettempdir()
+        try:
+            glb = tempfile.TemporaryFile(prefix="kpd-page-")
+            try:
+                size = write_glb_to(glb, morph, name=name, up=up, targets=keypoint_targets)
+                glb.flush()
+            except BaseException:
+                glb.close()
+                raise
+        except OSError as exc:
+            raise WriteError(describe_os_error(exc, f"the page's rig in {folder}") +
+                             " (TMPDIR chooses the folder)") from None
+        self.close()
+        self.glb, self.glb_size = glb, size
         self.morph, self.name, self.prior_on = morph, name, bool(prior)
         self.camera = {"azimuth": float(azimuth), "elevation": float(elevation)}
 
@@ -110,6 +129,12 @@ class BrowserEditor:
 
     def shutdown(self) -> None:
         self.server.shutdown()
+
+    def close(self) -> None:
+        """Let go of the rig's GLB (the server stays)."""
+        if self.glb is not None:
+            self.glb.close()
+            self.glb, self.glb_size = None, 0
 
     # --- what the page asks for ---------------------------------------------------------------------------------
 
@@ -152,6 +177,25 @@ def _handler(editor: BrowserEditor):
             self.end_headers()
             self.wfile.write(body)
 
+        def _send_file(self, fh, size: int, kind: str) -> None:
+            """Send ``size`` bytes of ``fh`` from its start, by the kernel (os.sendfile at an offset of this
+            request's own: requests at once do not move each other's place)."""
+            self.send_response(200)
+            self.send_header("Content-Type", kind)
+            self.send_header("Content-Length", str(size))
+            self.send_header("Cache-Control", "no-store")
+            self.end_headers()
+            self.wfile.flush()
+            sent = 0
+            try:
+                while sent < size:
+                    n = os.sendfile(self.connection.fileno(), fh.fileno(), sent, min(size - sent, 1 << 24))
+                    if n == 0:
+                        break
+                    sent += n
+            except (BrokenPipeError, ConnectionResetError):  # the page was closed or reloaded meanwhile
+                self.close_connection = True
+
         def _json(self, status: int, value: dict) -> None:
             self._send(status, json.dumps(value).encode("utf-8"), "application/json")
 
@@ -160,7 +204,7 @@ def _handler(editor: BrowserEditor):
             if path == "/rig.glb":
                 if editor.morph is None:
                     return self._send(503, b"the rig is not ready", "text/plain")
-                return self._send(200, editor.glb, "model/gltf-binary")
+                return self._send_file(editor.glb, editor.glb_size, "model/gltf-binary")
             if path == "/info.json":
                 return self._json(200, editor.info())
             name = "index.html" if path == "/" else path.lstrip("/")

@@ -128,4 +128,5 @@ def browse(args: argparse.Namespace) -> int:
         print("kpd view: stopped", flush=True)
     finally:
         editor.server.server_close()
+        editor.close()
     return 0
