@@ -419,3 +419,55 @@ def test_an_edit_writes_every_vertex_as_the_sum_in_keypoint_order(dtype, count):
         out = np.full((count, 3), np.nan)
         _edit(basis_t, offsets, rest, out)
         np.testing.assert_array_equal(out, expected)
+
+
+def test_a_large_npz_is_read_on_two_threads_as_in_one(tmp_path, monkeypatch):
+    """load_numpy reads a large .npz's members on two threads (a scan's rig: deflated triangles beside the stored
+    basis): the same arrays in the file's order as one thread reads them, and a damaged member is still one
+    InputError; the content hash over the arrays' memory is the hash of their bytes."""
+    import hashlib
+    import threading
+    import zipfile
+
+    from kpd.io.integrity import load_numpy
+
+    rng = np.random.default_rng(0)
+    arrays = {"format": np.array("kpd-rig/3"), "basis": rng.normal(size=(400_000, 6)).astype(np.float32),
+              "mesh_triangles": rng.integers(0, 400_000, (600_000, 3)).astype(np.int32), "scale": np.array(2.5),
+              "mesh_vertices": rng.normal(size=(400_000, 3)), "flags": np.array([True, False])}
+    path = tmp_path / "large.npz"
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
+        for name, value in arrays.items():
+            member = zipfile.ZipInfo(name + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+            member.compress_type = zipfile.ZIP_STORED if value.dtype.kind == "f" else zipfile.ZIP_DEFLATED
+            with archive.open(member, "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, value, allow_pickle=False)
+    assert path.stat().st_size > 16 << 20
+    readers = set()
+    getitem = np.lib.npyio.NpzFile.__getitem__
+
+    def recorded(self, key):
+        readers.add(threading.current_thread().name)
+        return getitem(self, key)
+
+    monkeypatch.setattr(np.lib.npyio.NpzFile, "__getitem__", recorded)
+    read = load_numpy(path)
+    assert list(read) == list(arrays) and all(np.array_equal(read[k], v) and read[k].dtype == v.dtype
+                                              for k, v in arrays.items())
+    assert len(readers) == 2 and all(name.startswith("kpd-npz") for name in readers)
+    for value in (arrays["basis"], arrays["mesh_vertices"].T, arrays["flags"]):
+        by_copy = hashlib.sha256()
+        by_copy.update(b"[1")
+        contiguous = np.ascontiguousarray(value)
+        by_copy.update(f"a{contiguous.dtype.str}{contiguous.shape}".encode() + contiguous.tobytes() + b"]")
+        assert content_hash([value]) == by_copy.hexdigest()
+    data = bytearray(path.read_bytes())
+    for member in ("basis.npy", "mesh_triangles.npy"):  # a stored member (CRC) and a deflated one (zlib or CRC)
+        with zipfile.ZipFile(path) as archive:
+            info = archive.getinfo(member)
+        damaged = bytearray(data)
+        damaged[info.header_offset + 30 + len(member) + info.compress_size // 2] ^= 0xFF
+        bad = tmp_path / f"bad_{member}.npz"
+        bad.write_bytes(bytes(damaged))
+        with pytest.raises(InputError, match="damaged .npz"):
+            load_numpy(bad)

@@ -55,7 +55,7 @@ def _feed(h, value: Any, top: bool = False) -> None:
         if a.dtype.kind in "OV":
             raise TypeError(f"cannot hash a {a.dtype} array")
         h.update(f"a{a.dtype.str}{a.shape}".encode())
-        h.update(a.tobytes())
+        h.update(a.reshape(-1).view(np.uint8) if a.dtype.itemsize else a.tobytes())  # its bytes, not a copy of them
     elif isinstance(value, bool) or value is None:
         h.update(f"c{value!r}".encode())
     elif isinstance(value, int):
@@ -108,7 +108,7 @@ def load_numpy(path: str | os.PathLike, what: str = "numpy file") -> Any:
     if head.startswith(_ZIP_MAGIC):
         try:
             with np.load(p, allow_pickle=False) as data:
-                return {k: data[k] for k in data.files}
+                return _members(data)
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError, KeyError) as exc:
             raise InputError(f"{p}: damaged .npz (zip) file: {_reason(exc)}") from exc
         except ValueError as exc:
@@ -128,6 +128,26 @@ def load_numpy(path: str | os.PathLike, what: str = "numpy file") -> Any:
         raise InputError(f"{p}: a Python pickle, which kpd never reads; not a {what}")
     kind = "a text file" if _is_text(p) else "neither a .npy nor a .npz file"
     raise InputError(f"{p}: {kind}, not a {what} (no numpy header)")
+
+
+_PARALLEL_BYTES = 16 << 20
+
+
+def _members(data) -> dict:
+    """Every array of an open ``.npz`` in its order. A large file's members are read on two threads, the largest
+    first (inflating and checking a member's CRC let go of the interpreter's lock): a 1.37M-vertex rig's 66 MB of
+    deflated triangles beside its stored basis and vertices."""
+    names = data.files
+    sizes = {info.filename[:-4] if info.filename.endswith(".npy") else info.filename: info.file_size
+             for info in data.zip.infolist()}
+    if len(names) < 2 or sum(sizes.values()) < _PARALLEL_BYTES:
+        return {k: data[k] for k in names}
+    from concurrent.futures import ThreadPoolExecutor
+
+    largest_first = sorted(names, key=lambda k: -sizes.get(k, 0))
+    with ThreadPoolExecutor(2, thread_name_prefix="kpd-npz") as pool:
+        read = dict(zip(largest_first, pool.map(data.__getitem__, largest_first)))
+    return {k: read[k] for k in names}
 
 
 def _is_text(p: Path) -> bool:
