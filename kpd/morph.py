@@ -235,9 +235,10 @@ def up_rotation(up: str) -> list[float] | None:
 
 
 def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
-              targets: Sequence[str] | None = None) -> tuple[dict, GlbBuffer]:
+              targets: Sequence[str] | None = None, basis: bool = False) -> tuple[dict, GlbBuffer]:
     mesh = morph.mesh
     chosen = list(range(len(morph.names))) if targets is None else [morph.names.index(t) for t in targets]
+    slots = -(-morph.basis.shape[1] // 4) if basis else 0  # the basis columns, four to an attribute
     rotation = up_rotation(up)
     vertices = mesh.vertices
     used = np.zeros(len(vertices), dtype=bool)  # the vertices of some triangle (np.unique's, without its sort)
@@ -259,17 +260,24 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
         if uv is not None:
             st = uv * [1.0, -1.0] + [0.0, 1.0]  # glTF puts the UV origin at the top left
             attributes["TEXCOORD_0"] = builder.accessor(st.astype(np.float32), "VEC2", _FLOAT, _ARRAY_BUFFER)
+        for j in range(slots):
+            columns = np.zeros((len(source), 4), dtype=np.float32)
+            part = morph.basis[:, 4 * j:4 * j + 4]
+            columns[:, :part.shape[1]] = part[source]
+            attributes[f"_KPD_BASIS_{j}"] = builder.accessor(columns, "VEC4", _FLOAT, _ARRAY_BUFFER)
         indices = builder.accessor(triangles.reshape(-1).astype(np.uint32), "SCALAR", _UINT, _ELEMENT_ARRAY_BUFFER)
-        # the targets' displacements are made as the file is written, a block of vertices at a time (at 1.37M
-        # vertices, 80 targets are 1.3 GB); their bounds, which the JSON before them holds, by a pass of their own
-        displacements = _Displacements(morph.basis, source, stacked)
-        low, high = displacements.bounds()  # (T, 3) float32 each
-        start = builder.region(displacements.nbytes, displacements.write)
-        size = 12 * len(source)  # bytes of one target: (n, 3) float32
-        targets = [{"POSITION": builder.accessor_at(start + j * size, size, len(source), "VEC3", _FLOAT,
-                                                    _ARRAY_BUFFER, bounds=(lo, hi))}
-                   for j, (lo, hi) in enumerate(zip(low, high))]
-        primitive = {"attributes": attributes, "indices": indices, "mode": 4, "targets": targets}
+        primitive = {"attributes": attributes, "indices": indices, "mode": 4}
+        if chosen:
+            # the targets' displacements are made as the file is written, a block of vertices at a time (at 1.37M
+            # vertices, 80 targets are 1.3 GB); their bounds, which the JSON before them holds, by a pass of their
+            # own
+            displacements = _Displacements(morph.basis, source, stacked)
+            low, high = displacements.bounds()  # (T, 3) float32 each
+            start = builder.region(displacements.nbytes, displacements.write)
+            size = 12 * len(source)  # bytes of one target: (n, 3) float32
+            primitive["targets"] = [{"POSITION": builder.accessor_at(start + j * size, size, len(source), "VEC3",
+                                                                     _FLOAT, _ARRAY_BUFFER, bounds=(lo, hi))}
+                                    for j, (lo, hi) in enumerate(zip(low, high))]
         if material is not None:
             primitive["material"] = material
         primitives.append(primitive)
@@ -290,8 +298,9 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
         node["translation"] = center.tolist()
     doc["nodes"] = [root, node] + [{"name": f"keypoint_{i}", "translation": (p - center).tolist()}
                                    for i, p in enumerate(morph.keypoints)]
-    doc["meshes"] = [{"name": name, "primitives": primitives, "weights": [0.0] * len(chosen),
-                      "extras": {"targetNames": [morph.names[t] for t in chosen]}}]
+    doc["meshes"] = [{"name": name, "primitives": primitives}]
+    if chosen:
+        doc["meshes"][0].update(weights=[0.0] * len(chosen), extras={"targetNames": [morph.names[t] for t in chosen]})
     if bool(mesh.textures) and mesh.triangle_uvs is not None:
         doc["images"] = [{"bufferView": builder.view(encode_png(t)), "mimeType": "image/png"} for t in mesh.textures]
         doc["samplers"] = [{"magFilter": 9729, "minFilter": 9987, "wrapS": 10497, "wrapT": 10497}]
@@ -431,22 +440,30 @@ def _version() -> str:
     return __version__
 
 
-def gltf_bytes(morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z", targets: Sequence[str] | None = None) -> bytes:
+def gltf_bytes(morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z", targets: Sequence[str] | None = None,
+               basis: bool = False) -> bytes:
     """The GLB file of a rig (what :func:`write_gltf` writes to a ``.glb``), in memory.
 
     ``targets`` keeps only the named morph targets in the mesh (``asset.extras.kpd`` still lists every target's
-    keypoint offsets): the browser editor sends the keypoint targets alone, whose sums make every other edit.
+    keypoint offsets): every edit is a sum of the keypoint targets. ``basis``: see :func:`write_glb_to` (what the
+    browser editor's page loads, with ``targets=[]``).
     """
     out = io.BytesIO()
-    write_glb_to(out, morph, name=name, up=up, targets=targets)
+    write_glb_to(out, morph, name=name, up=up, targets=targets, basis=basis)
     return out.getvalue()
 
 
 def write_glb_to(fh, morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z",
-                 targets: Sequence[str] | None = None) -> int:
+                 targets: Sequence[str] | None = None, basis: bool = False) -> int:
     """Write the GLB of :func:`gltf_bytes` to ``fh`` (a seekable binary file at its start: the targets are written
-    32 MB of vertices at a time, each block's rows to their places), leaving it at the end; returns its length."""
-    doc, builder = _document(morph, name=name, up=up, bin_uri=None, targets=targets)
+    32 MB of vertices at a time, each block's rows to their places), leaving it at the end; returns its length.
+
+    ``basis``: the rig's (V, K) basis as the primitives' own vertex attributes ``_KPD_BASIS_<j>`` (VEC4 float32,
+    columns ``4j`` to ``4j + 3``, zeros past K; an application-specific attribute, which glTF viewers ignore), for
+    a page that adds ``sum_i B_i o_i`` itself: K numbers a vertex where the K x 3 keypoint targets are 9 K (for a
+    1.37M-vertex chair, 66 MB against 590 MB). Give ``targets=[]`` with it for a file without morph targets.
+    """
+    doc, builder = _document(morph, name=name, up=up, bin_uri=None, targets=targets, basis=basis)
     write_glb(fh, doc, builder)
     return fh.tell()
 

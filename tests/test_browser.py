@@ -18,7 +18,7 @@ from kpd.io import read_mesh
 from kpd.morph import MorphRig
 from kpd.runtime import Model
 
-from test_morph import REPO, TOLERANCE, corresponding, needs
+from test_morph import REPO, TOLERANCE, corresponding, needs, validate
 
 CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
 # what works here as root without a display; SwiftShader is Chromium's software WebGL
@@ -232,6 +232,46 @@ def test_three_morph_targets_and_the_packed_basis_draw_the_same(page, reference)
     assert differs < 0.002, differs  # a few edge pixels at most
 
 
+def test_a_textured_mesh_of_six_materials_moves_in_each_primitive_as_the_rig_does(data_dir):
+    """A ShapeNet bench of six textured materials (six glTF primitives, vertices split where UVs differ): each
+    primitive carries its own rows of the basis, and both ways of drawing give Rig.deform's positions."""
+    needs(REPO / "viewer" / "web" / "vendor" / "three" / "build" / "three.module.js", "three.js (make web)")
+    shape = data_dir / "shapenetcore_obj" / "bench" / "50c0de8fb13d6421dbbc9440457e303e" / "models" / \
+        "model_normalized.obj"
+    model = Model.load("chair")
+    mesh = read_mesh(shape)
+    assert len(np.unique(mesh.triangle_material_ids)) == 6 and mesh.triangle_uvs is not None
+    rig = model.rig(mesh)
+    morph = MorphRig.from_rig(rig, model.prior)
+    diagonal = np.linalg.norm(np.ptp(mesh.vertices, axis=0))
+    rng = np.random.default_rng(1)
+    weights = {n: float(rng.normal() * (0.04 * diagonal if n.startswith(("keypoint_", "prior_")) else 1.0))
+               for n in morph.names if rng.uniform() < 0.3}
+    process, url = start_editor("chair", str(shape), "--port", "0")
+    profile = tempfile.mkdtemp(prefix="kpd-chromium-")
+    driver = None
+    try:
+        driver = start_chromium(profile)
+        for mode in ("", "?morph=three"):
+            open_page(driver, url + mode)
+            driver.execute_script("window.kpd.setWeights(arguments[0])", weights)
+            keypoints = np.array(driver.execute_script("return window.kpd.keypoints()"))
+            np.testing.assert_allclose(keypoints, morph.keypoints_at(weights), atol=1e-9 * diagonal)
+            expected = rig.deform(keypoints)
+            positions = driver.execute_script("return window.kpd.positions()")
+            rests = driver.execute_script("return window.kpd.restPositions()")
+            assert len(positions) == len(rests) == 6
+            for moved, rest in zip(positions, rests):
+                index = corresponding(np.array(rest).reshape(-1, 3), mesh)
+                assert np.abs(np.array(moved).reshape(-1, 3) - expected[index]).max() < TOLERANCE * diagonal
+    finally:
+        if driver is not None:
+            driver.quit()
+        process.terminate()
+        process.wait(timeout=10)
+        shutil.rmtree(profile, ignore_errors=True)
+
+
 def test_refusals_in_one_line(chair_file, tmp_path):
     busy = socket.socket()
     busy.bind(("127.0.0.1", 0))
@@ -288,13 +328,15 @@ def test_save_refusals_and_nothing_served_outside_the_page(chair_file, tmp_path)
         process.wait(timeout=10)
 
 
-def test_the_page_s_rig_is_sent_from_a_temporary_file_without_a_name(reference):
-    """The GLB the page loads waits in a temporary file without a name (not in memory: 590 MB for a 1.37M-vertex
-    chair) and is sent whole to requests at once, the same bytes as gltf_bytes; closing the editor lets it go."""
+def test_the_page_s_rig_is_sent_from_a_temporary_file_without_a_name(reference, tmp_path):
+    """The GLB the page loads (the mesh with the basis as vertex attributes, no morph targets) waits in a temporary
+    file without a name (not in memory) and is sent whole to requests at once, the same bytes as gltf_bytes; the
+    keypoint targets' GLB (?morph=three) is made when first asked for; closing the editor lets both go."""
     import os
     import threading
     import urllib.request
 
+    from kpd.io.gltf import read_accessor, read_buffers, read_gltf_json
     from kpd.morph import gltf_bytes
     from kpd.viewer.browser import BrowserEditor, page_files_missing
 
@@ -307,12 +349,14 @@ def test_the_page_s_rig_is_sent_from_a_temporary_file_without_a_name(reference):
     try:
         editor.show(morph, name="chair_0890")
         assert os.fstat(editor.glb.fileno()).st_nlink == 0  # nothing to find, or to leave behind, in the folder
-        expected = gltf_bytes(morph, name="chair_0890", targets=[n for n in morph.names if n.startswith("keypoint_")])
-        assert editor.glb_size == len(expected)
-        answers = [None] * 4
+        page = gltf_bytes(morph, name="chair_0890", targets=[], basis=True)
+        targets = gltf_bytes(morph, name="chair_0890", targets=[n for n in morph.names if n.startswith("keypoint_")])
+        assert editor.glb_size == len(page) < len(targets) / 4
+        answers = [None] * 6
 
         def fetch(i: int) -> None:
-            with urllib.request.urlopen(editor.url + "rig.glb", timeout=60) as response:
+            with urllib.request.urlopen(editor.url + ("rig.glb?morph=three" if i % 2 else "rig.glb"),
+                                        timeout=60) as response:
                 answers[i] = (response.headers["Content-Type"], response.read())
 
         readers = [threading.Thread(target=fetch, args=(i,)) for i in range(len(answers))]
@@ -320,10 +364,33 @@ def test_the_page_s_rig_is_sent_from_a_temporary_file_without_a_name(reference):
             reader.start()
         for reader in readers:
             reader.join(timeout=120)
-        assert answers == [("model/gltf-binary", expected)] * len(answers)
-        glb = editor.glb
+        assert answers == [("model/gltf-binary", page), ("model/gltf-binary", targets)] * 3
+        # the basis columns, four to an attribute, are the x components of the keypoint targets
+        files = {}
+        for label, content in (("page", page), ("targets", targets)):
+            files[label] = tmp_path / f"{label}.glb"
+            files[label].write_bytes(content)
+        report = validate(files["page"])  # the Khronos validator: an application's attribute is valid glTF
+        assert report["issues"]["numErrors"] == 0 and report["issues"]["numWarnings"] == 0, report["issues"]
+        doc, chunk = read_gltf_json(files["page"])
+        buffers = read_buffers(files["page"], doc, chunk)
+        primitive = doc["meshes"][0]["primitives"][0]
+        assert "targets" not in primitive and "weights" not in doc["meshes"][0]
+        k = len(morph.keypoints)
+        basis = np.concatenate([read_accessor(files["page"], doc, buffers, primitive["attributes"][f"_KPD_BASIS_{j}"])
+                                for j in range(-(-k // 4))], axis=1)
+        assert (basis[:, k:] == 0).all() and (basis[:, :k] != 0).any()
+        doc, chunk = read_gltf_json(files["targets"])
+        buffers = read_buffers(files["targets"], doc, chunk)
+        names = doc["meshes"][0]["extras"]["targetNames"]
+        for i in range(k):
+            index = doc["meshes"][0]["primitives"][0]["targets"][names.index(f"keypoint_{i}_x")]["POSITION"]
+            target = read_accessor(files["targets"], doc, buffers, index)
+            np.testing.assert_array_equal(basis[:, i], target[:, 0])
+            assert (target[:, 1:] == 0).all()
+        glbs = [editor.glb, editor.targets_glb()[0]]
         editor.close()
-        assert glb.closed and editor.glb is None
+        assert all(glb.closed for glb in glbs) and editor.glb is None
     finally:
         editor.shutdown()
         server.join(timeout=10)

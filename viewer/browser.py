@@ -1,11 +1,13 @@
 """The keypoint editor as a local web page (``kpd view --browser``): a standard-library HTTP server and a three.js page.
 
 The server sends the page (``viewer/web``), three.js (copied into ``viewer/web/vendor`` by ``make web`` from the npm
-package pinned in ``package-lock.json``) and the shape's rig as a GLB with morph targets (:mod:`kpd.morph`). The page
-draws on the viewer's own GPU: a keypoint dragged with the mouse sets the ``keypoint_<i>_<axis>`` morph influences to
-the keypoints' offsets, so the mesh follows every frame without a round trip to the server. Every edit the page
-offers (a keypoint's move, the same move through the category prior, the principal components' sliders) is a sum of
-targets whose keypoint offsets the GLB carries in ``asset.extras.kpd``; the page keeps the weights of those targets,
+package pinned in ``package-lock.json``) and the shape's rig as a GLB (:mod:`kpd.morph`): the mesh with the rig's
+(V, K) basis as vertex attributes (``_KPD_BASIS_<j>``), or with ``?morph=three`` its keypoint morph targets. The page
+draws on the viewer's own GPU: a keypoint dragged with the mouse sets the keypoints' offsets ``o_i``, and the vertex
+shader adds ``sum_i B_i o_i`` (or three.js's morph targets do), so the mesh follows every frame without a round trip
+to the server. Every edit the page offers (a keypoint's move, the same move through the category prior, the
+principal components' sliders) is a sum of targets whose keypoint offsets the GLB carries in ``asset.extras.kpd``;
+the page keeps the weights of those targets,
 and "save" sends them back, where :meth:`kpd.morph.MorphRig.vertices_at` makes the mesh (in float64, the rig's own
 edit) and :func:`kpd.io.write_mesh` writes it through kpd's one atomic writer.
 
@@ -71,10 +73,13 @@ class BrowserEditor:
         self.name = "shape"
         self.prior_on = False
         self.camera = {"azimuth": 30.0, "elevation": 20.0}
-        self.glb = None  # the rig's GLB: a temporary file without a name (show)
+        self.glb = None  # the page's GLB (the basis as vertex attributes): a temporary file without a name (show)
         self.glb_size = 0
+        self._targets = None  # (file, size) of the GLB with keypoint targets, once asked for
+        self._settings: dict = {}
         self._saved = False
         self._lock = threading.Lock()
+        self._targets_lock = threading.Lock()
         try:
             self.server = http.server.ThreadingHTTPServer((host, port), _handler(self))
         except OSError as exc:
@@ -88,31 +93,44 @@ class BrowserEditor:
              elevation: float = 20.0) -> None:
         """Serve ``morph`` (a :class:`kpd.morph.MorphRig`) under ``name``, its ``up`` axis turned to the page's up;
         ``prior``: start with the prior switch on; ``azimuth``, ``elevation``: the camera's start, in degrees."""
+        # every edit is a sum of keypoint offsets, so the page needs the basis (K numbers a vertex, as vertex
+        # attributes) and asset.extras.kpd's offsets; the keypoint targets (9 K numbers a vertex) are made only if
+        # asked for (?morph=three)
+        self._settings = {"name": name, "up": up}
+        glb, size = self._written(morph, targets=[], basis=True)
+        self.close()
+        self.glb, self.glb_size = glb, size
+        self.morph, self.name, self.prior_on = morph, name, bool(prior)
+        self.camera = {"azimuth": float(azimuth), "elevation": float(elevation)}
+
+    def _written(self, morph: Any, **kwargs) -> tuple[Any, int]:
+        """A GLB of ``morph`` in a temporary file without a name (hundreds of megabytes for a scan: not held in
+        memory, and gone with the process however it ends) and its length."""
         import tempfile
 
         from kpd.io.atomic import describe_os_error
         from kpd.morph import write_glb_to
 
-        keypoint_targets = [n for n in morph.names if n.startswith("keypoint_")]
-        # every edit is a sum of keypoint offsets, so the page's mesh needs only the keypoint targets; the others'
-        # offsets travel in asset.extras.kpd. The GLB (hundreds of megabytes for a scan) waits in a temporary file
-        # without a name (gone with the process, however it ends), not in memory, and is sent from there.
-        folder = tempfile.gettempdir()
         try:
             glb = tempfile.TemporaryFile(prefix="kpd-page-")
             try:
-                size = write_glb_to(glb, morph, name=name, up=up, targets=keypoint_targets)
+                size = write_glb_to(glb, morph, **self._settings, **kwargs)
                 glb.flush()
             except BaseException:
                 glb.close()
                 raise
         except OSError as exc:
-            raise WriteError(describe_os_error(exc, f"the page's rig in {folder}") +
+            raise WriteError(describe_os_error(exc, f"the page's rig in {tempfile.gettempdir()}") +
                              " (TMPDIR chooses the folder)") from None
-        self.close()
-        self.glb, self.glb_size = glb, size
-        self.morph, self.name, self.prior_on = morph, name, bool(prior)
-        self.camera = {"azimuth": float(azimuth), "elevation": float(elevation)}
+        return glb, size
+
+    def targets_glb(self) -> tuple[Any, int]:
+        """The GLB with the keypoint targets (three.js's own morph targets: ``?morph=three``), made on first use."""
+        with self._targets_lock:
+            if self._targets is None:
+                morph = self.morph
+                self._targets = self._written(morph, targets=[n for n in morph.names if n.startswith("keypoint_")])
+            return self._targets
 
     @property
     def url(self) -> str:
@@ -131,16 +149,20 @@ class BrowserEditor:
         self.server.shutdown()
 
     def close(self) -> None:
-        """Let go of the rig's GLB (the server stays)."""
+        """Let go of the rig's GLBs (the server stays)."""
         if self.glb is not None:
             self.glb.close()
             self.glb, self.glb_size = None, 0
+        with self._targets_lock:
+            if self._targets is not None:
+                self._targets[0].close()
+                self._targets = None
 
     # --- what the page asks for ---------------------------------------------------------------------------------
 
     def info(self) -> dict:
         return {"name": self.name, "out": None if self.out is None else str(self.out), "prior": self.prior_on,
-                **self.camera}
+                "keypoints": 0 if self.morph is None else len(self.morph.keypoints), **self.camera}
 
     def save(self, weights: dict) -> str:
         """Write the mesh of ``{target: weight}`` to ``out``; returns the message the page shows."""
@@ -200,10 +222,15 @@ def _handler(editor: BrowserEditor):
             self._send(status, json.dumps(value).encode("utf-8"), "application/json")
 
         def do_GET(self) -> None:  # noqa: N802 (http.server's name)
-            path = self.path.split("?", 1)[0]
+            path, _, query = self.path.partition("?")
             if path == "/rig.glb":
                 if editor.morph is None:
                     return self._send(503, b"the rig is not ready", "text/plain")
+                if query == "morph=three":
+                    try:
+                        return self._send_file(*editor.targets_glb(), "model/gltf-binary")
+                    except KpdError as exc:
+                        return self._send(500, str(exc).encode("utf-8"), "text/plain")
                 return self._send_file(editor.glb, editor.glb_size, "model/gltf-binary")
             if path == "/info.json":
                 return self._json(200, editor.info())

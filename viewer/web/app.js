@@ -1,16 +1,16 @@
-// kpd view --browser: the shape's rig (a GLB with morph targets, see kpd/morph.py) drawn with three.js.
+// kpd view --browser: the shape's rig (a GLB, see kpd/morph.py) drawn with three.js.
 //
 // State is one vector of target weights `w` over every target kpd offers (keypoint_<i>_<axis>, prior_<i>_<axis>,
 // pca_<c>). Each target t moves the keypoints by known offsets D_t (K x 3, asset.extras.kpd.keypointOffsets), and the
-// mesh by B D_t, so every edit is a sum of keypoint offsets: the page sets the morph influences of the
-// keypoint_<i>_<axis> targets to the keypoints' total offsets sum_t w_t D_t and the GPU moves the mesh.
+// mesh by B D_t, so every edit is a sum of keypoint offsets o_i = (sum_t w_t D_t)_i, and the GPU moves the mesh by
+// sum_i B_i o_i, with B_i the rig's basis column.
 //
-// The keypoint targets of keypoint i are B_i (1, 0, 0), B_i (0, 1, 0), B_i (0, 0, 1) with B_i the rig's basis column,
-// so their weighted sum is sum_i B_i o_i with o_i keypoint i's offset. By default the page reads B_i from the
-// targets' data once and the vertex shader adds sum_i B_i o_i (K multiply-adds per vertex, the same sum as the
-// morph targets'); three.js's own morph targets (a texture fetch per target and vertex) draw the same mesh at a
-// fraction of the speed on a software renderer. ?morph=three uses three.js's morph targets; ?morph=none draws the
-// rest mesh only (the cost of the draw without deformation, for benchmarks).
+// By default the GLB carries B as vertex attributes (_KPD_BASIS_<j>: columns 4j to 4j + 3) and the vertex shader
+// adds sum_i B_i o_i (K multiply-adds per vertex). ?morph=three loads the GLB with the keypoint morph targets instead
+// (keypoint i's are B_i (1, 0, 0), B_i (0, 1, 0), B_i (0, 0, 1), nine times the data) and sets their influences to
+// the offsets: three.js's own morph targets (a texture fetch per target and vertex) draw the same mesh at a fraction
+// of the speed on a software renderer. ?morph=none draws the rest mesh only (the cost of the draw without
+// deformation, for benchmarks).
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -59,8 +59,7 @@ let offsets = [];        // per target, K x 3 keypoint offsets of one unit of it
 let rest = [];           // K x 3 rest keypoints, the user's frame
 let w = null;            // Float64Array of the target weights
 let root = null;         // the glTF root node: its local frame is the user's frame
-let meshes = [];         // the mesh's primitives (three.js Meshes with morph targets)
-let morphData = [];      // per mesh: its morph target attributes and their names (kept for the CPU's positions)
+let meshes = [];         // the mesh's primitives (three.js Meshes)
 let offsetUniforms = []; // K Vector3 uniforms: the keypoints' offsets (packed basis path)
 let markers = [];        // one sphere per keypoint, children of `root`
 let labelSpans = [];
@@ -282,23 +281,21 @@ async function save() {
   }
 }
 
-// --- the keypoint targets as K basis attributes ----------------------------------------------------------------
+// --- the basis as K vertex attributes, added by the vertex shader ------------------------------------------------
 
-function packBasis(mesh) {
-  // B_i of every vertex from the x component of target keypoint_<i>_x, into ceil(K / 4) vec4 attributes
+function basisAttributes(mesh) {
+  // the GLB's _KPD_BASIS_<j> (three.js names an application's attribute in lower case) as kpdBasis<j>: B_i of every
+  // vertex in ceil(K / 4) vec4 attributes
   const geometry = mesh.geometry;
-  const count = geometry.attributes.position.count;
   const k = rest.length;
   const slots = Math.ceil(k / 4);
-  const packed = Array.from({ length: slots }, () => new Float32Array(count * 4));
-  for (let i = 0; i < k; i++) {
-    const target = geometry.morphAttributes.position[mesh.morphTargetDictionary[`keypoint_${i}_x`]];
-    const column = packed[i >> 2];
-    for (let v = 0; v < count; v++) column[4 * v + (i & 3)] = target.getX(v);
+  for (let j = 0; j < slots; j++) {
+    const attribute = geometry.getAttribute(`_kpd_basis_${j}`);
+    if (!attribute) throw new Error(`the rig has no basis attribute _KPD_BASIS_${j}`);
+    geometry.deleteAttribute(`_kpd_basis_${j}`);
+    if (!noMorphs) geometry.setAttribute(`kpdBasis${j}`, attribute);
   }
-  packed.forEach((data, j) => geometry.setAttribute(`kpdBasis${j}`, new THREE.BufferAttribute(data, 4)));
-  geometry.morphAttributes = {}; // drawn by the shader below, not by three.js's morph targets
-  mesh.morphTargetInfluences = undefined;
+  if (noMorphs) return;
   const sum = Array.from({ length: k }, (_, i) => `kpdBasis${i >> 2}.${'xyzw'[i & 3]} * kpdOffsets[${i}]`);
   mesh.material.onBeforeCompile = (shader) => {
     shader.uniforms.kpdOffsets = { value: offsetUniforms };
@@ -372,7 +369,8 @@ function frameCamera(info) {
 
 async function start() {
   const info = await (await fetch('/info.json')).json();
-  const gltf = await new GLTFLoader().loadAsync('/rig.glb');
+  threeMorphs ||= Math.ceil(info.keypoints / 4) + 4 > renderer.capabilities.maxAttributes;
+  const gltf = await new GLTFLoader().loadAsync(threeMorphs ? '/rig.glb?morph=three' : '/rig.glb');
   kpd.stats.loaded = performance.now();
   const extras = gltf.parser.json.asset.extras.kpd;
   names = extras.targets;
@@ -382,23 +380,17 @@ async function start() {
   w = new Float64Array(names.length);
   root = gltf.scene.children[0];
   gltf.scene.traverse((object) => {
-    if (object.isMesh && object.morphTargetInfluences) {
+    if (object.isMesh) {
       // diffuse shading (kpd's materials are matte: no metal, full roughness) at a fraction of PBR's cost per pixel
       const source = object.material;
       object.material = new THREE.MeshLambertMaterial({ color: source.color, map: source.map,
         vertexColors: source.vertexColors, flatShading: source.flatShading });
       meshes.push(object);
-      morphData.push({ targets: object.geometry.morphAttributes.position, names: { ...object.morphTargetDictionary } });
       object.frustumCulled = false; // the bounding sphere is the rest shape's
     }
   });
   offsetUniforms = rest.map(() => new THREE.Vector3());
-  threeMorphs ||= Math.ceil(rest.length / 4) + 4 > renderer.capabilities.maxAttributes;
-  if (noMorphs) {
-    meshes.forEach((mesh) => { mesh.geometry.morphAttributes = {}; mesh.morphTargetInfluences = undefined; });
-  } else if (!threeMorphs) {
-    meshes.forEach(packBasis);
-  }
+  if (!threeMorphs) meshes.forEach(basisAttributes);
   scene.add(gltf.scene);
   gltf.scene.updateMatrixWorld(true);
   const radius = frameCamera(info);
@@ -438,24 +430,24 @@ Object.assign(kpd, {
   setWeights: (values) => { w = new Float64Array(names.length); for (const [n, v] of Object.entries(values)) w[index.get(n)] = v; remember(); apply(); },
   keypoints: () => keypointsUser(),
   keypointScreen: (i) => { root.updateMatrixWorld(true); return screenOf(markers[i].getWorldPosition(new THREE.Vector3())); },
-  // vertex positions of the morph targets at the page's influences, in the user's frame, per primitive: three.js's
-  // own evaluation (Mesh.getVertexPosition) with ?morph=three, else the targets' sum with the influences the
-  // shader's offsets stand for
-  positions: () => meshes.map((mesh, m) => {
+  // vertex positions at the page's weights, in the user's frame, per primitive: three.js's own evaluation of its
+  // morph targets (Mesh.getVertexPosition) with ?morph=three, else the sum the shader adds, sum_i B_i o_i
+  positions: () => meshes.map((mesh) => {
     const count = mesh.geometry.attributes.position.count;
     const out = new Array(count * 3);
     const p = new THREE.Vector3();
     const total = totalOffsets();
-    const { targets, names: slots } = morphData[m];
+    const basis = threeMorphs ? [] : Array.from({ length: Math.ceil(rest.length / 4) },
+      (_, j) => mesh.geometry.getAttribute(`kpdBasis${j}`));
     for (let v = 0; v < count; v++) {
       if (threeMorphs) {
         mesh.getVertexPosition(v, p);
       } else {
         p.fromBufferAttribute(mesh.geometry.attributes.position, v);
-        for (let i = 0; i < rest.length; i++) {
-          for (let a = 0; a < 3; a++) {
-            const target = targets[slots[`keypoint_${i}_${'xyz'[a]}`]];
-            p.x += total[i][a] * target.getX(v); p.y += total[i][a] * target.getY(v); p.z += total[i][a] * target.getZ(v);
+        if (!noMorphs) {
+          for (let i = 0; i < rest.length; i++) {
+            const b = basis[i >> 2].getComponent(v, i & 3);
+            p.x += total[i][0] * b; p.y += total[i][1] * b; p.z += total[i][2] * b;
           }
         }
       }
