@@ -40,7 +40,7 @@ import logging
 import os
 import struct
 from pathlib import Path
-from typing import Any, Mapping, NamedTuple, Sequence
+from typing import Any, Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -235,7 +235,8 @@ def up_rotation(up: str) -> list[float] | None:
 
 
 def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
-              targets: Sequence[str] | None = None, basis: bool = False) -> tuple[dict, GlbBuffer]:
+              targets: Sequence[str] | None = None, basis: bool = False,
+              progress: Callable[[int, int], Any] | None = None) -> tuple[dict, GlbBuffer]:
     mesh = morph.mesh
     chosen = list(range(len(morph.names))) if targets is None else [morph.names.index(t) for t in targets]
     slots = -(-morph.basis.shape[1] // 4) if basis else 0  # the basis columns, four to an attribute
@@ -251,7 +252,16 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
     builder = GlbBuffer()
     stacked = np.ascontiguousarray(morph.offsets[chosen].transpose(1, 0, 2).reshape(len(morph.keypoints), -1))
     primitives = []
-    for material, source, triangles, uv in primitive_groups(mesh):
+    groups = primitive_groups(mesh)
+    advance = None
+    if progress is not None and chosen:  # bytes of targets written so far, of all of them
+        written, total = [0], 12 * len(chosen) * sum(len(group[1]) for group in groups)
+
+        def advance(nbytes: int) -> None:
+            written[0] += nbytes
+            progress(written[0], total)
+
+    for material, source, triangles, uv in groups:
         attributes = {"POSITION": builder.accessor((vertices[source] - center).astype(np.float32), "VEC3", _FLOAT,
                                                    _ARRAY_BUFFER, bounds=True)}
         if mesh.vertex_colors is not None:
@@ -271,7 +281,7 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
             # the targets' displacements are made as the file is written, a block of vertices at a time (at 1.37M
             # vertices, 80 targets are 1.3 GB); their bounds, which the JSON before them holds, by a pass of their
             # own
-            displacements = _Displacements(morph.basis, source, stacked)
+            displacements = _Displacements(morph.basis, source, stacked, advance)
             low, high = displacements.bounds()  # (T, 3) float32 each
             start = builder.region(displacements.nbytes, displacements.write)
             size = 12 * len(source)  # bytes of one target: (n, 3) float32
@@ -324,8 +334,10 @@ class _Displacements:
     their places in the file (:meth:`write`), so that the (T, n, 3) array is never held: 1.3 GB for the 80 targets of
     a 1.37M-vertex chair (docs/rigs.md)."""
 
-    def __init__(self, basis: np.ndarray, source: np.ndarray, stacked: np.ndarray) -> None:
+    def __init__(self, basis: np.ndarray, source: np.ndarray, stacked: np.ndarray,
+                 progress: Callable[[int], Any] | None = None) -> None:
         self.basis = basis
+        self.progress = progress  # called with the bytes of each block written
         self.source = np.ascontiguousarray(source, dtype=np.int64)
         self.stacked = np.ascontiguousarray(stacked, dtype=np.float64)
         self.n, self.t = len(self.source), self.stacked.shape[1] // 3
@@ -354,6 +366,8 @@ class _Displacements:
             for j in range(self.t):
                 fh.seek(start + 12 * (j * self.n + lo))
                 fh.write(memoryview(block[j]).cast("B"))
+            if self.progress is not None:
+                self.progress(12 * self.t * (hi - lo))
         fh.seek(start + self.nbytes)
 
     def _run(self, out: np.ndarray, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
@@ -469,7 +483,7 @@ def write_glb_to(fh, morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z",
 
 
 def write_gltf(path: str | os.PathLike, morph: MorphRig, *, name: str | None = None, up: str = "+z",
-               targets: Sequence[str] | None = None) -> Path:
+               targets: Sequence[str] | None = None, progress: Callable[[int, int], Any] | None = None) -> Path:
     """Write a rig as glTF 2.0 with morph targets, atomically.
 
     Parameters
@@ -481,6 +495,7 @@ def write_gltf(path: str | os.PathLike, morph: MorphRig, *, name: str | None = N
         shape upright. The mesh node's coordinates stay the user's.
     targets : the morph targets to write (names of ``morph.names``, in its order); all when None.
         ``asset.extras.kpd`` lists every target's keypoint offsets either way.
+    progress : ``progress(written, total)`` after each block of targets written (bytes), or None.
 
     Returns
     -------
@@ -492,13 +507,13 @@ def write_gltf(path: str | os.PathLike, morph: MorphRig, *, name: str | None = N
         raise InputError(f"{p}: a glTF rig file must end in .glb or .gltf; got {ext or 'no extension'!r}")
     name = p.stem if name is None else name
     if ext == ".glb":
-        doc, builder = _document(morph, name=name, up=up, bin_uri=None, targets=targets)
+        doc, builder = _document(morph, name=name, up=up, bin_uri=None, targets=targets, progress=progress)
         with atomic_output(p) as tmp:
             with open(tmp, "wb") as fh:
                 write_glb(fh, doc, builder)
         return p
     bin_name = p.stem + ".bin"
-    doc, builder = _document(morph, name=name, up=up, bin_uri=_uri(bin_name), targets=targets)
+    doc, builder = _document(morph, name=name, up=up, bin_uri=_uri(bin_name), targets=targets, progress=progress)
     with atomic_files(p) as target:
         with open(target.parent / bin_name, "wb") as fh:
             builder.write(fh)
