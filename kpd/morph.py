@@ -50,7 +50,8 @@ from kpd.io import Mesh, atomic_files, atomic_output
 from kpd.io.gltf import GlbBuffer, primitive_groups, read_accessor, read_buffers, read_gltf_json, write_glb
 from kpd.io.images import encode_png
 
-__all__ = ["MorphRig", "GltfRig", "write_gltf", "gltf_bytes", "write_glb_to", "read_gltf", "GLTF_FORMATS", "up_rotation"]
+__all__ = ["MorphRig", "GltfRig", "write_gltf", "gltf_bytes", "write_glb_to", "read_gltf", "GLTF_FORMATS",
+           "up_rotation"]
 
 log = logging.getLogger(__name__)
 

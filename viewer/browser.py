@@ -7,9 +7,9 @@ draws on the viewer's own GPU: a keypoint dragged with the mouse sets the keypoi
 shader adds ``sum_i B_i o_i`` (or three.js's morph targets do), so the mesh follows every frame without a round trip
 to the server. Every edit the page offers (a keypoint's move, the same move through the category prior, the
 principal components' sliders) is a sum of targets whose keypoint offsets the GLB carries in ``asset.extras.kpd``;
-the page keeps the weights of those targets,
-and "save" sends them back, where :meth:`kpd.morph.MorphRig.vertices_at` makes the mesh (in float64, the rig's own
-edit) and :func:`kpd.io.write_mesh` writes it through kpd's one atomic writer.
+the page keeps the weights of those targets, and "save" sends them back, where
+:meth:`kpd.morph.MorphRig.vertices_at` makes the mesh (in float64, the rig's own edit) and
+:func:`kpd.io.write_mesh` writes it through kpd's one atomic writer.
 
 Nothing leaves the machine: the server binds to localhost unless told otherwise, the page loads nothing from the
 network, and an SSH port forward (``ssh -L 8765:localhost:8765 server``) brings it to a remote user's browser.
