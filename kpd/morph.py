@@ -237,7 +237,8 @@ def up_rotation(up: str) -> list[float] | None:
 
 def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
               targets: Sequence[str] | None = None, basis: bool = False,
-              progress: Callable[[int, int], Any] | None = None) -> tuple[dict, GlbBuffer]:
+              progress: Callable[[int, int], Any] | None = None,
+              stand_in: Callable[[np.ndarray, np.ndarray], np.ndarray | None] | None = None) -> tuple[dict, GlbBuffer]:
     mesh = morph.mesh
     chosen = list(range(len(morph.names))) if targets is None else [morph.names.index(t) for t in targets]
     slots = -(-morph.basis.shape[1] // 4) if basis else 0  # the basis columns, four to an attribute
@@ -278,6 +279,10 @@ def _document(morph: MorphRig, *, name: str, up: str, bin_uri: str | None,
             attributes[f"_KPD_BASIS_{j}"] = builder.accessor(columns, "VEC4", _FLOAT, _ARRAY_BUFFER)
         indices = builder.accessor(triangles.reshape(-1).astype(np.uint32), "SCALAR", _UINT, _ELEMENT_ARRAY_BUFFER)
         primitive = {"attributes": attributes, "indices": indices, "mode": 4}
+        coarse = None if stand_in is None else stand_in(vertices[source], triangles)
+        if coarse is not None:  # a coarse stand-in over the same vertices: its triangles alone (extras.kpdStandIn)
+            primitive["extras"] = {"kpdStandIn": builder.accessor(np.asarray(coarse).reshape(-1).astype(np.uint32),
+                                                                  "SCALAR", _UINT, _ELEMENT_ARRAY_BUFFER)}
         if chosen:
             # the targets' displacements are made as the file is written, a block of vertices at a time (at 1.37M
             # vertices, 80 targets are 1.3 GB); their bounds, which the JSON before them holds, by a pass of their
@@ -469,7 +474,8 @@ def gltf_bytes(morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z", target
 
 
 def write_glb_to(fh, morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z",
-                 targets: Sequence[str] | None = None, basis: bool = False) -> int:
+                 targets: Sequence[str] | None = None, basis: bool = False,
+                 stand_in: Callable[[np.ndarray, np.ndarray], np.ndarray | None] | None = None) -> int:
     """Write the GLB of :func:`gltf_bytes` to ``fh`` (a seekable binary file at its start: the targets are written
     32 MB of vertices at a time, each block's rows to their places), leaving it at the end; returns its length.
 
@@ -477,8 +483,12 @@ def write_glb_to(fh, morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z",
     columns ``4j`` to ``4j + 3``, zeros past K; an application-specific attribute, which glTF viewers ignore), for
     a page that adds ``sum_i B_i o_i`` itself: K numbers a vertex where the K x 3 keypoint targets are 9 K (for a
     1.37M-vertex chair, 66 MB against 590 MB). Give ``targets=[]`` with it for a file without morph targets.
+
+    ``stand_in(vertices, triangles)``: for each primitive, (Q, 3) triangles over its own vertices drawn instead of
+    its triangles while a keypoint is dragged (a coarse stand-in of a large mesh), or None; kept in the primitive's
+    ``extras.kpdStandIn`` as the index of an accessor of them.
     """
-    doc, builder = _document(morph, name=name, up=up, bin_uri=None, targets=targets, basis=basis)
+    doc, builder = _document(morph, name=name, up=up, bin_uri=None, targets=targets, basis=basis, stand_in=stand_in)
     write_glb(fh, doc, builder)
     return fh.tell()
 

@@ -272,6 +272,57 @@ def test_a_textured_mesh_of_six_materials_moves_in_each_primitive_as_the_rig_doe
         shutil.rmtree(profile, ignore_errors=True)
 
 
+def test_a_large_mesh_is_dragged_as_its_stand_in_without_a_gpu(tmp_path):
+    """A primitive of more than PROXY_TRIANGLES triangles comes with the window editor's coarse stand-in over its own
+    vertices (extras.kpdStandIn); on a software renderer (SwiftShader here) the page draws it while a keypoint is
+    held and dragged, and the whole mesh again on release, where the mesh is Rig.deform's."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+
+    from kpd.io import write_mesh
+    from kpd.procedural import procedural_chair
+    from kpd.viewer.gl import PROXY_TRIANGLES, proxy_triangles
+
+    needs(REPO / "viewer" / "web" / "vendor" / "three" / "build" / "three.module.js", "three.js (make web)")
+    mesh = procedural_chair(edge=0.3)  # 29,336 vertices, 54,224 triangles
+    assert len(mesh.triangles) > PROXY_TRIANGLES
+    shape = tmp_path / "chair.ply"
+    write_mesh(shape, mesh)
+    kept, faces = proxy_triangles(mesh.vertices, mesh.triangles, PROXY_TRIANGLES)
+    process, url = start_editor("chair", str(shape), "--port", "0")
+    profile = tempfile.mkdtemp(prefix="kpd-chromium-")
+    driver = None
+    try:
+        driver = start_chromium(profile)
+        open_page(driver, url)
+        assert driver.execute_script("return window.kpd.standInTriangles()") == [len(faces)]
+        assert driver.execute_script("return window.kpd.drawing()") == "whole"
+        canvas = driver.find_element(By.TAG_NAME, "canvas")
+        x, y = driver.execute_script("return window.kpd.keypointScreen(8)")
+        width, height = driver.execute_script("const r = arguments[0].getBoundingClientRect(); "
+                                              "return [r.width, r.height]", canvas)
+        held = ActionChains(driver, duration=10)
+        held.move_to_element_with_offset(canvas, round(x - width / 2), round(y - height / 2)).click_and_hold()
+        for _ in range(8):
+            held.move_by_offset(0, -5)
+        held.perform()
+        assert driver.execute_script("return window.kpd.drawing()") == "stand-in"
+        ActionChains(driver).release().perform()
+        assert driver.execute_script("return window.kpd.drawing()") == "whole"
+        _, keypoints, positions, rest = page_state(driver)
+        model = Model.load("chair")
+        rig = model.rig(read_mesh(shape))
+        diagonal = np.linalg.norm(np.ptp(mesh.vertices, axis=0))
+        assert np.abs(keypoints - rig.keypoints).max() > 0.01 * diagonal  # the drag moved keypoint 8
+        assert np.abs(positions - rig.deform(keypoints)[corresponding(rest, mesh)]).max() < TOLERANCE * diagonal
+    finally:
+        if driver is not None:
+            driver.quit()
+        process.terminate()
+        process.wait(timeout=10)
+        shutil.rmtree(profile, ignore_errors=True)
+
+
 def test_refusals_in_one_line(chair_file, tmp_path):
     busy = socket.socket()
     busy.bind(("127.0.0.1", 0))
@@ -376,6 +427,7 @@ def test_the_page_s_rig_is_sent_from_a_temporary_file_without_a_name(reference, 
         buffers = read_buffers(files["page"], doc, chunk)
         primitive = doc["meshes"][0]["primitives"][0]
         assert "targets" not in primitive and "weights" not in doc["meshes"][0]
+        assert "extras" not in primitive  # no stand-in for a mesh this small
         k = len(morph.keypoints)
         basis = np.concatenate([read_accessor(files["page"], doc, buffers, primitive["attributes"][f"_KPD_BASIS_{j}"])
                                 for j in range(-(-k // 4))], axis=1)

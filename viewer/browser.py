@@ -97,7 +97,7 @@ class BrowserEditor:
         # attributes) and asset.extras.kpd's offsets; the keypoint targets (9 K numbers a vertex) are made only if
         # asked for (?morph=three)
         self._settings = {"name": name, "up": up}
-        glb, size = self._written(morph, targets=[], basis=True)
+        glb, size = self._written(morph, targets=[], basis=True, stand_in=_stand_in)
         self.close()
         self.glb, self.glb_size = glb, size
         self.morph, self.name, self.prior_on = morph, name, bool(prior)
@@ -182,6 +182,16 @@ class BrowserEditor:
             self._saved = True
         log.info("saved %s", self.out)
         return f"saved {self.out} ({len(mesh.vertices)} vertices)"
+
+
+def _stand_in(vertices, triangles):
+    """The triangles of a large primitive's coarse stand-in over its own vertices (the window editor's: vertices
+    clustered on a grid, one kept per cell), which a page without a GPU draws while a keypoint is dragged; None for
+    a primitive of at most :data:`kpd.viewer.gl.PROXY_TRIANGLES` triangles."""
+    from kpd.viewer.gl import PROXY_TRIANGLES, proxy_triangles
+
+    found = proxy_triangles(vertices, triangles, PROXY_TRIANGLES)
+    return None if found is None else found[0][found[1]]
 
 
 def _handler(editor: BrowserEditor):

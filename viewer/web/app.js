@@ -10,7 +10,8 @@
 // (keypoint i's are B_i (1, 0, 0), B_i (0, 1, 0), B_i (0, 0, 1), nine times the data) and sets their influences to
 // the offsets: three.js's own morph targets (a texture fetch per target and vertex) draw the same mesh at a fraction
 // of the speed on a software renderer. ?morph=none draws the rest mesh only (the cost of the draw without
-// deformation, for benchmarks).
+// deformation, for benchmarks). Without a GPU a large mesh is drawn by its coarse stand-in while a keypoint is
+// dragged (extras.kpdStandIn of its primitives).
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -61,6 +62,7 @@ let w = null;            // Float64Array of the target weights
 let root = null;         // the glTF root node: its local frame is the user's frame
 let meshes = [];         // the mesh's primitives (three.js Meshes)
 let offsetUniforms = []; // K Vector3 uniforms: the keypoints' offsets (packed basis path)
+let standIns = [];       // {mesh, standIn}: a large primitive's coarse stand-in, drawn during drags without a GPU
 let markers = [];        // one sphere per keypoint, children of `root`
 let labelSpans = [];
 let history = [];
@@ -230,7 +232,10 @@ function onPointerDown(event) {
   const plane = new THREE.Plane().setFromNormalAndCoplanarPoint(normal,
     markers[keypoint].getWorldPosition(new THREE.Vector3()));
   drag = { keypoint, plane, moved: false };
-  if (software) renderer.setPixelRatio(window.devicePixelRatio / 2); // a quarter of the pixels while dragging
+  if (software) { // a quarter of the pixels, and a large mesh's stand-in, while dragging
+    renderer.setPixelRatio(window.devicePixelRatio / 2);
+    showStandIns(true);
+  }
   renderer.domElement.setPointerCapture(event.pointerId);
   event.preventDefault();
   event.stopImmediatePropagation();
@@ -259,7 +264,11 @@ function onPointerUp(event) {
   if (drag.moved) remember();
   drag = null;
   controls.enabled = true;
-  if (software) { renderer.setPixelRatio(window.devicePixelRatio); requestFrame(); }
+  if (software) {
+    renderer.setPixelRatio(window.devicePixelRatio);
+    showStandIns(false);
+    requestFrame();
+  }
   renderer.domElement.releasePointerCapture(event.pointerId);
 }
 
@@ -305,6 +314,36 @@ function basisAttributes(mesh) {
   };
   mesh.material.customProgramCacheKey = () => `kpd-basis-${k}`;
   mesh.material.needsUpdate = true;
+}
+
+// --- stand-ins of large meshes -----------------------------------------------------------------------------------
+
+async function makeStandIns(parser) {
+  // a primitive of many triangles comes with a coarse stand-in over its own vertices (extras.kpdStandIn: the window
+  // editor's, vertices clustered on a grid): the same attributes, a few triangles, drawn while a keypoint is dragged
+  // where WebGL runs without a GPU, the whole mesh again on release
+  for (const mesh of meshes) {
+    const accessor = mesh.geometry.userData.kpdStandIn;
+    if (accessor === undefined) continue;
+    const geometry = new THREE.BufferGeometry();
+    for (const [name, attribute] of Object.entries(mesh.geometry.attributes)) geometry.setAttribute(name, attribute);
+    geometry.setIndex(await parser.getDependency('accessor', accessor));
+    const standIn = new THREE.Mesh(geometry, mesh.material);
+    standIn.position.copy(mesh.position);
+    standIn.quaternion.copy(mesh.quaternion);
+    standIn.scale.copy(mesh.scale);
+    standIn.visible = false;
+    standIn.frustumCulled = false;
+    mesh.parent.add(standIn);
+    standIns.push({ mesh, standIn });
+  }
+}
+
+function showStandIns(on) {
+  for (const { mesh, standIn } of standIns) {
+    mesh.visible = !on;
+    standIn.visible = on;
+  }
 }
 
 // --- start ------------------------------------------------------------------------------------------------------
@@ -391,6 +430,7 @@ async function start() {
   });
   offsetUniforms = rest.map(() => new THREE.Vector3());
   if (!threeMorphs) meshes.forEach(basisAttributes);
+  if (software && !threeMorphs) await makeStandIns(gltf.parser);
   scene.add(gltf.scene);
   gltf.scene.updateMatrixWorld(true);
   const radius = frameCamera(info);
@@ -429,6 +469,13 @@ Object.assign(kpd, {
   weights: () => Object.fromEntries(names.map((n, t) => [n, w[t]])),
   setWeights: (values) => { w = new Float64Array(names.length); for (const [n, v] of Object.entries(values)) w[index.get(n)] = v; remember(); apply(); },
   keypoints: () => keypointsUser(),
+  // what is drawn now: 'stand-in' (a large mesh while a keypoint is dragged without a GPU) or 'whole'; and how many
+  // triangles each primitive's stand-in has (0: none)
+  drawing: () => (standIns.some(({ standIn }) => standIn.visible) ? 'stand-in' : 'whole'),
+  standInTriangles: () => meshes.map((mesh) => {
+    const found = standIns.find((s) => s.mesh === mesh);
+    return found ? found.standIn.geometry.index.count / 3 : 0;
+  }),
   keypointScreen: (i) => { root.updateMatrixWorld(true); return screenOf(markers[i].getWorldPosition(new THREE.Vector3())); },
   // vertex positions at the page's weights, in the user's frame, per primitive: three.js's own evaluation of its
   // morph targets (Mesh.getVertexPosition) with ?morph=three, else the sum the shader adds, sum_i B_i o_i
