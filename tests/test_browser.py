@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import re
 import shutil
 import socket
@@ -73,12 +74,20 @@ def page(chair_file, tmp_path_factory):
     """The editor serving the real chair with the shipped model, a browser on its page, and the output path."""
     needs(REPO / "viewer" / "web" / "vendor" / "three" / "build" / "three.module.js", "three.js (make web)")
     out = tmp_path_factory.mktemp("browser") / "edited.obj"
-    process, url = start_editor("chair", str(chair_file), "--port", "0", "--out", str(out))
+    with editor_in_chromium("chair", str(chair_file), "--port", "0", "--out", str(out)) as (driver, url):
+        yield driver, out, url
+
+
+@contextlib.contextmanager
+def editor_in_chromium(*argv: str):
+    """``kpd view ARGV --browser`` and a headless Chromium beside it: yields (driver, the page's URL); both are
+    stopped after."""
+    process, url = start_editor(*argv)
     profile = tempfile.mkdtemp(prefix="kpd-chromium-")
     driver = None
     try:
         driver = start_chromium(profile)
-        yield driver, out, url
+        yield driver, url
     finally:
         if driver is not None:
             driver.quit()
@@ -247,11 +256,7 @@ def test_a_textured_mesh_of_six_materials_moves_in_each_primitive_as_the_rig_doe
     rng = np.random.default_rng(1)
     weights = {n: float(rng.normal() * (0.04 * diagonal if n.startswith(("keypoint_", "prior_")) else 1.0))
                for n in morph.names if rng.uniform() < 0.3}
-    process, url = start_editor("chair", str(shape), "--port", "0")
-    profile = tempfile.mkdtemp(prefix="kpd-chromium-")
-    driver = None
-    try:
-        driver = start_chromium(profile)
+    with editor_in_chromium("chair", str(shape), "--port", "0") as (driver, url):
         for mode in ("", "?morph=three"):
             open_page(driver, url + mode)
             driver.execute_script("window.kpd.setWeights(arguments[0])", weights)
@@ -264,12 +269,6 @@ def test_a_textured_mesh_of_six_materials_moves_in_each_primitive_as_the_rig_doe
             for moved, rest in zip(positions, rests):
                 index = corresponding(np.array(rest).reshape(-1, 3), mesh)
                 assert np.abs(np.array(moved).reshape(-1, 3) - expected[index]).max() < TOLERANCE * diagonal
-    finally:
-        if driver is not None:
-            driver.quit()
-        process.terminate()
-        process.wait(timeout=10)
-        shutil.rmtree(profile, ignore_errors=True)
 
 
 def test_a_large_mesh_is_dragged_as_its_stand_in_without_a_gpu(tmp_path):
@@ -289,11 +288,7 @@ def test_a_large_mesh_is_dragged_as_its_stand_in_without_a_gpu(tmp_path):
     shape = tmp_path / "chair.ply"
     write_mesh(shape, mesh)
     kept, faces = proxy_triangles(mesh.vertices, mesh.triangles, PROXY_TRIANGLES)
-    process, url = start_editor("chair", str(shape), "--port", "0")
-    profile = tempfile.mkdtemp(prefix="kpd-chromium-")
-    driver = None
-    try:
-        driver = start_chromium(profile)
+    with editor_in_chromium("chair", str(shape), "--port", "0") as (driver, url):
         open_page(driver, url)
         assert driver.execute_script("return window.kpd.standInTriangles()") == [len(faces)]
         assert driver.execute_script("return window.kpd.drawing()") == "whole"
@@ -315,12 +310,6 @@ def test_a_large_mesh_is_dragged_as_its_stand_in_without_a_gpu(tmp_path):
         diagonal = np.linalg.norm(np.ptp(mesh.vertices, axis=0))
         assert np.abs(keypoints - rig.keypoints).max() > 0.01 * diagonal  # the drag moved keypoint 8
         assert np.abs(positions - rig.deform(keypoints)[corresponding(rest, mesh)]).max() < TOLERANCE * diagonal
-    finally:
-        if driver is not None:
-            driver.quit()
-        process.terminate()
-        process.wait(timeout=10)
-        shutil.rmtree(profile, ignore_errors=True)
 
 
 def test_refusals_in_one_line(chair_file, tmp_path):
