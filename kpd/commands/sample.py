@@ -36,10 +36,10 @@ def run(args: argparse.Namespace) -> int:
     import json
     from concurrent.futures import ThreadPoolExecutor
 
-    from kpd.commands.keypoints import load_model
-    from kpd.errors import InputError
     from tqdm import tqdm
 
+    from kpd.commands.keypoints import load_model
+    from kpd.errors import InputError
     from kpd.io import MESH_FORMATS, Outputs, file_up, read_mesh, write_mesh
 
     suffix = args.format or Path(args.mesh).suffix.lower()
