@@ -301,6 +301,7 @@ def test_quads_and_ngons_read_as_fans_and_written_back_as_they_were(tmp_path):
     np.testing.assert_array_equal(mesh.triangle_material_ids, [0, 0, 1, 1, 1, 1, 1])
     np.testing.assert_array_equal(mesh.triangle_uv_mask, [True, True, False, False, False, False, False])
     np.testing.assert_allclose(mesh.triangle_uvs[:6], [[0, 0], [1, 0], [1, 1], [0, 0], [1, 1], [0, 1]])
+    np.testing.assert_array_equal(mesh.triangle_uvs[6:], 0.0)  # the faces without coordinates: zeros
     write_mesh(tmp_path / "out.obj", mesh.with_vertices(mesh.vertices + [0, 0, 1]))
     out = obj_lines(tmp_path / "out.obj")
     assert [s for s in out if not s.startswith(("v ", "mtllib"))] == \
