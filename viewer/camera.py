@@ -28,9 +28,11 @@ class Camera:
 
 
 def camera_pose(vertices: Any, settings: ViewSettings, *, margin: float = 0.9) -> Camera:
-    """The camera of a view: orbiting the bounding-box centre of ``vertices`` (V, 3) at the settings' azimuth and
-    elevation around the up axis, as close as lets every vertex into the view with ``margin`` (a fraction of the
-    view's half-width and half-height) to spare; ``settings.zoom`` > 1 moves it closer.
+    """The camera of a view: looking at ``vertices`` (V, 3) from the settings' azimuth and elevation around the up
+    axis, as close as lets every vertex into the view with ``margin`` (a fraction of the view's half-width and
+    half-height) to spare, and aimed so that the picture of the vertices is centred (in perspective the near side of
+    a shape looks larger, so its bounding box's centre is not the picture's: a shoe seen from behind sat low and to
+    one side); ``settings.zoom`` > 1 moves it closer.
 
     ``vertices`` may be a list of (N, 3) arrays (a shape and its keypoints, several frames), framed together without
     joining them. Each array is read twice by a compiled pass (a few milliseconds for a million vertices).
@@ -74,7 +76,26 @@ def camera_pose_over(parts: Callable[[], Iterable[np.ndarray]], settings: ViewSe
     tan_v = math.tan(math.radians(settings.fov) / 2)
     tan_h = tan_v * settings.width / settings.height
     axes = np.stack([right, upward, direction])  # (3, 3)
-    distance = max((_reach(p, center, axes, margin * tan_h, margin * tan_v) for p in parts_now()), default=1.0)
+    # A point at x, y across and w towards the camera from the centre, seen from distance D with the aim moved across
+    # by (sx, sy), is in the view when |x - sx| <= t (D - w) and |y - sy| <= t' (D - w), t and t' the tangents of
+    # the margin. The nearest D that fits across is (A(t) - B(t)) / 2t, A(t) = max(x + t w), B(t) = min(x - t w),
+    # at sx = (A(t) + B(t)) / 2, where the shape touches both sides (and so upwards). The tighter way sets D and its
+    # aim; the other way's aim is where its shape touches both sides of a narrower view, t* with (A - B) / 2t* = D:
+    # A and B are known on a grid of tangents (_extents) and between them taken as straight.
+    kh, kv = margin * tan_h, margin * tan_v
+    steps = np.arange(_STEPS + 1) / _STEPS
+    tangents = np.stack([kh * steps, kv * steps])  # (2, S + 1)
+    ends = np.empty((2, 2, _STEPS + 1))
+    ends[:, 0], ends[:, 1] = -np.inf, np.inf
+    for p in parts_now():
+        _extents(p, center, axes, tangents, ends)
+    if np.isfinite(ends).all():
+        fits = (ends[:, 0, -1] - ends[:, 1, -1]) / (2 * tangents[:, -1])  # (2,) the distance each way needs
+        distance = float(fits.max())
+        shifts = [_aim(ends[a, 0], ends[a, 1], tangents[a], distance) for a in range(2)]
+        center = center + shifts[0] * right + shifts[1] * upward
+    else:
+        distance = 1.0
     distance = max(distance, 1e-3 * radius) / settings.zoom
     eye = center + distance * direction
     return Camera(center=center, eye=eye, up=up, fov=float(settings.fov), near=max(distance - 3 * radius, distance / 100),
@@ -103,18 +124,54 @@ def _box(points):  # pragma: no cover - compiled
     return lo, hi
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _reach(points, center, axes, half_width, half_height):  # pragma: no cover - compiled
-    """The largest distance back along ``axes[2]`` from ``center`` that sees every point within the view's half-width
-    and half-height (tangents, times the margin)."""
-    best = -np.inf
-    for i in range(points.shape[0]):
-        ox, oy, oz = points[i, 0] - center[0], points[i, 1] - center[1], points[i, 2] - center[2]
-        x = abs(ox * axes[0, 0] + oy * axes[0, 1] + oz * axes[0, 2])
-        y = abs(ox * axes[1, 0] + oy * axes[1, 1] + oz * axes[1, 2])
-        z = ox * axes[2, 0] + oy * axes[2, 1] + oz * axes[2, 2]
-        best = max(best, z + max(x / half_width, y / half_height))
-    return best
+_STEPS = 8  # tangents from 0 to the margin's at which the shape's extents are found, each way
+
+
+def _aim(high: np.ndarray, low: np.ndarray, tangents: np.ndarray, distance: float) -> float:
+    """Where to aim across one way: the middle of the shape's extents ``high`` (A) and ``low`` (B) at the tangent t*
+    with (A(t*) - B(t*)) / 2t* = ``distance`` (the last tangent, the margin's, when that way is the tighter one), A
+    and B straight between the grid's ``tangents``."""
+    need = 2 * distance * tangents  # (S + 1,): A - B >= need at the tangents not above t*
+    room = (high - low) - need
+    j = int(np.flatnonzero(room >= 0)[-1]) if (room >= 0).any() else 0
+    if j == len(tangents) - 1:
+        return float(high[j] + low[j]) / 2
+    # on [t_j, t_j+1]: (A_j - B_j) + (a - b) u = 2 D (t_j + u), a and b the slopes
+    dt = tangents[j + 1] - tangents[j]
+    slope = ((high[j + 1] - high[j]) - (low[j + 1] - low[j])) / dt
+    denominator = 2 * distance - slope
+    u = min(max(room[j] / denominator, 0.0), dt) if denominator > 0 else 0.0
+    return float((high[j] + low[j]) + ((high[j + 1] - high[j]) + (low[j + 1] - low[j])) * u / dt) / 2
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+def _extents(points, center, axes, tangents, ends):  # pragma: no cover - compiled
+    """``ends`` (2, 2, S + 1) widened to max(x + t w) and min(x - t w) over ``points`` (finite) for each of
+    ``tangents[0]``, and of y for ``tangents[1]``, with x, y, w their offsets from ``center`` along ``axes`` (right,
+    up, towards the camera). 256 points at a time, each tangent's extremes over them as SIMD code."""
+    n = tangents.shape[1]
+    x = np.empty(256)
+    y = np.empty(256)
+    w = np.empty(256)
+    for start in range(0, points.shape[0], 256):
+        m = min(256, points.shape[0] - start)
+        for i in range(m):
+            ox = points[start + i, 0] - center[0]
+            oy = points[start + i, 1] - center[1]
+            oz = points[start + i, 2] - center[2]
+            x[i] = ox * axes[0, 0] + oy * axes[0, 1] + oz * axes[0, 2]
+            y[i] = ox * axes[1, 0] + oy * axes[1, 1] + oz * axes[1, 2]
+            w[i] = ox * axes[2, 0] + oy * axes[2, 1] + oz * axes[2, 2]
+        for j in range(n):
+            th = tangents[0, j]
+            tv = tangents[1, j]
+            a0, b0, a1, b1 = ends[0, 0, j], ends[0, 1, j], ends[1, 0, j], ends[1, 1, j]
+            for i in range(m):
+                a0 = max(a0, x[i] + th * w[i])
+                b0 = min(b0, x[i] - th * w[i])
+                a1 = max(a1, y[i] + tv * w[i])
+                b1 = min(b1, y[i] - tv * w[i])
+            ends[0, 0, j], ends[0, 1, j], ends[1, 0, j], ends[1, 1, j] = a0, b0, a1, b1
 
 
 def look_at_matrix(camera: Camera) -> np.ndarray:
