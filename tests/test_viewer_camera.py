@@ -66,26 +66,35 @@ def test_camera_pose_frames_the_shape_with_its_up_axis_up(up):
     assert top[1] < bottom[1]  # the up axis points up in the picture (pixel y grows downwards)
 
 
+@pytest.mark.parametrize("closest", [True, False])
 @pytest.mark.parametrize("azimuth, elevation", [(30, 20), (150, 35), (-70, 10)])
-def test_camera_pose_centres_the_picture_and_fits_it_to_the_margin(azimuth, elevation):
+def test_camera_pose_centres_the_picture_and_fits_it_to_the_margin(azimuth, elevation, closest):
     """In perspective the near side of a shape looks larger, so aiming at its bounding box's centre left a long shape
     seen at an angle low and to one side of the picture (a shoe from behind): the camera is aimed so that the
-    projected shape is centred both ways, and as close as lets every point in with the margin to spare."""
+    projected shape is centred both ways, and as close as lets every point in with the margin to spare; or, not
+    ``closest`` (the editor's home view), as far as the view aimed at the box's centre needed."""
     rng = np.random.default_rng(2)
     vertices = rng.uniform(-1, 1, (500, 3)) * [0.4, 0.6, 2.0] + [3.0, -1.0, 0.5]  # long along z, off the origin
     settings = ViewSettings(width=400, height=300, up="+y", azimuth=azimuth, elevation=elevation)
-    camera = camera_pose(vertices, settings, margin=0.9)
+    camera = camera_pose(vertices, settings, margin=0.9, closest=closest)
     view = look_at_matrix(camera)
     local = vertices @ view[:3, :3].T + view[:3, 3]  # camera coordinates, looking down -z
     assert (local[:, 2] < 0).all()
     u, v = local[:, 0] / -local[:, 2], local[:, 1] / -local[:, 2]  # tangents across and up
     tan_v = math.tan(math.radians(settings.fov) / 2)
     tan_h = tan_v * 400 / 300
-    # the way the shape fills: at the margin on both sides (centred, and no farther than that needs)
-    tight, loose = ((u, tan_h), (v, tan_v)) if u.max() / tan_h > v.max() / tan_v else ((v, tan_v), (u, tan_h))
-    assert tight[0].max() / tight[1] == pytest.approx(0.9, abs=1e-9)
-    assert -tight[0].min() / tight[1] == pytest.approx(0.9, abs=1e-9)
-    # the other way inside the margin and about centred (what is left split by depth; the old aim at the bounding
-    # box's centre left these shapes off by 6-20% of their size)
-    assert loose[0].max() <= 0.9 * loose[1] + 1e-9 and -loose[0].min() <= 0.9 * loose[1] + 1e-9
-    assert abs(loose[0].max() + loose[0].min()) < 1e-3 * (loose[0].max() - loose[0].min())
+    for t, tan in ((u, tan_h), (v, tan_v)):  # inside the margin, centred (to 0.2% of the extent: a grid of tangents)
+        assert t.max() <= 0.9 * tan + 1e-9 and -t.min() <= 0.9 * tan + 1e-9
+        assert abs(t.max() + t.min()) < 2e-3 * (t.max() - t.min())
+    if closest:  # the way the shape fills touches the margin on both sides
+        assert max(u.max() / tan_h, v.max() / tan_v) == pytest.approx(0.9, abs=1e-9)
+        assert max(-u.min() / tan_h, -v.min() / tan_v) == pytest.approx(0.9, abs=1e-9)
+    else:  # the distance of the view aimed at the bounding box's centre
+        center = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
+        forward = view[2, :3]  # towards the camera
+        offsets = vertices - center
+        x, y, w = np.abs(offsets @ view[0, :3]), np.abs(offsets @ view[1, :3]), offsets @ forward
+        expected = (w + np.maximum(x / (0.9 * tan_h), y / (0.9 * tan_v))).max()
+        aim = camera.center - center
+        assert abs(aim @ forward) < 1e-12  # moved across only
+        assert np.linalg.norm(camera.eye - camera.center) == pytest.approx(expected, rel=1e-12)

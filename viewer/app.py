@@ -246,7 +246,7 @@ class EditorApp:
                                   None if rig is None else rig.cage.faces, settings=s)
         rest = self.mesh.vertices
         self.view.set_box(rest)
-        self._home = camera_pose(rest, s, margin=0.75)  # room for edits that grow the shape
+        self._home = camera_pose(rest, s, margin=0.75, closest=False)  # room for edits that grow the shape
         self.camera = self._home
         vis = self.view.vis
         vis.register_mouse_button_callback(self._on_mouse_button)

@@ -27,12 +27,14 @@ class Camera:
     far: float
 
 
-def camera_pose(vertices: Any, settings: ViewSettings, *, margin: float = 0.9) -> Camera:
+def camera_pose(vertices: Any, settings: ViewSettings, *, margin: float = 0.9, closest: bool = True) -> Camera:
     """The camera of a view: looking at ``vertices`` (V, 3) from the settings' azimuth and elevation around the up
     axis, as close as lets every vertex into the view with ``margin`` (a fraction of the view's half-width and
     half-height) to spare, and aimed so that the picture of the vertices is centred (in perspective the near side of
     a shape looks larger, so its bounding box's centre is not the picture's: a shoe seen from behind sat low and to
-    one side); ``settings.zoom`` > 1 moves it closer.
+    one side); ``settings.zoom`` > 1 moves it closer. With ``closest`` False the camera stays as far as a view aimed at
+    the bounding box's centre needs (the editor's home view: drawn larger, a million-vertex mesh takes longer to draw
+    in software), still centred.
 
     ``vertices`` may be a list of (N, 3) arrays (a shape and its keypoints, several frames), framed together without
     joining them. Each array is read twice by a compiled pass (a few milliseconds for a million vertices).
@@ -43,11 +45,11 @@ def camera_pose(vertices: Any, settings: ViewSettings, *, margin: float = 0.9) -
     """
     parts = [np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
              for p in (vertices if isinstance(vertices, (list, tuple)) else [vertices])]
-    return camera_pose_over(lambda: parts, settings, margin=margin)
+    return camera_pose_over(lambda: parts, settings, margin=margin, closest=closest)
 
 
 def camera_pose_over(parts: Callable[[], Iterable[np.ndarray]], settings: ViewSettings, *, margin: float = 0.9,
-                     bounds: tuple[np.ndarray, np.ndarray] | None = None) -> Camera:
+                     bounds: tuple[np.ndarray, np.ndarray] | None = None, closest: bool = True) -> Camera:
     """:func:`camera_pose` of points that come in parts: ``parts()`` gives them, (N, 3) float64 arrays, and is
     called twice (the bounding box, then how far back every point fits; once when ``bounds``, their :func:`box`, is
     given), so that the parts need not all be held at once (a shape's variants, deformed as they are asked for); the
@@ -91,7 +93,9 @@ def camera_pose_over(parts: Callable[[], Iterable[np.ndarray]], settings: ViewSe
         _extents(p, center, axes, tangents, ends)
     if np.isfinite(ends).all():
         fits = (ends[:, 0, -1] - ends[:, 1, -1]) / (2 * tangents[:, -1])  # (2,) the distance each way needs
-        distance = float(fits.max())
+        # aimed at the centre, a point needs w + |x| / t: max(A(t), -B(t)) / t
+        distance = float(fits.max()) if closest else float(
+            (np.maximum(ends[:, 0, -1], -ends[:, 1, -1]) / tangents[:, -1]).max())
         shifts = [_aim(ends[a, 0], ends[a, 1], tangents[a], distance) for a in range(2)]
         center = center + shifts[0] * right + shifts[1] * upward
     else:
