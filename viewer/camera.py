@@ -37,7 +37,7 @@ def camera_pose(vertices: Any, settings: ViewSettings, *, margin: float = 0.9, c
     in software), still centred.
 
     ``vertices`` may be a list of (N, 3) arrays (a shape and its keypoints, several frames), framed together without
-    joining them. Each array is read twice by a compiled pass (a few milliseconds for a million vertices).
+    joining them. Each array is read twice by a compiled pass (5 and 25 ms for 1.4M vertices).
 
     The front view (azimuth 0) looks along the horizontal axis that follows the up axis (x -> y -> z -> x) in the
     positive direction, i.e. from ``-that axis``: for ModelNet (z up, chair backs towards +y) that is the view from
@@ -148,11 +148,11 @@ def _aim(high: np.ndarray, low: np.ndarray, tangents: np.ndarray, distance: floa
     return float((high[j] + low[j]) + ((high[j + 1] - high[j]) + (low[j + 1] - low[j])) * u / dt) / 2
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _extents(points, center, axes, tangents, ends):  # pragma: no cover - compiled
-    """``ends`` (2, 2, S + 1) widened to max(x + t w) and min(x - t w) over ``points`` (finite) for each of
+    """``ends`` (2, 2, S + 1) widened to max(x + t w) and min(x - t w) over ``points`` for each of
     ``tangents[0]``, and of y for ``tangents[1]``, with x, y, w their offsets from ``center`` along ``axes`` (right,
-    up, towards the camera). 256 points at a time, each tangent's extremes over them as SIMD code."""
+    up, towards the camera); 256 points at a time, their offsets first."""
     n = tangents.shape[1]
     x = np.empty(256)
     y = np.empty(256)
