@@ -12,6 +12,7 @@ import signal
 import sys
 import threading
 
+from kpd import _signals
 from kpd.commands import COMMANDS, run_checks
 from kpd.errors import KpdError
 from kpd.io.atomic import describe_os_error
@@ -122,24 +123,26 @@ def _main(argv: list[str] | None) -> int:
         print(f"kpd {args.command}: error: the system would not start another thread (a limit on threads or on "
               f"memory: ulimit -u, ulimit -v)", file=sys.stderr)
         return 2
+    except SystemError:
+        # numba's dispatcher returns with a handler's exception pending when the signal came during its call: the
+        # interrupt is the cause (see kpd._signals)
+        if _signals.requested() is None:
+            raise
+        return _stopped(args.command, _signals.requested())
     except KeyboardInterrupt:
-        _close_progress_bars()
-        print(f"kpd {args.command}: interrupted", file=sys.stderr)
+        return _stopped(args.command, signal.SIGINT)
+    except _signals.Terminated as exc:
+        return _stopped(args.command, exc.signum)
+
+
+def _stopped(command: str, signum: int) -> int:
+    """The line and status of a command stopped by a signal: Ctrl+C's (130), or 128 + the signal's."""
+    _close_progress_bars()
+    if signum == signal.SIGINT:
+        print(f"kpd {command}: interrupted", file=sys.stderr)
         return 130
-    except _Terminated as exc:
-        _close_progress_bars()
-        print(f"kpd {args.command}: stopped by signal {exc.signum} ({signal.Signals(exc.signum).name})",
-              file=sys.stderr)
-        return 128 + exc.signum
-
-
-class _Terminated(BaseException):
-    """Raised in the main thread when the program is asked to end (SIGTERM, SIGHUP): it unwinds as an interrupt does,
-    so that outputs being written are taken back, windows close and the program's temporary folders go."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signum)
-        self.signum = signum
+    print(f"kpd {command}: stopped by signal {signum} ({signal.Signals(signum).name})", file=sys.stderr)
+    return 128 + signum
 
 
 _HANDLED: dict = {}  # signal -> the handler it had before _end_on_termination
@@ -148,15 +151,24 @@ _HANDLED: dict = {}  # signal -> the handler it had before _end_on_termination
 def _end_on_termination() -> None:
     """SIGTERM and SIGHUP (a ``kill``, the end of a session or terminal) end a command as Ctrl+C does, with status
     128 + the signal, instead of at once (which left a window's temporary folder and any output half written). A
-    signal the program was started to ignore (``nohup``) stays ignored."""
+    signal the program was started to ignore (``nohup``) stays ignored. Each signal, Ctrl+C's too, is also noted
+    (:mod:`kpd._signals`), so that one whose exception compiled code lost still stops the command before its outputs
+    are placed."""
 
     def stop(signum: int, frame) -> None:
-        raise _Terminated(signum)
+        _signals.note(signum)
+        raise _signals.Terminated(signum)
+
+    def interrupt(signum: int, frame) -> None:
+        _signals.note(signum)
+        raise KeyboardInterrupt
 
     for name in ("SIGTERM", "SIGHUP"):
         signum = getattr(signal, name, None)
         if signum is not None and signal.getsignal(signum) == signal.SIG_DFL:
             _HANDLED[signum] = signal.signal(signum, stop)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        _HANDLED[signal.SIGINT] = signal.signal(signal.SIGINT, interrupt)
 
 
 _MMAP_THRESHOLD = 1 << 30

@@ -488,6 +488,83 @@ def test_sigkill_during_a_write_is_cleaned_by_the_next_run(inputs, tmp_path, cap
     assert len(json.loads((tmp_path / "kp.json").read_text())["keypoints"]) == 4
 
 
+@pytest.fixture
+def no_stop_noted():
+    from kpd import _signals
+
+    _signals._requested.clear()
+    yield _signals
+    _signals._requested.clear()
+
+
+@pytest.mark.parametrize("signum, line, status", [(signal.SIGTERM, "stopped by signal 15 (SIGTERM)", 143),
+                                                  (signal.SIGINT, "interrupted", 130)])
+def test_a_signal_whose_exception_was_lost_still_stops_before_any_output(signum, line, status, no_stop_noted, inputs,
+                                                                        tmp_path, capfd, monkeypatch):
+    """Python runs a signal's handler where it can, inside a compiled kernel's call too, and numba's dispatcher then
+    loses its exception now and then (a Ctrl+C in ``kpd rig`` of a 1.37M-vertex chair let it write its whole file):
+    the program's handlers also note the signal, and no output is placed once one was."""
+    from kpd.runtime import Model
+
+    def work(self, shape, seed=0):
+        no_stop_noted.note(signum)  # the handler ran; its exception went nowhere
+        return np.zeros((4, 3))
+
+    monkeypatch.setattr(Model, "keypoints", work)
+    out = tmp_path / "kp.json"
+    code, _, err = kpd(capfd, "keypoints", inputs / "toy.kpd", inputs / "chair.ply", "--out", out)
+    assert code == status and error_lines(err) == [f"kpd keypoints: {line}"]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_compiled_call_returning_with_the_interrupt_pending_ends_as_the_interrupt(no_stop_noted, inputs, tmp_path,
+                                                                                     capfd, monkeypatch):
+    """numba's dispatcher returning with a handler's exception pending raises SystemError with the interrupt as its
+    cause: one line and the interrupt's status, no traceback; any other SystemError is not taken for one."""
+    from kpd.runtime import Model
+
+    def work(self, shape, seed=0):
+        no_stop_noted.note(signal.SIGINT)
+        raise SystemError("CPUDispatcher(<function kernel>) returned a result with an exception set") \
+            from KeyboardInterrupt()
+
+    monkeypatch.setattr(Model, "keypoints", work)
+    out = tmp_path / "kp.json"
+    code, _, err = kpd(capfd, "keypoints", inputs / "toy.kpd", inputs / "chair.ply", "--out", out)
+    assert code == 130 and error_lines(err) == ["kpd keypoints: interrupted"] and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+    no_stop_noted._requested.clear()
+
+    def broken(self, shape, seed=0):
+        raise SystemError("a real bug")
+
+    monkeypatch.setattr(Model, "keypoints", broken)
+    with pytest.raises(SystemError, match="a real bug"):
+        main([str(a) for a in ("keypoints", inputs / "toy.kpd", inputs / "chair.ply", "--out", out)])
+
+
+def test_ctrl_c_in_the_program_is_noted_and_ends_the_command(inputs, tmp_path):
+    """The program's own Ctrl+C handler (in the interpreter's place) raises KeyboardInterrupt and notes the signal:
+    one line, status 130, nothing written."""
+    script = textwrap.dedent(f"""
+        import os, signal, sys, time
+        from kpd.runtime import Model
+        def work(self, shape, seed=0):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+            raise AssertionError("not interrupted")
+        Model.keypoints = work
+        sys.argv = ["kpd", "keypoints", {str(inputs / "toy.kpd")!r}, {str(inputs / "chair.ply")!r}, "--out",
+                    {str(tmp_path / "kp.json")!r}]
+        from kpd.cli import main
+        main()
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 130, proc.stderr
+    assert error_lines(proc.stderr) == ["kpd keypoints: interrupted"]
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_resume_removes_temporaries_of_a_killed_run(inputs, tiny_run, tmp_path, capfd):
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)

@@ -33,6 +33,7 @@ import shutil
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
+from kpd import _signals
 from kpd.errors import InputError, WriteError
 
 __all__ = ["TEMP_MARK", "Outputs", "user_path", "atomic_output", "atomic_files", "check_output", "remove_stale_temporaries",
@@ -485,8 +486,10 @@ class Outputs:
         return self._staging[folder] / p.name
 
     def commit(self) -> None:
-        """Place every staged output (see the class notes)."""
+        """Place every staged output (see the class notes); nothing when the program was asked to stop by a signal
+        whose exception compiled code lost (:mod:`kpd._signals`): that stop is raised instead."""
         try:
+            _signals.raise_requested()
             for p in self._options:  # everything checked before anything is placed
                 staging = self._staging.get(p.parent)
                 if staging is None or not os.path.lexists(staging / p.name):
