@@ -120,12 +120,13 @@ def load_model(args: argparse.Namespace):
     return Model.load(args.model, threads=args.threads)
 
 
-def model_beside_read(load, path):
-    """``(load(), read_mesh(path))``: the mesh is read on a worker thread (a large file's read and its fresh memory
-    wait mostly outside the interpreter's lock) while this one loads the model (``load``, which checks it too), and a
-    third gets the compiled kernels' machinery ready with a first small kernel call (numba's start: 0.3-0.4 s in a
-    fresh process, mostly outside the lock too: beside the model's load, 0.2-0.3 s sooner than after it), work the
-    binding would otherwise do after the read. The model's errors come first, as before."""
+def model_beside_read(load, path, read=None):
+    """``(load(), read(path))`` (``read``: :func:`kpd.io.read_mesh` unless given): the shape is read on a worker thread
+    (a large file's read and its fresh memory wait mostly outside the interpreter's lock) while this one loads the
+    model (``load``, which checks it too), and a third gets the compiled kernels' machinery ready with a first small
+    kernel call (numba's start: 0.3-0.4 s in a fresh process, mostly outside the lock too: beside the model's load,
+    0.2-0.3 s sooner than after it), work the binding or the sampling would otherwise do after the read. The model's
+    errors come first, as before."""
     from concurrent.futures import ThreadPoolExecutor
 
     import numpy as np
@@ -135,7 +136,7 @@ def model_beside_read(load, path):
 
     with ThreadPoolExecutor(1, thread_name_prefix="kpd-read") as reader, \
             ThreadPoolExecutor(1, thread_name_prefix="kpd-numba-start") as starter:
-        reading = reader.submit(read_mesh, path)
+        reading = reader.submit(read or read_mesh, path)
         # the first kernel call: numba's start
         starting = starter.submit(sample_surface, np.eye(3), np.array([[0, 1, 2]]), 1, seed=0)
         try:
@@ -163,8 +164,7 @@ def run(args: argparse.Namespace) -> int:
         out = None
         if args.out is not None:
             out = outputs.file(args.out, "--out", formats=KEYPOINT_FORMATS, what="keypoint")
-        model = load_model(args)
-        shape = read_shape(args.shape)
+        model, shape = model_beside_read(lambda: load_model(args), args.shape, read_shape)
         meta = {"model": str(args.model), "category": model.category, "shape": str(args.shape), "frame": "input",
                 "seed": args.seed}
         if args.scan:

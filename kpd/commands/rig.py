@@ -45,8 +45,8 @@ def morph_rig(rig: Any, prior: Any, meta: dict):
 
 
 def run(args: argparse.Namespace) -> int:
-    from kpd.commands.keypoints import load_model, rig_checked, scan_frame
-    from kpd.io import Outputs, read_mesh
+    from kpd.commands.keypoints import load_model, model_beside_read, rig_checked, scan_frame
+    from kpd.io import Outputs
     from kpd.morph import MorphRig, up_rotation, write_gltf
 
     with Outputs(force=args.force, inputs=(args.shape,)) as outputs:
@@ -62,8 +62,7 @@ def run(args: argparse.Namespace) -> int:
         unknown = sorted(set(kinds) - {"keypoint", "prior", "pca"})
         if unknown or not kinds:
             raise InputError(f"--targets must name some of keypoint, prior, pca; got {args.targets!r}")
-        model = load_model(args)
-        mesh = read_mesh(args.shape)
+        model, mesh = model_beside_read(lambda: load_model(args), args.shape)
         frame = None
         if args.scan:
             # orient with the scan pipeline, rig the whole mesh there, write the targets in the scan's own frame

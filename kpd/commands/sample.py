@@ -38,9 +38,9 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from kpd.commands.keypoints import load_model
+    from kpd.commands.keypoints import load_model, model_beside_read
     from kpd.errors import InputError
-    from kpd.io import MESH_FORMATS, Outputs, file_up, read_mesh, write_mesh
+    from kpd.io import MESH_FORMATS, Outputs, file_up, write_mesh
 
     suffix = args.format or Path(args.mesh).suffix.lower()
     suffix = suffix if suffix.startswith(".") else "." + suffix
@@ -50,10 +50,14 @@ def run(args: argparse.Namespace) -> int:
         suffix = ".ply"
     with Outputs(force=args.force, inputs=(args.mesh, args.model)) as outputs:
         out = outputs.folder(args.out, "--out")
-        model = load_model(args)
-        if model.prior is None:
-            raise InputError(f"{args.model}: this bundle has no category prior to sample from")
-        mesh = read_mesh(args.mesh)
+
+        def load():
+            model = load_model(args)
+            if model.prior is None:
+                raise InputError(f"{args.model}: this bundle has no category prior to sample from")
+            return model
+
+        model, mesh = model_beside_read(load, args.mesh)
         rig = model.rig(mesh, seed=args.seed)
         keypoint_sets = model.sample_keypoints(rig, args.n, seed=args.sample_seed, scale=args.scale)
         # each variant is deformed when it is written or drawn and let go after (an edit: milliseconds), so that the
