@@ -200,13 +200,13 @@ def main() -> None:
                          child_time(name, path, int(rest[0]), int(rest[1]))))
         return
 
-    from kpd.benchmark import machine_speed
+    from kpd.benchmark import machine_cpu, machine_speed
 
     picks = [int(x) - 1 for x in args.levels.split(",")]
     result: dict = {
         "benchmark": "kpd at scan sizes: bind, edit, save, load",
         "machine": {"python": platform.python_version(), "numpy": np.__version__, "cpus": os.cpu_count(),
-                    "speed_at_start": machine_speed()},  # to compare runs of different days
+                    "cpu": machine_cpu(), "speed_at_start": machine_speed()},  # to compare runs of different days
         "meshes": {},
     }
     with tempfile.TemporaryDirectory() as tmp:

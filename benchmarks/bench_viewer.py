@@ -253,7 +253,7 @@ def main() -> None:
                                                              "(a CAD chair), scan (a real scan, 1.28M vertices)")
     parser.add_argument("--loads", default="quiet,loaded")
     args = parser.parse_args()
-    from kpd.benchmark import machine_speed
+    from kpd.benchmark import machine_cpu, machine_speed
     from kpd.io import read_mesh
 
     speed = machine_speed()  # to compare runs of different days
@@ -285,8 +285,9 @@ def main() -> None:
                     "render_wall_s_1.3M": 6.0},
         "loaded": "one other CPU-bound process (python busy loop) on the 2 cores; the machine is shared, so 'quiet' "
                   "has the load average given",
-        "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-                    "python": platform.python_version(), "speed_at_start": speed, "speed_at_end": machine_speed()},
+        "machine": {"cpu": platform.processor() or platform.machine(), "processor": machine_cpu(),
+                    "cores": os.cpu_count(), "python": platform.python_version(), "speed_at_start": speed,
+                    "speed_at_end": machine_speed()},
         "results": results,
     }, indent=2))
 

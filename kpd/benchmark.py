@@ -7,7 +7,7 @@ import os
 import statistics
 import time
 
-__all__ = ["write_json", "median_ms", "best_seconds", "machine_speed"]
+__all__ = ["write_json", "median_ms", "best_seconds", "machine_speed", "machine_cpu"]
 
 
 def write_json(path: str | os.PathLike, data: dict, *, indent: int = 2) -> None:
@@ -74,3 +74,29 @@ def machine_speed(*, repeats: int = 5) -> dict:
         finally:
             region.close()
     return {"sort_s": round(statistics.median(sorts), 4), "fresh_memory_gb_per_s": round(statistics.median(rates), 2)}
+
+
+def machine_cpu(cpuinfo: str = "/proc/cpuinfo") -> dict:
+    """Which processor this is, for telling runs of different days apart (the project's virtual machine has been
+    given different host processors: an AMD Zen 3 without AVX-512 and a Zen 4, family 25 model 17, with it): ``model``
+    (the name the processor gives), ``family`` and ``model_number`` (x86's numbers), and ``vectors``, the widest
+    vector instructions it offers (``avx512f``, ``avx2``, ``avx``, ``sse2`` or ``unknown``). Empty strings where
+    the file or a line is missing (not Linux, another architecture)."""
+    fields: dict[str, str] = {}
+    flags: set[str] = set()
+    try:
+        with open(cpuinfo, encoding="utf-8", errors="replace") as file:
+            for line in file:
+                if not line.strip():
+                    break  # the first processor's block is enough
+                key, _, value = line.partition(":")
+                key, value = key.strip(), value.strip()
+                if key == "flags":
+                    flags = set(value.split())
+                else:
+                    fields.setdefault(key, value)
+    except OSError:
+        pass
+    vectors = next((name for name in ("avx512f", "avx2", "avx", "sse2") if name in flags), "unknown")
+    return {"model": fields.get("model name", ""), "family": fields.get("cpu family", ""),
+            "model_number": fields.get("model", ""), "vectors": vectors}

@@ -41,3 +41,17 @@ def test_machine_speed_times_a_sort_and_fresh_pages():
     speed = machine_speed(repeats=1)
     assert set(speed) == {"sort_s", "fresh_memory_gb_per_s"}
     assert 0 < speed["sort_s"] < 60 and 0 < speed["fresh_memory_gb_per_s"] < 1e4
+
+
+def test_machine_cpu_reads_the_first_processor(tmp_path):
+    from kpd.benchmark import machine_cpu
+
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 17\n"
+                    "model name\t: AMD EPYC 9B14\nflags\t\t: fpu sse2 avx avx2 avx512f avx512bw\n\n"
+                    "processor\t: 1\nmodel name\t: Other\nflags\t\t: sse2\n")
+    assert machine_cpu(info) == {"model": "AMD EPYC 9B14", "family": "25", "model_number": "17",
+                                 "vectors": "avx512f"}
+    info.write_text("model name\t: Zen 3\nflags\t\t: fpu sse2 avx avx2 fma\n")
+    assert machine_cpu(info)["vectors"] == "avx2"
+    assert machine_cpu(tmp_path / "missing") == {"model": "", "family": "", "model_number": "", "vectors": "unknown"}
