@@ -13,6 +13,7 @@ import sys
 import threading
 
 from kpd import _signals
+from kpd._compiled import announce_compiling
 from kpd.commands import COMMANDS, run_checks
 from kpd.errors import KpdError
 from kpd.io.atomic import describe_os_error
@@ -92,6 +93,9 @@ def _main(argv: list[str] | None) -> int:
         _keep_freed_memory()
         if args.command != "train":  # torchrun stops its ranks itself
             _end_on_termination()
+        if args.command is not None and sys.stderr.isatty():
+            # a first run compiles for seconds without a word otherwise
+            announce_compiling(_note)
     handler = logging.StreamHandler()
     handler.setFormatter(_Formatter())
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, handlers=[handler])
@@ -133,6 +137,15 @@ def _main(argv: list[str] | None) -> int:
         return _stopped(args.command, signal.SIGINT)
     except _signals.Terminated as exc:
         return _stopped(args.command, exc.signum)
+
+
+def _note(line: str) -> None:
+    """``note: line`` on standard error, above any progress bar being drawn."""
+    tqdm = sys.modules.get("tqdm")
+    if tqdm is not None:
+        tqdm.tqdm.write(f"note: {line}", file=sys.stderr)
+    else:
+        print(f"note: {line}", file=sys.stderr, flush=True)
 
 
 def _stopped(command: str, signum: int) -> int:

@@ -359,3 +359,53 @@ def test_the_program_ends_as_the_interpreter_would_without_its_teardown(argv, st
         assert "example:\n  kpd keypoints " in done.stdout  # the whole help, flushed
     else:
         assert done.stderr == "kpd keypoints: error: missing.ply: no such file\n"
+
+
+def _kpd_with_stderr_on_a_terminal(argv: list, env: dict) -> tuple[int, str]:
+    """``kpd argv`` in a fresh process whose standard error is a pseudo-terminal: its exit status and what it wrote
+    there."""
+    import os
+    import pty
+    import subprocess
+    import sys
+
+    controller, terminal = pty.openpty()
+    try:
+        process = subprocess.Popen([sys.executable, "-m", "kpd.cli", *map(str, argv)], stdout=subprocess.DEVNULL,
+                                   stderr=terminal, env=env)
+        os.close(terminal)
+        terminal = None
+        written = b""
+        while True:
+            try:
+                chunk = os.read(controller, 4096)
+            except OSError:  # the process ended and closed its side
+                break
+            if not chunk:
+                break
+            written += chunk
+        return process.wait(timeout=300), written.decode()
+    finally:
+        os.close(controller)
+        if terminal is not None:
+            os.close(terminal)
+
+
+def test_a_first_run_says_once_that_it_compiles_and_a_cached_run_says_nothing(toy, chair_file, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    from kpd._compiled import COMPILING
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))  # numba's cache, empty: a first run
+    status, written = _kpd_with_stderr_on_a_terminal(["keypoints", toy, chair_file], env)
+    assert status == 0
+    assert written.replace("\r\n", "\n") == f"note: {COMPILING}\n"
+    assert any((tmp_path / "numba-cache").rglob("*.nbi"))  # the kernels were compiled and cached
+    status, written = _kpd_with_stderr_on_a_terminal(["keypoints", toy, chair_file], env)
+    assert status == 0 and written == ""  # loaded from the cache
+    env["NUMBA_CACHE_DIR"] = str(tmp_path / "another-cache")
+    piped = subprocess.run([sys.executable, "-m", "kpd.cli", "keypoints", str(toy), str(chair_file)], env=env,
+                           capture_output=True, text=True, timeout=300)
+    assert piped.returncode == 0 and piped.stderr == ""  # not a terminal (a log, a test): no note
