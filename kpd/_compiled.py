@@ -10,7 +10,7 @@ from typing import Callable
 __all__ = ["compiled_on_first_call", "announce_compiling"]
 
 COMPILING = ("compiling kpd's kernels for this processor, once: later runs load them from numba's cache (up to "
-             "about 20 s on a 2-core machine)")
+             "about 25 s on a 2-core machine)")
 
 
 def compiled_on_first_call(function: Callable) -> Callable:
@@ -42,7 +42,7 @@ def announce_compiling(write: Callable[[str], None]) -> None:
 
     A compile means numba's cache had no kernel for this processor. That happens on the first run after
     installing, after an upgrade of kpd or numba, or with a new type of input. It takes seconds for each command's
-    first run (``kpd render`` of a 10k-vertex chair: 18-19 s against 1.4 s once cached). A kernel loaded from the
+    first run (``kpd render`` of a 10k-vertex chair: 15 s against 1.4 s once cached). A kernel loaded from the
     cache says nothing. The ``kpd`` command passes a writer to its standard error when that is a terminal.
 
     numba is not imported here: where it is not imported yet, the listener is installed when it is."""

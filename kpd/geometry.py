@@ -180,7 +180,10 @@ def _draw(vertices: np.ndarray, triangles: np.ndarray, area2: np.ndarray, total:
     """``n`` points drawn by area (``total`` is ``area2.sum()``): the triangles first, then the corners and cross
     products of those alone."""
     faces = np.empty(n, dtype=np.int64)
-    _picks_by_area(area2, total, rng.random(n), faces)
+    uniform = rng.random(n)
+    # the numbers in ascending order, by numpy (a sort compiled in the kernel cost a second of a first run); ties
+    # get the same triangle in either order
+    _picks_by_area(area2, total, uniform, np.argsort(uniform), faces)
     r1, r2 = rng.random(n), rng.random(n)
     s = np.sqrt(r1)
     u, v = 1.0 - s, s * (1.0 - r2)  # barycentric weights of a and b
@@ -192,16 +195,16 @@ def _draw(vertices: np.ndarray, triangles: np.ndarray, area2: np.ndarray, total:
 
 
 @compiled_on_first_call
-def _picks_by_area(area2, total, uniform, out):  # pragma: no cover - compiled
+def _picks_by_area(area2, total, uniform, order, out):  # pragma: no cover - compiled
     """``out[j]``: the triangle that ``Generator.choice(len(area2), p=area2 / total)`` picks for its uniform number
     ``uniform[j]``, to the bit (numpy takes the cumulative sum of ``p``, divides it by its last value and finds each
     number in it with ``searchsorted(side="right")``), in two passes over the areas and without the (T,) arrays of
-    ``p`` and its cumulative sum (fresh memory, and most of the time of a sample of a scan-sized mesh)."""
+    ``p`` and its cumulative sum (fresh memory, and most of the time of a sample of a scan-sized mesh). ``order``:
+    ``uniform``'s numbers in ascending order (``numpy.argsort``), found in one pass along the sums."""
     t = area2.shape[0]
     last = 0.0
     for i in range(t):
         last += area2[i] / total
-    order = np.argsort(uniform)  # the numbers in ascending order: found in one pass along the sums
     m = uniform.shape[0]
     j = 0
     running = 0.0
@@ -395,7 +398,7 @@ def _closed_pieces(triangles, labels, pieces, count):  # pragma: no cover - comp
     for i in range(count):
         lo, hi = start[i], start[i + 1]
         if hi - lo > 64:  # a fan's centre: a real sort
-            other[lo:hi] = np.sort(other[lo:hi])
+            other[lo:hi].sort()  # in place (assigning a sorted copy cost 1.7 s of a first run's compiling)
         for j in range(lo + 1, hi):  # insertion sort: rows are short (a no-op after the sort)
             value = other[j]
             k = j - 1

@@ -913,7 +913,7 @@ def _graph_pattern(tri, point_of, same, n):  # pragma: no cover - compiled
     for i in range(n):
         lo, hi = count[i], count[i + 1]
         if hi - lo > 64:  # a fan's centre: a real sort
-            other[lo:hi] = np.sort(other[lo:hi])
+            other[lo:hi].sort()  # in place (assigning a sorted copy cost 1.8 s of a first run's compiling)
         for j in range(lo + 1, hi):  # insertion sort: rows are short (a no-op after the sort)
             value = other[j]
             k = j - 1

@@ -168,8 +168,15 @@ def test_picks_by_area_are_numpys_choice_to_the_bit(count, n, power, zeros, seed
     area2[count // 2] = 0.5
     want = np.random.default_rng(seed).choice(count, size=n, p=area2 / area2.sum())
     got = np.empty(n, dtype=np.int64)
-    _picks_by_area(area2, float(area2.sum()), np.random.default_rng(seed).random(n), got)
+    uniform = np.random.default_rng(seed).random(n)
+    _picks_by_area(area2, float(area2.sum()), uniform, np.argsort(uniform), got)
     np.testing.assert_array_equal(got, want)
+    if seed % 2:  # repeated numbers: the same triangles whichever of them comes first
+        uniform = np.round(uniform, 2)
+        want = np.searchsorted(np.cumsum(area2 / area2.sum()) / np.cumsum(area2 / area2.sum())[-1], uniform,
+                               side="right")
+        _picks_by_area(area2, float(area2.sum()), uniform, np.lexsort((-np.arange(n), uniform)), got)
+        np.testing.assert_array_equal(got, want)
 
 
 def test_sample_surface_errors():
