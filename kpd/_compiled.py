@@ -7,10 +7,41 @@ import sys
 import threading
 from typing import Callable
 
-__all__ = ["compiled_on_first_call", "announce_compiling"]
+__all__ = ["njit", "compiled_on_first_call", "announce_compiling"]
 
 COMPILING = ("compiling kpd's kernels for this processor, once: later runs load them from numba's cache (up to "
              "about 25 s on a 2-core machine)")
+
+
+UNCACHED = ("numba finds no folder to keep kpd's compiled kernels in (kpd's own folder and the user cache folder "
+            "are read-only), so each run compiles them again (up to 25 s): set NUMBA_CACHE_DIR to a writable folder")
+_uncached_said = False
+
+
+def njit(**options) -> Callable:
+    """``numba.njit(cache=True, **options)``: a kernel compiled once per processor and kept in numba's cache (beside
+    its source file, else in the user cache folder, or in ``NUMBA_CACHE_DIR``).
+
+    Where numba finds none of those writable (a read-only installation and home folder, as in a container with a
+    read-only root file system), ``cache=True`` is refused when the kernel is defined: the kernel is then compiled
+    without the cache, on each run, and a warning says so once per process (logger ``kpd``)."""
+    import numba
+
+    def decorate(function: Callable) -> Callable:
+        try:
+            return numba.njit(cache=True, **options)(function)
+        except RuntimeError as exc:
+            if "no locator available" not in str(exc):
+                raise
+        global _uncached_said
+        if not _uncached_said:
+            _uncached_said = True
+            import logging
+
+            logging.getLogger("kpd").warning(UNCACHED)
+        return numba.njit(**options)(function)
+
+    return decorate
 
 
 def compiled_on_first_call(function: Callable) -> Callable:
@@ -25,9 +56,7 @@ def compiled_on_first_call(function: Callable) -> Callable:
     def call(*args):
         nonlocal dispatcher
         if dispatcher is None:
-            import numba
-
-            dispatcher = numba.njit(cache=True, nogil=True)(function)
+            dispatcher = njit(nogil=True)(function)
         return dispatcher(*args)
 
     return call

@@ -34,11 +34,12 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-import numba
+import numba  # before numba.core's modules, which cannot be imported first
 import numpy as np
 from numba.core import types
 from numba.extending import intrinsic
 
+from kpd._compiled import njit
 from kpd.errors import InputError, KpdError
 from kpd.mvc import _LINEAR_FRACTION, _TOL_FACE, _TOL_INSIDE, _TOL_PLANE, _TOL_VERTEX, _prepare
 
@@ -97,7 +98,7 @@ def _tune(typingctx):  # pragma: no cover - compiled
     return types.void(), codegen
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@njit(nogil=True, inline="always", error_model="numpy")
 def _reduce(y, x):
     """atan2(y, x) for y >= 0 as ``base + atan(num / den)`` times a sign, with ``|num / den| <= tan(π/8)``.
 
@@ -119,14 +120,14 @@ def _reduce(y, x):
     return num, den, base, signed
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
+@njit(nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
 def _atan_over(z):
     """atan(u) / u for z = u² <= tan²(π/8)."""
     return ((((((((((_C11 * z + _C10) * z + _C9) * z + _C8) * z + _C7) * z + _C6) * z + _C5) * z + _C4) * z + _C3) * z
              + _C2) * z + _C1) * z + 1.0
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
+@njit(nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
 def _atan_parts(z):
     """``(P(z), Q(z))``, ``atan(u) / u = P / Q`` for z = u² <= 1 (angles up to π/4), without a reduction."""
     p = (((((_P6 * z + _P5) * z + _P4) * z + _P3) * z + _P2) * z + _P1) * z + _P0
@@ -134,14 +135,14 @@ def _atan_parts(z):
     return p, q
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
+@njit(nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
 def _finish(num, den, base, signed, y, r):
     """θ / y from :func:`_reduce`'s parts and ``r = 1 / (den y)``: ``r (base den + signed p(u²))``, u = num y r."""
     u = num * (y * r)
     return r * (base * den + signed * _atan_over(u * u))
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
+@njit(nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
 def _theta_over_pair(y0, x0, y1, x1):
     """``(atan2(y0, x0) / y0, atan2(y1, x1) / y1)`` for y0, y1 > 0 with one division for both."""
     num0, den0, base0, signed0 = _reduce(y0, x0)
@@ -152,7 +153,7 @@ def _theta_over_pair(y0, x0, y1, x1):
     return _finish(num0, den0, base0, signed0, y0, r * q1), _finish(num1, den1, base1, signed1, y1, r * q0)
 
 
-@numba.njit(cache=True, nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
+@njit(nogil=True, inline="always", error_model="numpy", fastmath={"contract"})
 def _theta_over_narrow_pair(s0, x0, s1, x1):
     """``(atan2(y0, x0) / y0, atan2(y1, x1) / y1, both narrow)`` from ``s = y²``, without a square root, with two
     divisions for both; exact to rounding when both are narrow: ``0 < y <= x`` (angles up to π/4), where
@@ -170,7 +171,7 @@ def _theta_over_narrow_pair(s0, x0, s1, x1):
     return p0 * q1 * r, p1 * q0 * r, (x0 > 0.0) & (x1 > 0.0) & (z0 <= 1.0) & (z1 <= 1.0)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def theta_over(y: np.ndarray, x: np.ndarray) -> np.ndarray:
     """The kernel's ``arctan2(y, x) / y`` for ``y > 0`` on arrays (for tests): ``(N,)`` float64.
 
@@ -187,7 +188,7 @@ def theta_over(y: np.ndarray, x: np.ndarray) -> np.ndarray:
     return out[:n]
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _near_first(points, lo, m):  # pragma: no cover - compiled
     """``(m,)`` an order of points[lo:lo + m] along a Z curve (Morton order) over 16³ cells of their bounding cube,
     points in a cell in their order, so that the kernel's blocks of consecutive points are small in space: an edge is
@@ -220,7 +221,7 @@ def _near_first(points, lo, m):  # pragma: no cover - compiled
     return order
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
+@njit(nogil=True, fastmath={"contract"}, error_model="numpy")
 def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b, edge_slot, step_edges, face_slot,
                    face_sign, corner_vertex, nx, ny, nz, offset, near, nonzero_row, nonzero_column, nonzero_value, R,
                    out, flags, xs, g, lane_dot, lane_narrow, bad, w, w0, w1, acc):  # pragma: no cover
@@ -377,7 +378,7 @@ def _project_range(points, lo, hi, center, inv_size, px, py, pz, edge_a, edge_b,
                     out[j, r] = acc[r * L + i] * inv
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _face_weights(p0, p1, p2, out, k0, k1, k2, w, scale_by):  # pragma: no cover - compiled
     """``w[k_j] += scale_by * w_j`` with Ju's weights ``w_j = G_j . m / D`` of a face whose corners minus the point are
     ``p0, p1, p2`` ((3,) each), as :func:`kpd.mvc._face_weights`; ``out`` is (3, 3) scratch for the G's."""
@@ -405,7 +406,7 @@ def _face_weights(p0, p1, p2, out, k0, k1, k2, w, scale_by):  # pragma: no cover
         w[ks[j]] += scale_by * ((out[j, 0] * mx + out[j, 1] * my + out[j, 2] * mz) / big_d)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _segment_distance(x, a, b):  # pragma: no cover - compiled
     """Distance from ``x`` to the segment ``a b`` ((3,) each)."""
     ab0, ab1, ab2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
@@ -415,7 +416,7 @@ def _segment_distance(x, a, b):  # pragma: no cover - compiled
     return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _careful_rows(points, index, v, faces, n2, n2_norm, offset, scale, rows, out):  # pragma: no cover - compiled
     """``out[i] = careful weights of points[i] @ rows`` for i in ``index``: :func:`kpd.mvc._careful_row`'s rules
     (one-hot on a vertex, barycentric on a face, a lifted point for faces whose plane grazes the point), compiled.

@@ -24,12 +24,13 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable
 
-import numba
+import numba  # before numba.core's modules, which cannot be imported first
 import numpy as np
 from llvmlite import ir
 from numba.core import types
 from numba.extending import intrinsic
 
+from kpd._compiled import njit
 from kpd.cage import Cage, cage_faces_from_vertices, default_m, fit_cage, influence_mask
 from kpd.errors import InputError
 from kpd.geometry import Normalizer, as_points, sample_surface
@@ -869,7 +870,7 @@ class _StraightenSystem:
         return np.flatnonzero(rim)
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _graph_pattern(tri, point_of, same, n):  # pragma: no cover - compiled
     """CSR (indptr (n + 1,), indices) of the symmetric pattern of the triangles' edges plus the diagonal, each
     entry once, columns sorted; degenerate triangles (a repeated corner) add no edge. The triangles' corners are
@@ -929,7 +930,7 @@ def _graph_pattern(tri, point_of, same, n):  # pragma: no cover - compiled
     return indptr, other[:size].copy()
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _corners(tri, point_of, t):  # pragma: no cover - compiled
     """The three corners of triangle ``t``: ``tri[t]``, through ``point_of`` when it is not empty."""
     a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
@@ -938,7 +939,7 @@ def _corners(tri, point_of, t):  # pragma: no cover - compiled
     return a, b, c
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _entry(indptr, indices, row, col):  # pragma: no cover - compiled
     """Position of (row, col) in a CSR pattern with sorted columns (it is there)."""
     lo, hi = indptr[row], indptr[row + 1] - 1
@@ -951,13 +952,13 @@ def _entry(indptr, indices, row, col):  # pragma: no cover - compiled
     return lo
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(nogil=True, error_model="numpy", inline="always")
 def _sliver_weight(longest, height, cap):  # pragma: no cover - compiled
     """The weight of a sliver's straightness: its long edge over its height, squared, at most ``cap``."""
     return (longest / max(height, longest / np.sqrt(cap))) ** 2
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _sliver_terms(points, tri, point_of, same, indptr, indices, thinness, inverse_reach2, ends_weight, cap,
                   sliver_values, anchor, sliver_ends, sliver_along, sliver_height,
                   piece):  # pragma: no cover - compiled
@@ -1061,7 +1062,7 @@ def _sliver_terms(points, tri, point_of, same, indptr, indices, thinness, invers
     return slivers, longest_edge
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(nogil=True, error_model="numpy", inline="always")
 def _row(i, indptr, indices, points, sliver_values, anchor, floor, out):  # pragma: no cover - compiled
     """Row ``i`` of the system into ``out`` (its pattern entries in order): the edges' stiffness ``-1 / l²`` (lengths
     floored at ``floor``) and on the diagonal their sum and the anchor, plus the slivers' terms. Returns the
@@ -1083,7 +1084,7 @@ def _row(i, indptr, indices, points, sliver_values, anchor, floor, out):  # prag
     return out[at_diagonal]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _submatrix(indptr, indices, members, local, points, sliver_values, anchor, floor):  # pragma: no cover - compiled
     """CSR (indptr, indices, data) of the system's rows and columns ``members`` (sorted), renumbered by ``local``;
     entries whose column has no local number (-1: outside the region) are left out."""
@@ -1112,7 +1113,7 @@ def _submatrix(indptr, indices, members, local, points, sliver_values, anchor, f
     return ptr, idx, val
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _region_parts(indptr, indices, inside):  # pragma: no cover - compiled
     """The connected parts of the graph restricted to ``inside`` (n,) bool: (n,) part numbers (-1 outside), in
     order of their smallest point, and (n,) whether an inside point has a neighbour outside."""
@@ -1142,7 +1143,7 @@ def _region_parts(indptr, indices, inside):  # pragma: no cover - compiled
     return part, rim
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _rings(indptr, indices, sources, rings):  # pragma: no cover - compiled
     """(n,) bool: the points within ``rings`` edges of ``sources`` (breadth first from all of them at once)."""
     n = len(indptr) - 1
@@ -1169,7 +1170,7 @@ def _rings(indptr, indices, sources, rings):  # pragma: no cover - compiled
     return depth >= 0
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _beyond_rim(indptr, indices, points, sliver_values, anchor, floor, rim, inside, slot, values,
                 tolerance):  # pragma: no cover - compiled
     """The points outside the region next to its ``rim`` whose correction, one Jacobi step from the region's
@@ -1205,7 +1206,7 @@ def _beyond_rim(indptr, indices, points, sliver_values, anchor, floor, rim, insi
     return np.array(out, dtype=np.int64)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _held_rhs(indptr, indices, points, sliver_values, anchor, floor, rows, patch, basis, slot,
               values):  # pragma: no cover - compiled
     """(len(rows), K): the right-hand side of the system's ``rows`` with the points outside ``patch`` (n,) bool
@@ -1232,7 +1233,7 @@ def _held_rhs(indptr, indices, points, sliver_values, anchor, floor, rows, patch
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _has_outside(indptr, indices, rows, inside):  # pragma: no cover - compiled
     """(len(rows),) bool: whether each of ``rows`` has a neighbour outside ``inside``."""
     out = np.zeros(len(rows), dtype=np.bool_)
@@ -1244,7 +1245,7 @@ def _has_outside(indptr, indices, rows, inside):  # pragma: no cover - compiled
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _rows_times(indptr, indices, data, rows, basis):  # pragma: no cover - compiled
     """(len(rows), K): ``-(M @ basis)[rows]`` for the CSR matrix M (indptr, indices, data)."""
     out = np.zeros((len(rows), basis.shape[1]))
@@ -1258,7 +1259,7 @@ def _rows_times(indptr, indices, data, rows, basis):  # pragma: no cover - compi
     return out
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _sliver_steps(points, indptr, indices, sliver_values, anchor, floor, ends, along, height, cap
                   ):  # pragma: no cover - compiled
     """(S,) each sliver's Jacobi step from no correction per unit of straightness, at the corner it moves most: its
@@ -1284,7 +1285,7 @@ def _sliver_steps(points, indptr, indices, sliver_values, anchor, floor, ends, a
     return step
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _sliver_seeds(lo, hi, merged, ends, along, height, step, tolerance, move, seed):  # pragma: no cover - compiled
     """``seed`` (n,) bool set at the corners of the slivers ``lo:hi`` whose own term alone would move one of their
     corners by more than ``tolerance`` in a keypoint's column, or move its third corner across its height for a
@@ -1400,7 +1401,7 @@ def _compact_basis(basis: np.ndarray) -> np.ndarray:
     return basis.astype(np.float32)
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _largest_row_sum(basis):  # pragma: no cover - compiled
     """``np.abs(basis).sum(axis=1).max()`` without the (V, K) temporary (NaN if any entry is NaN)."""
     largest = 0.0
@@ -1444,7 +1445,7 @@ def _streaming_done(typingctx):  # pragma: no cover - compiled
     return types.void(), codegen
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _edit(basis_t, offsets, rest, out):  # pragma: no cover - compiled
     """``out = rest + basis_t.T @ offsets`` with float64 sums: (K, V) basis of float32 or float64, (K, 3) offsets.
 
@@ -1489,7 +1490,7 @@ def _edit(basis_t, offsets, rest, out):  # pragma: no cover - compiled
     _streaming_done()
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _edit_rows(basis_t, offsets, rest, rows, out):  # pragma: no cover - compiled
     """:func:`_edit` for the vertices ``rows`` only."""
     k = offsets.shape[0]
@@ -1593,7 +1594,7 @@ def _size(count: int) -> str:
     return f"{count / 2**30:.1f} GiB" if count >= 2**30 else f"{count / 2**20:.0f} MiB"
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _has_sliver(points, tri, thinness):  # pragma: no cover - compiled
     """Whether any triangle's height is below ``thinness`` times its longest edge (:func:`_thin_triangles`)."""
     for t in range(tri.shape[0]):
@@ -1625,7 +1626,7 @@ def _thin_triangles(points: np.ndarray, tri: np.ndarray, thinness: float) -> tup
     return height < thinness * longest, apex, longest, height, twice_area
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _triangle_shapes(points, tri, apex, longest, twice_area):  # pragma: no cover - compiled
     """Per triangle: the corner opposite the longest edge (the first on ties), that edge's length and twice the
     area (|(b - a) x (c - a)|)."""

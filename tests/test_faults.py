@@ -810,3 +810,70 @@ def test_split_lists_are_accepted(inputs, tmp_path):
         shutil.move(flat / name, lists / name)
     given = discover(flat, split_file=lists / "train.txt")  # one list given by itself
     assert [f.name for f in given.splits["test"]] == ["c5", "c6", "c7"]
+
+
+# --- numba's cache ------------------------------------------------------------------------------------------------
+
+
+def test_kernels_numba_cannot_cache_are_compiled_each_run_and_said_once(monkeypatch, caplog):
+    import numba
+
+    import kpd._compiled as compiled
+
+    real = numba.njit
+
+    def refusing(*args, **options):  # numba's answer where no folder takes its cache
+        if options.get("cache"):
+            raise RuntimeError("cannot cache function 'f': no locator available for file 'f.py'")
+        return real(*args, **options)
+
+    monkeypatch.setattr(numba, "njit", refusing)
+    monkeypatch.setattr(compiled, "_uncached_said", False)
+    with caplog.at_level("WARNING", logger="kpd"):
+        plus = compiled.njit(nogil=True)(lambda x: x + 1)
+        twice = compiled.njit()(lambda x: 2 * x)
+    assert plus(1) == 2 and twice(3) == 6
+    assert [record.getMessage() for record in caplog.records] == [compiled.UNCACHED]
+
+    def failing(*args, **options):  # any other refusal is not taken for it
+        raise RuntimeError("another failure")
+
+    monkeypatch.setattr(numba, "njit", failing)
+    with pytest.raises(RuntimeError, match="another failure"):
+        compiled.njit()(lambda x: x)
+
+
+def test_a_read_only_installation_and_home_still_run_with_one_warning(inputs, tmp_path):
+    """kpd installed where nothing can be written (a container's read-only root file system: its own folder and the
+    home folder read-only, NUMBA_CACHE_DIR unset): a command works and says once that it compiles on each run."""
+    from kpd._compiled import UNCACHED
+
+    install, home = tmp_path / "site", tmp_path / "home"
+    install.mkdir()
+    home.mkdir()
+    root = Path(__file__).resolve().parents[1]
+    mounted = _mount(install, "size=64m") and _mount(home, "size=64k")
+    shutil.copytree(root / "kpd", install / "kpd", ignore=shutil.ignore_patterns("__pycache__", "models"))
+    if mounted:
+        for folder in (install, home):
+            subprocess.run(["mount", "-o", "remount,ro", str(folder)], check=True)
+    else:  # not root: permission bits do it
+        for folder in (install, home):
+            subprocess.run(["chmod", "-R", "a-w", str(folder)], check=True)
+    env = {key: value for key, value in os.environ.items() if key != "NUMBA_CACHE_DIR"}
+    env.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"), PYTHONPATH=str(install))
+    try:
+        done = subprocess.run([sys.executable, "-c", "import sys, kpd.cli; print(kpd.cli.__file__, file=sys.stderr); "
+                               "sys.argv[0] = 'kpd'; kpd.cli.main()", "keypoints", str(inputs / "toy.kpd"),
+                               str(inputs / "chair.ply")], capture_output=True, text=True, env=env, timeout=600,
+                              cwd=tmp_path)
+    finally:
+        if mounted:
+            _umount(install)
+            _umount(home)
+        else:
+            subprocess.run(["chmod", "-R", "u+w", str(install), str(home)], check=True)
+    lines = done.stderr.splitlines()
+    assert done.returncode == 0, done.stderr
+    assert lines == [str(install / "kpd" / "cli.py"), f"warning: {UNCACHED}"], done.stderr  # this copy, one line
+    assert len(json.loads(done.stdout)["keypoints"]) == 4

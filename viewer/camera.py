@@ -7,9 +7,9 @@ import math
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator
 
-import numba
 import numpy as np
 
+from kpd._compiled import njit
 from kpd.viewer.settings import ViewSettings, up_axis
 
 __all__ = ["Camera", "camera_pose", "box", "look_at_matrix", "perspective_matrix", "project", "pixel_ray", "plane_hit"]
@@ -114,7 +114,7 @@ def box(parts: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _box(points):  # pragma: no cover - compiled
     lo = points[0].copy()
     hi = points[0].copy()
@@ -148,7 +148,7 @@ def _aim(high: np.ndarray, low: np.ndarray, tangents: np.ndarray, distance: floa
     return float((high[j] + low[j]) + ((high[j + 1] - high[j]) + (low[j + 1] - low[j])) * u / dt) / 2
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _extents(points, center, axes, tangents, ends):  # pragma: no cover - compiled
     """``ends`` (2, 2, S + 1) widened to max(x + t w) and min(x - t w) over ``points`` for each of
     ``tangents[0]``, and of y for ``tangents[1]``, with x, y, w their offsets from ``center`` along ``axes`` (right,

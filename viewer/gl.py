@@ -34,9 +34,9 @@ import threading
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
-import numba
 import numpy as np
 
+from kpd._compiled import njit
 from kpd.errors import KpdError
 from kpd.grouping import first_occurrence_groups, same_corners
 from kpd.viewer.camera import box
@@ -98,7 +98,7 @@ def shading_normals(vertices: np.ndarray, triangles: np.ndarray, eye: np.ndarray
     return out
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(nogil=True, error_model="numpy", inline="always")
 def _turned_normal(vertices, a, b, c, eye, towards):  # pragma: no cover - compiled
     """A triangle's ``(b - a) x (c - a)``, turned towards ``eye`` when ``towards`` (two-sided lighting)."""
     ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
@@ -112,7 +112,7 @@ def _turned_normal(vertices, a, b, c, eye, towards):  # pragma: no cover - compi
     return nx, ny, nz
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _welded_normals(vertices, triangles, inverse, groups, eye, towards, out):  # pragma: no cover - compiled
     acc = np.zeros((groups, 3))
     for t in range(triangles.shape[0]):
@@ -174,7 +174,7 @@ class _Normals:
         return out
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _texture_coordinates(uvs, chosen, edge_u, edge_v, out):  # pragma: no cover - compiled
     """``out[r]``, (3, 2): the UVs of triangle ``chosen[r]`` (rows 3t, 3t + 1, 3t + 2 of ``uvs``) moved by whole tiles
     into the first one (minus the floor of their smallest), kept within the outer texel centres (``edge_u``,
@@ -205,7 +205,7 @@ def _texture_coordinates(uvs, chosen, edge_u, edge_v, out):  # pragma: no cover 
                 out[r, j, k] = 1.0 - x if k == 1 else x
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _corner_lists(triangles, inverse, starts, entries):  # pragma: no cover - compiled
     """Counting sort of the triangles' corners by their vertex's group: ``entries[starts[g]:starts[g + 1]]`` are the
     triangles of group g's corners in corner order (a triangle twice if two of its corners are in g)."""
@@ -222,7 +222,7 @@ def _corner_lists(triangles, inverse, starts, entries):  # pragma: no cover - co
             fill[g] += 1
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _turned_faces(lo, hi, vertices, triangles, eye, towards, out):  # pragma: no cover - compiled
     for t in range(lo, hi):
         nx, ny, nz = _turned_normal(vertices, triangles[t, 0], triangles[t, 1], triangles[t, 2], eye, towards)
@@ -231,7 +231,7 @@ def _turned_faces(lo, hi, vertices, triangles, eye, towards, out):  # pragma: no
         out[t, 2] = nz
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(nogil=True, error_model="numpy", inline="always")
 def _group_normal(g, face, starts, entries, out, n):  # pragma: no cover - compiled
     """``out[n]``: the unit sum of group ``g``'s face vectors (zero when they cancel)."""
     x = y = z = 0.0
@@ -248,13 +248,13 @@ def _group_normal(g, face, starts, entries, out, n):  # pragma: no cover - compi
     out[n, 2] = z / length
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _summed_groups(lo, hi, face, starts, entries, out):  # pragma: no cover - compiled
     for g in range(lo, hi):
         _group_normal(g, face, starts, entries, out, g)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _summed_used(lo, hi, face, starts, entries, inverse, used, out):  # pragma: no cover - compiled
     """:func:`_summed_groups` of the groups of the vertices ``used[lo:hi]``, into ``out[lo:hi]``."""
     for n in range(lo, hi):
@@ -506,7 +506,7 @@ def _margin(vertices: np.ndarray, viewport: Viewport) -> float:
     return 1.0 / 256 + viewport.focal * rounding / max(nearest, rounding, 1e-300)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _project(lo, hi, vertices, index, view, focal, half_width, half_height, screen):  # pragma: no cover - compiled
     """Window coordinates (x right, y up) and depth in front of the camera (<= 0: not in front) of
     ``vertices[index]`` (of ``vertices`` when ``index`` is empty)."""
@@ -525,7 +525,7 @@ def _project(lo, hi, vertices, index, view, focal, half_width, half_height, scre
             screen[i, 0] = screen[i, 1] = 0.0
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(nogil=True, error_model="numpy", inline="always")
 def _offsets_in(lo, hi, offsets):  # pragma: no cover - compiled
     """Bit k set for each of the samples' offsets (S,) in [lo, hi] (S <= 64): the samples of a pixel column (row)
     whose x (y) lies in a box's span, found without branches."""
@@ -535,7 +535,7 @@ def _offsets_in(lo, hi, offsets):  # pragma: no cover - compiled
     return mask
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _pair_far(sx, sy, screen, p0, p1, q, d, delta):  # pragma: no cover - compiled
     """The depth behind which nothing of the triangles (p0, p1, q) and (p1, p0, d) lies when, wherever their corners
     land within ``delta``, they lie either side of their shared edge and the point (sx, sy) is inside their other
@@ -568,7 +568,7 @@ def _pair_far(sx, sy, screen, p0, p1, q, d, delta):  # pragma: no cover - compil
     return np.float32(np.inf)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(nogil=True, error_model="numpy", inline="always")
 def _reached(x0, x1, y0, y1, i0, i1, j0, j1, near, delta, width, ox, oy, depth):  # pragma: no cover - compiled
     """Whether a sample point within ``delta`` of the box [x0, x1] x [y0, y1] (in the pixels i0..i1, j0..j1) is
     not behind the depth reached there (every row of ``depth``, one a thread) by more than what ``near`` allows:
@@ -594,7 +594,7 @@ def _reached(x0, x1, y0, y1, i0, i1, j0, j1, near, delta, width, ox, oy, depth):
     return False
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _block_hidden(s0, s1, triangles, screen, width, height, ox, oy, delta, depth, slack):  # pragma: no cover
     """Whether pass 1 would leave out each of the triangles ``s0:s1`` as hidden: all in front of the camera and over
     at most 25 pixels, and the nearest corner of them all behind the depth reached so far (any row, by more than
@@ -623,7 +623,7 @@ def _block_hidden(s0, s1, triangles, screen, width, height, ox, oy, delta, depth
     return not _reached(x0, x1, y0, y1, i0, i1, j0, j1, nearest / (1.0 + slack), delta, width, ox, oy, depth)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _fronts(ranges, row, slot, triangles, neighbours, screen, width, height, ox, oy, delta, depth, listed, start,
             listed_count, stop, slack, skip_hidden):  # pragma: no cover - compiled
     """Pass 1 of :func:`visible_triangles` over the triangles ``ranges[r, 0]:ranges[r, 1]`` in turn (one piece of
@@ -725,7 +725,7 @@ def _fronts(ranges, row, slot, triangles, neighbours, screen, width, height, ox,
     listed_count[slot] = found - start[slot]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _showing(slot, triangles, screen, width, height, ox, oy, delta, front, slack, listed, start, listed_count, keep,
              stop):  # pragma: no cover - compiled
     """Pass 2 of :func:`visible_triangles` over the triangles that pass 1 listed in its slot ``slot`` (``keep``
@@ -786,7 +786,7 @@ def _showing(slot, triangles, screen, width, height, ox, oy, delta, front, slack
         keep[t] = shows
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _compact(triangles, keep, remap, used, local):  # pragma: no cover - compiled
     """The kept triangles over their own vertices: ``used[:n]`` the vertices in order of first use, ``local[:m]`` the
     kept triangles indexing ``used``; returns (n, m). ``remap`` (V,) must hold -1 and is left so."""
@@ -818,7 +818,7 @@ def edge_neighbours(triangles: np.ndarray, num_vertices: int) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _neighbours(triangles, starts, entries, out):  # pragma: no cover - compiled
     for t in range(triangles.shape[0]):  # the triangles at each vertex (counting sort)
         for k in range(3):
@@ -881,7 +881,7 @@ class CullingLayout:
 _LAYOUT_CELLS = 64  # cells a side of the Morton order of a CullingLayout
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _near_layout(vertices, triangles, cells, order, local, used, runs):  # pragma: no cover - compiled
     """:class:`CullingLayout`'s arrays: ``order`` (T,) the triangles by the Morton order of their centroids over
     ``cells`` (a power of two, at most 128) cells a side of their bounding cube (a counting sort; in their order
@@ -1222,7 +1222,7 @@ def proxy_triangles(vertices: np.ndarray, triangles: np.ndarray, limit: int) -> 
     return first[:count].copy(), faces[:limit]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@njit(nogil=True, error_model="numpy")
 def _cells(vertices, lo, size, span, group, first):  # pragma: no cover - compiled
     """Vertices grouped by grid cell (``floor((v - lo) / size)`` on each axis) with a hash table: ``group[v]``
     numbers the cells as first met, ``first[g]`` is the first vertex in cell g; returns the number of cells."""

@@ -38,12 +38,13 @@ import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 
-import numba
+import numba  # before numba.core's modules, which cannot be imported first
 import numpy as np
 from llvmlite import ir
 from numba.core import types
 from numba.extending import intrinsic
 
+from kpd._compiled import njit
 from kpd.errors import InputError
 
 __all__ = ["float_rows", "float_rows_reference", "write_float_rows", "index_rows", "index_rows_reference",
@@ -91,7 +92,7 @@ def _scales(precision: int) -> np.ndarray:
 # --- compiled kernels ------------------------------------------------------------------------------------------------
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _two_product(a, b):  # pragma: no cover - compiled
     """``a * b`` as ``hi + lo`` exactly (Dekker: splits at 27 bits, no fused multiply-add needed)."""
     p = a * b
@@ -104,7 +105,7 @@ def _two_product(a, b):  # pragma: no cover - compiled
     return p, ((a_hi * b_hi - p) + a_hi * b_lo + a_lo * b_hi) + a_lo * b_lo
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _put_digits(out, end, value, count):  # pragma: no cover - compiled
     """The last ``count`` decimal digits of ``value`` (uint64) into ``out[end - count:end]``, two at a time."""
     k = end
@@ -119,7 +120,7 @@ def _put_digits(out, end, value, count):  # pragma: no cover - compiled
         out[k - 1] = np.uint8(48 + value % np.uint64(10))
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _put_int(out, at, value):  # pragma: no cover - compiled
     """``b"%d" % value`` into ``out[at:]``; returns the position after it."""
     if value < 0:
@@ -135,7 +136,7 @@ def _put_int(out, at, value):  # pragma: no cover - compiled
     return at + count
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _put_g(out, at, x, precision, top, decades, scales, column, tie):  # pragma: no cover - compiled
     """``b"%.{precision}g" % x`` into ``out[at:]`` (``top`` is ``10**precision``, ``scales[column]`` the
     :func:`_scales` of the precision); returns the position after it, or -1 for a value within ``tie`` of a rounding
@@ -216,7 +217,7 @@ def _put_g(out, at, x, precision, top, decades, scales, column, tie):  # pragma:
     return end + 2 + n
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _put_bytes(out, at, data, start, stop):  # pragma: no cover - compiled
     for k in range(start, stop):
         out[at] = data[k]
@@ -224,7 +225,7 @@ def _put_bytes(out, at, data, start, stop):  # pragma: no cover - compiled
     return at
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _float_rows(values, precisions, tops, scales, decades, tie, prefix, suffix, tails, tail_ends, fixes, fix_ends,
                 out, offsets):  # pragma: no cover - compiled
     """Rows of ``values`` (n, k) as text into ``out``, row ``i`` at ``out[offsets[i]:offsets[i + 1]]``; a value
@@ -264,7 +265,7 @@ def _float_rows(values, precisions, tops, scales, decades, tie, prefix, suffix, 
     return at, count, left[:count]
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _index_rows(corners, uv, normal, base, prefix, suffix, with_uv, with_normal,
                 out):  # pragma: no cover - compiled
     """Rows of corner indices into ``out`` (see :func:`index_rows`); returns the bytes written."""
@@ -290,7 +291,7 @@ def _index_rows(corners, uv, normal, base, prefix, suffix, with_uv, with_normal,
     return at
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _splice(data, spans, texts, text_ends, stream_ends, state, out):  # pragma: no cover - compiled
     """Go on writing ``data`` with its spans replaced into ``out`` until it is full: ``spans`` (E, 2) and the
     texts (``texts[text_ends[i]:text_ends[i + 1]]`` for span ``i``) are the concatenation of streams (ending at
@@ -351,7 +352,7 @@ def _trailing_zeros(typingctx, value):  # pragma: no cover - compiled
     return types.uint64(types.uint64), codegen
 
 
-@numba.njit(cache=True, nogil=True)
+@njit(nogil=True)
 def _count_lines(data, n, state, counts):  # pragma: no cover - compiled
     """Go on counting ``v`` and ``f`` lines (``counts[0]``, ``counts[1]``) over ``data[:n]`` from ``state`` (0: at a
     line's start or in its leading blanks, 1: after its first byte ``v``, 2: ``f``, 3: elsewhere in a line); returns
