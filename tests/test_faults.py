@@ -815,24 +815,24 @@ def test_split_lists_are_accepted(inputs, tmp_path):
 # --- numba's cache ------------------------------------------------------------------------------------------------
 
 
+def _kernel_for_the_cache_test(x):  # at module level: numba caches what it can find again by name
+    return 2 * x + 1
+
+
 def test_kernels_numba_cannot_cache_are_compiled_each_run_and_said_once(monkeypatch, caplog):
     import numba
+    from numba.core import caching
 
     import kpd._compiled as compiled
 
-    real = numba.njit
-
-    def refusing(*args, **options):  # numba's answer where no folder takes its cache
-        if options.get("cache"):
-            raise RuntimeError("cannot cache function 'f': no locator available for file 'f.py'")
-        return real(*args, **options)
-
-    monkeypatch.setattr(numba, "njit", refusing)
-    monkeypatch.setattr(compiled, "_uncached_said", False)
+    monkeypatch.setattr(caching.CacheImpl, "_locator_classes", [])  # no folder takes numba's cache
+    monkeypatch.setattr(compiled, "_said", set())
+    with pytest.raises(RuntimeError, match="no locator available"):  # what numba itself does then
+        numba.njit(cache=True)(_kernel_for_the_cache_test)
     with caplog.at_level("WARNING", logger="kpd"):
-        plus = compiled.njit(nogil=True)(lambda x: x + 1)
-        twice = compiled.njit()(lambda x: 2 * x)
-    assert plus(1) == 2 and twice(3) == 6
+        plus = compiled.njit(nogil=True)(_kernel_for_the_cache_test)
+        again = compiled.njit()(_kernel_for_the_cache_test)
+    assert plus(1) == 3 and again(3) == 7
     assert [record.getMessage() for record in caplog.records] == [compiled.UNCACHED]
 
     def failing(*args, **options):  # any other refusal is not taken for it
@@ -840,7 +840,7 @@ def test_kernels_numba_cannot_cache_are_compiled_each_run_and_said_once(monkeypa
 
     monkeypatch.setattr(numba, "njit", failing)
     with pytest.raises(RuntimeError, match="another failure"):
-        compiled.njit()(lambda x: x)
+        compiled.njit()(_kernel_for_the_cache_test)
 
 
 def test_a_read_only_installation_and_home_still_run_with_one_warning(inputs, tmp_path):
@@ -877,3 +877,68 @@ def test_a_read_only_installation_and_home_still_run_with_one_warning(inputs, tm
     assert done.returncode == 0, done.stderr
     assert lines == [str(install / "kpd" / "cli.py"), f"warning: {UNCACHED}"], done.stderr  # this copy, one line
     assert len(json.loads(done.stdout)["keypoints"]) == 4
+
+
+def test_a_damaged_cache_file_is_compiled_again_with_one_warning(inputs, tmp_path):
+    """A cache file of numba's that cannot be read back (truncated here) ended every later command in an unpickling
+    traceback: now that command compiles its kernels again, says so in one line and writes the cache anew."""
+    from kpd._compiled import CACHE_FAILED
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    argv = [sys.executable, "-m", "kpd.cli", "keypoints", str(inputs / "toy.kpd"), str(inputs / "chair.ply")]
+
+    def run() -> subprocess.CompletedProcess:
+        return subprocess.run(argv, capture_output=True, text=True, env=env, timeout=600)
+
+    first = run()
+    assert first.returncode == 0 and first.stderr == "", first.stderr
+    kept = sorted((tmp_path / "cache").rglob("*.nbc"))
+    assert kept
+    for path in kept:
+        with open(path, "r+b") as fh:
+            fh.truncate(path.stat().st_size // 2)
+    damaged = run()
+    assert damaged.returncode == 0, damaged.stderr
+    lines = damaged.stderr.splitlines()
+    head, tail = CACHE_FAILED.format("read", "\0").split("\0")
+    assert len(lines) == 1 and lines[0].startswith("warning: " + head) and lines[0].endswith(tail), damaged.stderr
+    assert damaged.stdout == first.stdout  # the same keypoints
+    again = run()
+    assert again.returncode == 0 and again.stderr == "" and again.stdout == first.stdout  # written anew
+
+
+def test_a_cache_that_cannot_be_written_leaves_the_kernel_running_with_one_warning(tmp_path, monkeypatch, caplog):
+    """A full disk (as root) or a folder without write permission where numba keeps its cache: its write failed and
+    ended the command ("cannot write an output: the disk is full"); now the kernel runs as compiled, with a warning."""
+    import numba
+
+    import kpd._compiled as compiled
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    mounted = _mount(cache, "size=64k")
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(cache))
+    monkeypatch.setattr(compiled, "_said", set())
+    try:
+        kernel = compiled.njit()(_kernel_for_the_cache_test)  # numba checks here that it can write the folder
+        if mounted:
+            with open(cache / "filler", "wb", buffering=0) as fh:
+                with pytest.raises(OSError):
+                    while True:
+                        fh.write(b"\0" * 4096)
+        else:
+            for folder in [cache, *cache.rglob("*")]:
+                folder.chmod(0o555)
+        with caplog.at_level("WARNING", logger="kpd"):
+            assert kernel(20) == 41
+            assert compiled.njit()(_kernel_for_the_cache_test)(1) == 3  # a second kernel: compiled, not said again
+        messages = [record.getMessage() for record in caplog.records]
+        head, tail = compiled.CACHE_FAILED.format("written", "\0").split("\0")
+        assert len(messages) == 1 and messages[0].startswith(head + "OSError") and messages[0].endswith(tail)
+        assert not list(cache.rglob("*.nbc"))
+    finally:
+        if mounted:
+            _umount(cache)
+        else:
+            for folder in [cache, *cache.rglob("*")]:
+                folder.chmod(0o755)
