@@ -12,7 +12,7 @@ import signal
 import sys
 import threading
 
-from kpd import _signals
+from kpd import __version__, _signals
 from kpd._compiled import announce_compiling
 from kpd.commands import COMMANDS, run_checks
 from kpd.errors import KpdError
@@ -33,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Run 'kpd COMMAND --help' for a command's options and an example.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    parser.add_argument("--version", action="version", version=f"kpd {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, module_name in COMMANDS.items():
         module = importlib.import_module(module_name)

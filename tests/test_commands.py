@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from test_bundle import make_toy_bundle
 
-from kpd.cli import main
+from kpd.cli import build_parser, main
 from kpd.io import Mesh, read_mesh, write_mesh
 from kpd.runtime import Model
 
@@ -409,3 +409,21 @@ def test_a_first_run_says_once_that_it_compiles_and_a_cached_run_says_nothing(to
     piped = subprocess.run([sys.executable, "-m", "kpd.cli", "keypoints", str(toy), str(chair_file)], env=env,
                            capture_output=True, text=True, timeout=300)
     assert piped.returncode == 0 and piped.stderr == ""  # not a terminal (a log, a test): no note
+
+
+def test_version(capsys):
+    from kpd import __version__
+
+    assert __version__ == tomllib_version()  # the package's and the distribution's
+    with pytest.raises(SystemExit) as stopped:  # argparse's version action ends as --help does
+        build_parser().parse_args(["--version"])
+    assert stopped.value.code == 0
+    assert capsys.readouterr().out == f"kpd {__version__}\n"
+    assert kpd("--version") == 0
+
+
+def tomllib_version() -> str:
+    import tomllib
+
+    with open(Path(__file__).resolve().parents[1] / "pyproject.toml", "rb") as fh:
+        return tomllib.load(fh)["project"]["version"]
