@@ -48,6 +48,8 @@ def njit(**options) -> Callable:
     import numba
 
     def decorate(function: Callable) -> Callable:
+        if _announce is not None:  # every kernel is defined here, before its first compile
+            _listen()
         tolerant = _tolerant_cache_class()
         try:
             if tolerant is None:
@@ -121,17 +123,24 @@ def announce_compiling(write: Callable[[str], None]) -> None:
     first run (``kpd render`` of a 10k-vertex chair: 15 s against 1.4 s once cached). A kernel loaded from the
     cache says nothing. The ``kpd`` command passes a writer to its standard error when that is a terminal.
 
-    numba is not imported here: where it is not imported yet, the listener is installed when it is."""
+    numba is not imported here: where no kernel is defined yet, :func:`njit` installs the listener with the first."""
     global _announce
     with _announce_lock:
         _announce = write
     if "numba" in sys.modules:
         _listen()
-    elif not any(type(finder).__name__ == "NumbaImported" for finder in sys.meta_path):
-        sys.meta_path.insert(0, _numba_imported())
+
+
+_listening = False
 
 
 def _listen() -> None:
+    """Listen to numba's compile event, once per process."""
+    global _listening
+    with _announce_lock:
+        if _listening:
+            return
+        _listening = True
     from numba.core import event
 
     class Compiling(event.Listener):
@@ -146,33 +155,3 @@ def _listen() -> None:
             pass
 
     event.register("numba:compile", Compiling())
-
-
-def _numba_imported():
-    """A finder for ``sys.meta_path`` that finds ``numba`` as the path finder does, with a loader that installs the
-    listener once numba's own import is done; it leaves ``sys.meta_path`` at its first use. (Made when asked for: the
-    import machinery's modules are not loaded for ``kpd --help``.)"""
-    import importlib.abc
-    import importlib.machinery
-
-    class NumbaImported(importlib.abc.MetaPathFinder):
-        def find_spec(self, name, path=None, target=None):
-            if name != "numba":
-                return None
-            try:
-                sys.meta_path.remove(self)
-            except ValueError:
-                pass
-            spec = importlib.machinery.PathFinder.find_spec(name, path)
-            if spec is None or spec.loader is None:
-                return spec
-            exec_module = spec.loader.exec_module
-
-            def exec_then_listen(module) -> None:
-                exec_module(module)
-                _listen()
-
-            spec.loader.exec_module = exec_then_listen
-            return spec
-
-    return NumbaImported()
