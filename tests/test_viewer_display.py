@@ -38,12 +38,12 @@ def test_private_display_runs_and_its_screen_can_be_grabbed(tmp_path):
     assert after.returncode != 0  # the server stopped with the block
 
 
-def test_software_rasteriser_gets_three_threads_a_processor_unless_the_user_says(monkeypatch):
+def test_software_rasteriser_gets_eight_threads_a_processor_unless_the_user_says(monkeypatch):
     from kpd.viewer.gl import _raster_threads
 
     monkeypatch.delenv("LP_NUM_THREADS", raising=False)
     _raster_threads()
-    assert os.environ["LP_NUM_THREADS"] == str(min(3 * (os.cpu_count() or 1), 16))
+    assert os.environ["LP_NUM_THREADS"] == str(min(8 * (os.cpu_count() or 1), 16))
     monkeypatch.setenv("LP_NUM_THREADS", "1")
     _raster_threads()
     assert os.environ["LP_NUM_THREADS"] == "1"
