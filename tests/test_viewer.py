@@ -345,6 +345,7 @@ def test_a_cad_mesh_of_many_triangles_gets_a_fine_stand_in_that_looks_like_it(da
     assert faces.min() >= 0 and faces.max() < len(kept) and len(np.unique(kept)) == len(kept)
     assert (np.diff(np.sort(faces, axis=1), axis=1) > 0).all()  # no collapsed triangles
     assert stand_in(mesh.vertices, drawn[:STAND_IN_TRIANGLES]) is None  # few triangles: drawn whole
+    assert stand_in(mesh.vertices, drawn, fine=False) is None  # textures or materials: drawn whole
     flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)
     assert fine_stand_in(flat, np.array([[0, 1, 2], [1, 3, 2]])) is None  # nothing to collapse
     big = np.tile(drawn, (3, 1))

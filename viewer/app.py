@@ -210,7 +210,7 @@ class EditorApp:
     def _stand_in(self) -> Any:
         from kpd.viewer.gl import stand_in
 
-        return stand_in(self.mesh.vertices, self.drawing.shaded.drawn)
+        return stand_in(self.mesh.vertices, self.drawing.shaded.drawn, fine=not self.mesh.textures)
 
     def _start_worker(self) -> None:
         """The rig of a :class:`Binding`, after the stand-in of a large mesh, on a worker thread."""

@@ -1236,13 +1236,15 @@ def fine_stand_in(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarr
     return (kept, faces) if 4 * len(faces) <= 3 * len(triangles) else None
 
 
-def stand_in(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def stand_in(vertices: np.ndarray, triangles: np.ndarray, *, fine: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
     """The editor's stand-in of a mesh drawing ``triangles``: a coarse one of at most :data:`PROXY_TRIANGLES`
-    triangles for a larger mesh (:func:`proxy_triangles`), a fine one for a mesh of more than
-    :data:`STAND_IN_TRIANGLES` (:func:`fine_stand_in`), else None."""
+    triangles for a larger mesh (:func:`proxy_triangles`), with ``fine`` a fine one for a mesh of more than
+    :data:`STAND_IN_TRIANGLES` (:func:`fine_stand_in`), else None. A stand-in is drawn in the mesh's vertex colours
+    or one colour: the editor asks for a fine one only for a mesh without textures or materials, which would
+    change colour while it is dragged."""
     if len(triangles) > PROXY_TRIANGLES:
         return proxy_triangles(vertices, triangles, PROXY_TRIANGLES)
-    if len(triangles) > STAND_IN_TRIANGLES:
+    if fine and len(triangles) > STAND_IN_TRIANGLES:
         return fine_stand_in(vertices, triangles)
     return None
 
