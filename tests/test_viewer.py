@@ -373,6 +373,54 @@ def test_a_cad_mesh_of_many_triangles_gets_a_fine_stand_in_that_looks_like_it(da
     assert differs.sum() < 0.01 * shape.sum(), differs.sum() / shape.sum()
 
 
+def test_a_stand_in_keeps_the_colours_of_plain_materials(data_dir):
+    """The ShapeNet chair with two plain-colour materials (as kpd.io reads an OBJ's materials without maps): its
+    stand-in is drawn in their colours, the same picture as the whole mesh's but for under 2% of the shape's
+    pixels; a mesh with a texture image gets no fine stand-in (it would change colour while dragged)."""
+    from kpd.io import Mesh, read_mesh
+    from kpd.viewer.display import gl_display
+    from kpd.viewer.gl import GLView, RigDrawing, image_maps, stand_in, stand_in_colors
+    from kpd.viewer.render import ViewSettings, camera_pose
+
+    chair = read_mesh(data_dir.joinpath(*SHAPENET_CHAIR))
+    centres = chair.vertices[chair.triangles].mean(axis=1)
+    ids = (centres[:, 1] > np.median(centres[:, 1])).astype(np.int64)  # the upper half red, the lower blue
+    red, blue = np.array([[[200, 40, 40]]], np.uint8), np.array([[[40, 60, 200]]], np.uint8)
+    mesh = Mesh(vertices=chair.vertices, triangles=chair.triangles, textures=[blue, red], triangle_material_ids=ids,
+                triangle_uvs=np.zeros((3 * len(chair.triangles), 2)))
+    assert not image_maps(mesh)
+    colors = stand_in_colors(mesh)
+    only_red = np.setdiff1d(chair.triangles[ids == 1], chair.triangles[ids == 0])
+    assert len(only_red) > 1000
+    np.testing.assert_allclose(colors[only_red], np.tile(red[0, 0] / 255.0, (len(only_red), 1)))
+    width, height = 480, 360
+    settings = ViewSettings(width=width, height=height, azimuth=30, elevation=20, up="+y")
+    camera = camera_pose(mesh.vertices, settings)
+    with gl_display("egl", width, height):
+        view = GLView(width, height)
+        try:
+            drawing = RigDrawing(view, mesh, settings=settings, digits=False)
+            drawing.set_stand_in(*stand_in(mesh.vertices, drawing.shaded.drawn, fine=not image_maps(mesh)))
+            pictures = []
+            for shown in (drawing.shaded, drawing.proxy):
+                view.clear()
+                shown.set_vertices(shown.mesh.vertices, camera)
+                for i, part in enumerate(shown.geometries):
+                    view.put(f"mesh:{i}", part)
+                view.set_camera(camera)
+                pictures.append(view.capture().astype(np.int64))
+        finally:
+            view.close()
+    shape = (pictures[0] != 255).any(axis=2)
+    assert (pictures[0][..., 0] > pictures[0][..., 2] + 60).mean() > 0.02  # red in the picture
+    assert (pictures[0][..., 2] > pictures[0][..., 0] + 60).mean() > 0.02  # and blue
+    differs = np.abs(pictures[1] - pictures[0]).max(axis=2) > 24
+    assert differs.sum() < 0.02 * shape.sum(), differs.sum() / shape.sum()
+    mapped = Mesh(vertices=chair.vertices, triangles=chair.triangles, textures=[np.full((4, 4, 3), 90, np.uint8)],
+                  triangle_uvs=np.zeros((3 * len(chair.triangles), 2)))
+    assert image_maps(mapped) and stand_in(mapped.vertices, drawing.shaded.drawn, fine=not image_maps(mapped)) is None
+
+
 def test_the_editor_draws_a_fine_stand_in_while_the_whole_mesh_draws_slowly():
     from kpd.viewer.app import GESTURE_BUDGET_MS, draws_stand_in
     from kpd.viewer.gl import PROXY_TRIANGLES

@@ -208,9 +208,9 @@ class EditorApp:
         self._slider_base = self.session.keypoints
 
     def _stand_in(self) -> Any:
-        from kpd.viewer.gl import stand_in
+        from kpd.viewer.gl import image_maps, stand_in
 
-        return stand_in(self.mesh.vertices, self.drawing.shaded.drawn, fine=not self.mesh.textures)
+        return stand_in(self.mesh.vertices, self.drawing.shaded.drawn, fine=not image_maps(self.mesh))
 
     def _start_worker(self) -> None:
         """The rig of a :class:`Binding`, after the stand-in of a large mesh, on a worker thread."""

@@ -1239,14 +1239,40 @@ def fine_stand_in(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarr
 def stand_in(vertices: np.ndarray, triangles: np.ndarray, *, fine: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
     """The editor's stand-in of a mesh drawing ``triangles``: a coarse one of at most :data:`PROXY_TRIANGLES`
     triangles for a larger mesh (:func:`proxy_triangles`), with ``fine`` a fine one for a mesh of more than
-    :data:`STAND_IN_TRIANGLES` (:func:`fine_stand_in`), else None. A stand-in is drawn in the mesh's vertex colours
-    or one colour: the editor asks for a fine one only for a mesh without textures or materials, which would
-    change colour while it is dragged."""
+    :data:`STAND_IN_TRIANGLES` (:func:`fine_stand_in`), else None. A stand-in is drawn in per-vertex colours
+    (:func:`stand_in_colors`): the editor asks for a fine one only for a mesh without a texture image
+    (:func:`image_maps`), which would change colour while it is dragged."""
     if len(triangles) > PROXY_TRIANGLES:
         return proxy_triangles(vertices, triangles, PROXY_TRIANGLES)
     if fine and len(triangles) > STAND_IN_TRIANGLES:
         return fine_stand_in(vertices, triangles)
     return None
+
+
+def image_maps(mesh: Any) -> bool:
+    """Whether ``mesh`` is drawn with a texture image (not only plain material colours, which kpd.io reads as 1x1
+    images): its stand-ins, drawn in per-vertex colours, would change colour."""
+    return (bool(mesh.textures) and mesh.triangle_uvs is not None
+            and any(t.shape[0] * t.shape[1] > 1 for t in mesh.textures))
+
+
+def stand_in_colors(mesh: Any) -> np.ndarray | None:
+    """(V, 3) float64 colours in [0, 1] for a stand-in of ``mesh``: its vertex colours, or of a mesh whose materials
+    are plain colours each vertex's material colour (of the last triangle it is a corner of: a cell of a stand-in
+    takes one of its vertices' colours); None for a mesh drawn in one colour."""
+    textured = bool(mesh.textures) and mesh.triangle_uvs is not None
+    if not textured:
+        return None if mesh.vertex_colors is None else np.asarray(mesh.vertex_colors, dtype=np.float64)
+    palette = np.full((len(mesh.textures), 3), 0.5)  # an image map's colour: its mean
+    for i, texture in enumerate(mesh.textures):
+        rgb = texture.reshape(-1, texture.shape[-1] if texture.ndim == 3 else 1)
+        rgb = rgb[:, :3] if rgb.shape[1] >= 3 else np.repeat(rgb[:, :1], 3, axis=1)
+        palette[i] = rgb.mean(axis=0) / 255.0
+    ids = (np.zeros(len(mesh.triangles), np.int64) if mesh.triangle_material_ids is None
+           else np.clip(np.asarray(mesh.triangle_material_ids, dtype=np.int64), 0, len(palette) - 1))
+    colors = np.full((len(mesh.vertices), 3), 0.8)
+    colors[np.asarray(mesh.triangles, dtype=np.int64).reshape(-1)] = np.repeat(palette[ids], 3, axis=0)
+    return colors
 
 
 def _clustered(vertices: np.ndarray, triangles: np.ndarray, lo: np.ndarray, hi: np.ndarray,
@@ -1700,7 +1726,8 @@ class RigDrawing:
         (made off the main thread: it takes a second or more for millions of triangles)."""
         from kpd.io import Mesh
 
-        colors = None if self.mesh.vertex_colors is None else self.mesh.vertex_colors[kept]
+        colors = stand_in_colors(self.mesh)
+        colors = None if colors is None else colors[kept]
         self.proxy = ShadedMesh(Mesh(vertices=self.mesh.vertices[kept], triangles=faces, vertex_colors=colors),
                                 self.settings.mesh_color)
         self._kept = kept
