@@ -323,6 +323,28 @@ def test_stand_in_of_a_large_mesh_is_coarse_and_made_of_its_vertices():
     np.testing.assert_allclose(radii, 1.0, atol=1e-9)  # original vertices: the deformed mesh's rows give its stand-in
 
 
+def _pictures(shaded_meshes, camera, width: int, height: int) -> list:
+    """(H, W, 3) int64 pictures of each ShadedMesh of ``shaded_meshes(view)`` drawn alone as ``camera`` sees it, in a
+    hidden view (EGL)."""
+    from kpd.viewer.display import gl_display
+    from kpd.viewer.gl import GLView
+
+    with gl_display("egl", width, height):
+        view = GLView(width, height)
+        try:
+            pictures = []
+            for shown in shaded_meshes(view):
+                view.clear()
+                shown.set_vertices(shown.mesh.vertices, camera)
+                for i, part in enumerate(shown.geometries):
+                    view.put(f"mesh:{i}", part)
+                view.set_camera(camera)
+                pictures.append(view.capture().astype(np.int64))
+        finally:
+            view.close()
+    return pictures
+
+
 SHAPENET_CHAIR = ("keypointnet", "models", "03001627", "eaf231f17fccb96d81dff5c2e57ad46e", "model.obj")
 
 
@@ -331,9 +353,7 @@ def test_a_cad_mesh_of_many_triangles_gets_a_fine_stand_in_that_looks_like_it(da
     vertices, draws at most three quarters of its triangles, and its picture is the whole mesh's but for under 1%
     of the shape's pixels; a mesh of few triangles gets none, a large one the coarse one."""
     from kpd.io import Mesh, read_mesh
-    from kpd.viewer.display import gl_display
-    from kpd.viewer.gl import (PROXY_TRIANGLES, STAND_IN_TRIANGLES, GLView, ShadedMesh, fine_stand_in,
-                               proxy_triangles, stand_in)
+    from kpd.viewer.gl import PROXY_TRIANGLES, STAND_IN_TRIANGLES, ShadedMesh, fine_stand_in, proxy_triangles, stand_in
     from kpd.viewer.render import ViewSettings, camera_pose
 
     mesh = read_mesh(data_dir.joinpath(*SHAPENET_CHAIR))
@@ -354,19 +374,8 @@ def test_a_cad_mesh_of_many_triangles_gets_a_fine_stand_in_that_looks_like_it(da
     width, height = 480, 360
     settings = ViewSettings(width=width, height=height, azimuth=30, elevation=20, up="+y")
     camera = camera_pose(mesh.vertices, settings)
-    with gl_display("egl", width, height):
-        view = GLView(width, height)
-        try:
-            pictures = []
-            for shown in (shaded, ShadedMesh(Mesh(vertices=mesh.vertices[kept], triangles=faces))):
-                view.clear()
-                shown.set_vertices(shown.mesh.vertices, camera)
-                for i, part in enumerate(shown.geometries):
-                    view.put(f"mesh:{i}", part)
-                view.set_camera(camera)
-                pictures.append(view.capture().astype(np.int64))
-        finally:
-            view.close()
+    pictures = _pictures(lambda _view: (shaded, ShadedMesh(Mesh(vertices=mesh.vertices[kept], triangles=faces))),
+                         camera, width, height)
     shape = (pictures[0] != 255).any(axis=2)
     assert shape.mean() > 0.05  # the chair is in the picture
     differs = np.abs(pictures[1] - pictures[0]).max(axis=2) > 24
@@ -378,8 +387,7 @@ def test_a_stand_in_keeps_the_colours_of_plain_materials(data_dir):
     stand-in is drawn in their colours, the same picture as the whole mesh's but for under 2% of the shape's
     pixels; a mesh with a texture image gets no fine stand-in (it would change colour while dragged)."""
     from kpd.io import Mesh, read_mesh
-    from kpd.viewer.display import gl_display
-    from kpd.viewer.gl import GLView, RigDrawing, image_maps, stand_in, stand_in_colors
+    from kpd.viewer.gl import RigDrawing, ShadedMesh, image_maps, stand_in, stand_in_colors
     from kpd.viewer.render import ViewSettings, camera_pose
 
     chair = read_mesh(data_dir.joinpath(*SHAPENET_CHAIR))
@@ -396,21 +404,12 @@ def test_a_stand_in_keeps_the_colours_of_plain_materials(data_dir):
     width, height = 480, 360
     settings = ViewSettings(width=width, height=height, azimuth=30, elevation=20, up="+y")
     camera = camera_pose(mesh.vertices, settings)
-    with gl_display("egl", width, height):
-        view = GLView(width, height)
-        try:
-            drawing = RigDrawing(view, mesh, settings=settings, digits=False)
-            drawing.set_stand_in(*stand_in(mesh.vertices, drawing.shaded.drawn, fine=not image_maps(mesh)))
-            pictures = []
-            for shown in (drawing.shaded, drawing.proxy):
-                view.clear()
-                shown.set_vertices(shown.mesh.vertices, camera)
-                for i, part in enumerate(shown.geometries):
-                    view.put(f"mesh:{i}", part)
-                view.set_camera(camera)
-                pictures.append(view.capture().astype(np.int64))
-        finally:
-            view.close()
+    def whole_and_stand_in(view):
+        drawing = RigDrawing(view, mesh, settings=settings, digits=False)
+        drawing.set_stand_in(*stand_in(mesh.vertices, drawing.shaded.drawn, fine=not image_maps(mesh)))
+        return drawing.shaded, drawing.proxy
+
+    pictures = _pictures(whole_and_stand_in, camera, width, height)
     shape = (pictures[0] != 255).any(axis=2)
     assert (pictures[0][..., 0] > pictures[0][..., 2] + 60).mean() > 0.02  # red in the picture
     assert (pictures[0][..., 2] > pictures[0][..., 0] + 60).mean() > 0.02  # and blue
@@ -418,7 +417,8 @@ def test_a_stand_in_keeps_the_colours_of_plain_materials(data_dir):
     assert differs.sum() < 0.02 * shape.sum(), differs.sum() / shape.sum()
     mapped = Mesh(vertices=chair.vertices, triangles=chair.triangles, textures=[np.full((4, 4, 3), 90, np.uint8)],
                   triangle_uvs=np.zeros((3 * len(chair.triangles), 2)))
-    assert image_maps(mapped) and stand_in(mapped.vertices, drawing.shaded.drawn, fine=not image_maps(mapped)) is None
+    drawn = ShadedMesh(mesh).drawn
+    assert image_maps(mapped) and stand_in(mapped.vertices, drawn, fine=not image_maps(mapped)) is None
 
 
 def test_the_editor_draws_a_fine_stand_in_while_the_whole_mesh_draws_slowly():
