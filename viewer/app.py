@@ -95,7 +95,7 @@ def draws_stand_in(drawn: int, whole_ms: Any) -> bool:
     ShapeNet chair (19,900 distinct triangles) drawn whole took 30 ms a drag step in the median quiet and 32-39 ms
     beside a busy process, with the slowest step of a session at 37 ms and 39-53 ms; its fine stand-in
     (:func:`kpd.viewer.gl.fine_stand_in`, 10,468 triangles) is the same picture but for 0.4% of its pixels, and
-    took 20-25 ms in the median and 26-38 ms at most quiet, 22-36 ms and 29-47 ms beside a busy process."""
+    took 20-25 ms in the median and 26-38 ms at most quiet, 21-36 ms and 29-47 ms beside a busy process."""
     from kpd.viewer.gl import PROXY_TRIANGLES
 
     if drawn > PROXY_TRIANGLES:
