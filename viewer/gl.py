@@ -992,7 +992,7 @@ class ShadedMesh:
         self.welding = _Welding(mesh.vertices, grouped=mesh.position_groups())  # the binding's groups too
         self.parts: list[_Part] = []
         t = len(triangles)
-        textured = bool(mesh.textures) and mesh.triangle_uvs is not None and not override
+        textured = _textured(mesh) and not override
         ids = (mesh.triangle_material_ids if mesh.triangle_material_ids is not None else np.zeros(t, np.int64)) \
             if textured else np.zeros(t, np.int64)
         materials = np.unique(ids) if textured and t else [0]
@@ -1013,8 +1013,7 @@ class ShadedMesh:
             uvs = None
             if texture is not None and texture.shape[0] * texture.shape[1] == 1:
                 # a material's plain colour (kpd.io reads an OBJ material without a map as a 1x1 image): shaded
-                rgb = texture.reshape(-1)[:3] if texture.shape[-1] >= 3 else np.repeat(texture.reshape(-1)[:1], 3)
-                albedo = rgb.astype(np.float32) / 255.0  # (3,)
+                albedo = _mean_rgb(texture).astype(np.float32) / 255.0  # (3,)
             elif texture is not None:
                 # (Tp, 3, 2). Tiled maps (UVs beyond [0, 1], common in CAD models): the legacy renderer does not
                 # repeat a texture (black beyond it), so each triangle moves by whole tiles into the first one;
@@ -1211,8 +1210,9 @@ def proxy_triangles(vertices: np.ndarray, triangles: np.ndarray, limit: int) -> 
     lo, hi = box([vertices])
     extent = float((hi - lo).max()) or 1.0
     size = extent / math.sqrt(limit)  # about sqrt(limit) cells across the largest side
+    scratch = _cluster_scratch(len(vertices), len(triangles))  # for every try (fresh: 6 ms of a 73 ms try at 1.37M)
     for _ in range(12):
-        kept, faces = _clustered(vertices, triangles, lo, hi, size)
+        kept, faces = _clustered(vertices, triangles, lo, hi, size, scratch)
         if len(faces) <= limit:
             return kept, faces
         size *= 1.1 * math.sqrt(len(faces) / limit)
@@ -1249,25 +1249,31 @@ def stand_in(vertices: np.ndarray, triangles: np.ndarray, *, fine: bool = True) 
     return None
 
 
+def _textured(mesh: Any) -> bool:
+    """Whether ``mesh`` is drawn by its materials (textures, and the UVs they need), not in one colour."""
+    return bool(mesh.textures) and mesh.triangle_uvs is not None
+
+
+def _mean_rgb(texture: np.ndarray) -> np.ndarray:
+    """(3,) float64 in [0, 255]: a texture's mean colour (a plain material's colour, read as a 1x1 image)."""
+    rgb = texture.reshape(-1, texture.shape[2]) if texture.ndim == 3 else texture.reshape(-1, 1)
+    rgb = rgb[:, :3] if rgb.shape[1] >= 3 else np.repeat(rgb[:, :1], 3, axis=1)
+    return rgb.mean(axis=0)
+
+
 def image_maps(mesh: Any) -> bool:
     """Whether ``mesh`` is drawn with a texture image (not only plain material colours, which kpd.io reads as 1x1
     images): its stand-ins, drawn in per-vertex colours, would change colour."""
-    return (bool(mesh.textures) and mesh.triangle_uvs is not None
-            and any(t.shape[0] * t.shape[1] > 1 for t in mesh.textures))
+    return _textured(mesh) and any(t.shape[0] * t.shape[1] > 1 for t in mesh.textures)
 
 
 def stand_in_colors(mesh: Any) -> np.ndarray | None:
     """(V, 3) float64 colours in [0, 1] for a stand-in of ``mesh``: its vertex colours, or of a mesh whose materials
     are plain colours each vertex's material colour (of the last triangle it is a corner of: a cell of a stand-in
     takes one of its vertices' colours); None for a mesh drawn in one colour."""
-    textured = bool(mesh.textures) and mesh.triangle_uvs is not None
-    if not textured:
+    if not _textured(mesh):
         return None if mesh.vertex_colors is None else np.asarray(mesh.vertex_colors, dtype=np.float64)
-    palette = np.full((len(mesh.textures), 3), 0.5)  # an image map's colour: its mean
-    for i, texture in enumerate(mesh.textures):
-        rgb = texture.reshape(-1, texture.shape[-1] if texture.ndim == 3 else 1)
-        rgb = rgb[:, :3] if rgb.shape[1] >= 3 else np.repeat(rgb[:, :1], 3, axis=1)
-        palette[i] = rgb.mean(axis=0) / 255.0
+    palette = np.array([_mean_rgb(texture) / 255.0 for texture in mesh.textures])  # an image map's: its mean
     ids = (np.zeros(len(mesh.triangles), np.int64) if mesh.triangle_material_ids is None
            else np.clip(np.asarray(mesh.triangle_material_ids, dtype=np.int64), 0, len(palette) - 1))
     colors = np.full((len(mesh.vertices), 3), 0.8)
@@ -1275,13 +1281,19 @@ def stand_in_colors(mesh: Any) -> np.ndarray | None:
     return colors
 
 
-def _clustered(vertices: np.ndarray, triangles: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-               size: float) -> tuple[np.ndarray, np.ndarray]:
+def _cluster_scratch(num_vertices: int, num_triangles: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_clustered`'s working arrays: the cell of each vertex (numbered as first met), the first vertex of
+    each cell, and each triangle's first triangle over the same cells."""
+    return (np.empty(num_vertices, dtype=np.int64), np.empty(num_vertices, dtype=np.int64),
+            np.empty(num_triangles, dtype=np.int64))
+
+
+def _clustered(vertices: np.ndarray, triangles: np.ndarray, lo: np.ndarray, hi: np.ndarray, size: float,
+               scratch: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Vertices clustered on a grid of cells of ``size`` from ``lo``: ``(kept, faces)``, the first vertex of each
-    cell and the triangles that do not collapse (each set of corners once) over them."""
-    cluster = np.empty(len(vertices), dtype=np.int64)  # (V,) the cell of each vertex, numbered as first met
-    first = np.empty(len(vertices), dtype=np.int64)
-    same = np.empty(len(triangles), dtype=np.int64)
+    cell and the triangles that do not collapse (each set of corners once) over them. ``scratch``: a
+    :func:`_cluster_scratch` to work in (made here if None)."""
+    cluster, first, same = scratch or _cluster_scratch(len(vertices), len(triangles))
     span = np.floor((hi - lo) / size).astype(np.int64) + 1  # cells along each axis
     count = _cells(vertices, lo, size, span, cluster, first)
     same_corners(triangles, cluster, count, True, same)
