@@ -404,6 +404,7 @@ def test_a_stand_in_keeps_the_colours_of_plain_materials(data_dir):
     width, height = 480, 360
     settings = ViewSettings(width=width, height=height, azimuth=30, elevation=20, up="+y")
     camera = camera_pose(mesh.vertices, settings)
+
     def whole_and_stand_in(view):
         drawing = RigDrawing(view, mesh, settings=settings, digits=False)
         drawing.set_stand_in(*stand_in(mesh.vertices, drawing.shaded.drawn, fine=not image_maps(mesh)))
