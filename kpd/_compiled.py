@@ -120,7 +120,7 @@ def announce_compiling(write: Callable[[str], None]) -> None:
 
     A compile means numba's cache had no kernel for this processor. That happens on the first run after
     installing, after an upgrade of kpd or numba, or with a new type of input. It takes seconds for each command's
-    first run (``kpd render`` of a 10k-vertex chair: 15 s against 1.4 s once cached). A kernel loaded from the
+    first run. A kernel loaded from the
     cache says nothing. The ``kpd`` command passes a writer to its standard error when that is a terminal.
 
     numba is not imported here: where no kernel is defined yet, :func:`njit` installs the listener with the first."""

@@ -61,9 +61,9 @@ def main(argv: list[str] | None = None) -> int:
 def _end_program(code: int) -> None:
     """End the program now, without the interpreter's teardown.
 
-    The teardown frees every object one by one and collects the cycles among them: 0.2-0.35 s after any command
-    (numba's, SciPy's and Open3D's modules, a dense mesh's arrays), while the operating system frees the process's
-    memory at once anyway. What the interpreter's exit does before it is done here the same way: the threads still
+    The teardown frees every object one by one and collects the cycles among them (numba's, SciPy's and Open3D's
+    modules, a dense mesh's arrays), a noticeable part of a short command, while the operating system frees the
+    process's memory at once anyway. What the interpreter's exit does before it is done here the same way: the threads still
     at work are waited for (and idle pool workers woken to end: ``threading._shutdown``, which the interpreter calls
     first), the functions registered with :mod:`atexit` run (logging's flush, multiprocessing's children), and both
     output streams are flushed. An interpreter without ``threading._shutdown`` ends as usual."""
@@ -88,8 +88,7 @@ def _main(argv: list[str] | None) -> int:
         return int(exc.code or 0)
     if argv is None:  # the program itself (not a caller's process, whose objects are not ours to freeze)
         # the objects made so far (the commands' modules, the parser) live as long as the process: the cyclic
-        # garbage collector need not go through them again at each collection (40-60 ms of kpd render at 1.3M
-        # vertices)
+        # garbage collector need not go through them again at each collection
         gc.freeze()
         _keep_freed_memory()
         if args.command != "train":  # torchrun stops its ranks itself

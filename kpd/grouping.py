@@ -8,9 +8,8 @@ that at the door).
 Positions go through a hash table of their bits (:func:`coincident_first`), integer keys not much larger than their
 number (the vertices of a mesh's corners) through a table indexed by the key (:func:`_direct_groups`), a corner's
 vertex and UV through a table of each vertex's groups (:func:`vertex_value_groups`); other keys through a sort of
-their bytes (:func:`_sorted_groups`), the reference the others are tested against. On the 16.5M corners of a
-1.37M-vertex chair: the vertices in 0.16 s (the sort took 6.0 s, most of writing the chair to glTF), the vertices
-and UVs in 0.22 s (the hash table of the joined rows took 1.3 s), the float32 positions of its STL in 0.78 s.
+their bytes (:func:`_sorted_groups`), the reference the others are tested against. The tables cost a pass over the
+rows where a sort grows faster than the rows, which matters for the millions of corners of a dense scan.
 """
 
 from __future__ import annotations
@@ -59,8 +58,8 @@ def first_occurrence_groups(keys: np.ndarray) -> Groups:
         of each row, so ``keys[first][index]`` equals ``keys`` (up to the sign of zeros).
 
     Positions, (R, 3) float64 or float32, go through :func:`coincident_first`'s hash table, and so do (R, 1) and
-    (R, 2) float rows (UVs) of at least ``_DIRECT_ROWS`` rows, padded with zeros (16.5M random UVs in 2.9 s against
-    19 s for the sort, on a busy machine); integer keys, (R,) or (R, 1), of at least ``_DIRECT_ROWS`` rows
+    (R, 2) float rows (UVs) of at least ``_DIRECT_ROWS`` rows, padded with zeros (several times faster than the
+    sort); integer keys, (R,) or (R, 1), of at least ``_DIRECT_ROWS`` rows
     whose values lie in [0, 4 R + 1024) through a table indexed by the value (:func:`_direct_groups`); as many
     float rows of more than three columns (positions and normals) by their first three's groups, then the rest
     within each (:func:`vertex_value_groups`); other keys through a sort (:func:`_sorted_groups`). The same groups
@@ -90,7 +89,7 @@ def first_occurrence_groups(keys: np.ndarray) -> Groups:
     return _sorted_groups(keys)
 
 
-_DIRECT_ROWS = 1 << 16  # fewer integer keys are sorted: numba's import (0.5 s) costs more than their sort (20 ms)
+_DIRECT_ROWS = 1 << 16  # fewer integer keys are sorted: numba's import costs more than their sort
 
 
 def _direct_bound(rows: int) -> int:
@@ -303,8 +302,7 @@ def coincident_first(vertices: np.ndarray) -> np.ndarray:
     numbers).
 
     For callers that need which rows coincide and not :func:`merge_coincident`'s sorted positions: one pass through
-    a hash table of the rows' bit patterns, a fifth of the sort's time on a 1.28M-vertex scan (45-60 ms against
-    0.23-0.28 s). float32 rows (an STL's corners) are hashed as they are, 12 bytes a row.
+    a hash table of the rows' bit patterns (a fifth of the sort's time on a dense scan). float32 rows (an STL's corners) are hashed as they are, 12 bytes a row.
 
     Returns
     -------

@@ -189,7 +189,7 @@ class Mesh:
 
         Computed once per mesh, on first use, and kept (the arrays are shared: treat them as read-only): binding a
         mesh and getting it ready to draw both need them, and a command does the two at once on two threads (a
-        second asker waits for the first's result; 0.3 s at 1.4M vertices).
+        second asker waits for the first's result).
         """
         with self._positions_lock:
             if self._positions is None:
