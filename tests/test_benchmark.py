@@ -26,13 +26,31 @@ def test_write_json_refuses_a_folder_in_one_error_and_leaves_it_as_it_was(tmp_pa
     assert [p.name for p in folder.iterdir()] == ["inside"] and sorted(p.name for p in tmp_path.iterdir()) == ["x.json"]
 
 
-def test_timers_measure_the_call():
+class _Clock:
+    """A clock that a call advances by a known amount: the timers' arithmetic is checked without real time."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_timers_measure_the_call(monkeypatch):
+    clock = _Clock()
+    monkeypatch.setattr(time, "perf_counter", clock)
+    durations = iter([0.5, 0.5, 0.003, 0.001, 0.002, 0.004, 0.005])  # two warm-up calls, then five timed
     calls = []
-    ms = median_ms(lambda: (calls.append(1), time.sleep(0.002)), repeats=5, warmup=2)
-    assert len(calls) == 7 and 1.5 <= ms < 200
-    fast = best_seconds(lambda: None, repeats=3)
-    slow = best_seconds(lambda: time.sleep(0.003), repeats=3)
-    assert 0 <= fast < slow and slow >= 0.0025
+
+    def call():
+        calls.append(1)
+        clock.now += next(durations)
+
+    assert median_ms(call, repeats=5, warmup=2) == pytest.approx(3.0)  # the median of 1-5 ms; the warm-up not timed
+    assert len(calls) == 7
+    steps = iter([0.9, 0.004, 0.002, 0.003])  # one untimed call, then three timed
+    assert best_seconds(lambda: setattr(clock, "now", clock.now + next(steps)), repeats=3,
+                        clock=clock) == pytest.approx(0.002)
 
 
 def test_machine_speed_times_a_sort_and_fresh_pages():
