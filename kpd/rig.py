@@ -24,13 +24,9 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-import numba  # before numba.core's modules, which cannot be imported first
 import numpy as np
-from llvmlite import ir
-from numba.core import types
-from numba.extending import intrinsic
 
-from kpd._compiled import njit
+from kpd.basis import coincident_mvc_basis, coincident_mvc_weights, compact_basis, distinct_points, edit, edit_rows
 from kpd.cage import Cage, cage_faces_from_vertices, default_m, fit_cage, influence_mask
 from kpd.errors import InputError
 from kpd.geometry import Normalizer, as_points, sample_surface
@@ -43,7 +39,11 @@ from kpd.straighten import (STRAIGHTEN_REACH, STRAIGHTEN_THINNESS, STRAIGHTEN_TO
                             straighten_basis, straighten_system)
 
 # names kept importable from kpd.rig, where code and docs written against it look for them
+from kpd.basis import compact_basis as _compact_basis  # noqa: F401
+from kpd.basis import edit as _edit  # noqa: F401
+from kpd.basis import edit_rows as _edit_rows  # noqa: F401
 from kpd.grouping import first_occurrence_groups  # noqa: F401
+from kpd.grouping import merge_coincident as _merge_coincident  # noqa: F401
 from kpd.straighten import _SEEDS_ON_TWO_THREADS, _STRAIGHTEN_CAP, _Correction, _factorised, _row  # noqa: F401
 from kpd.straighten import _sliver_weight  # noqa: F401
 from kpd.straighten import StraightenSystem as _StraightenSystem  # noqa: F401
@@ -58,7 +58,6 @@ log = logging.getLogger(__name__)
 RIG_FORMAT = "kpd-rig/3"  # /3 stores the edit basis, not the (V, C) weights; /1 and /2 files are still read
 _READ_FORMATS = ("kpd-rig/1", "kpd-rig/2", RIG_FORMAT)  # /2 added the optional basis_correction to /1
 _CAGE_SAMPLE_POINTS = 2048
-_FLOAT32_ROW_SUM = 16.0  # a basis whose rows' absolute sums stay below this is kept in float32 (see _compact_basis)
 TRANSFER_SIGMA = 0.3  # width of the neighbourhood each keypoint's motion is kept in, [-1, 1] box units
 TRANSFER_RIDGE = 1e-4  # ridge of the transfer's least squares, relative to the neighbourhood's weight
 TRANSFER_SUPPORT = 2  # rig-cage vertices per keypoint in a transfer, in multiples of the model's M
@@ -149,7 +148,7 @@ class Rig:
         if self._weights is not None:
             return self._weights
         vertices = self.normalizer.apply(self.mesh.vertices)
-        points, inverse = _merge_coincident(vertices)
+        points, inverse = merge_coincident(vertices)
         return mvc_weights_compiled(points, self.cage.vertices, self.cage.faces)[inverse]
 
     @property
@@ -245,7 +244,7 @@ class Rig:
             basis = mvc_project(points, cage.vertices, cage.faces, masked.T)  # (n, K) float64
         straightened = building is not None and straighten_system(building.result(), basis, STRAIGHTEN_TOLERANCE)
         del building
-        basis = _compact_basis(basis)
+        basis = compact_basis(basis)
         if len(points) < len(vertices):
             basis = basis[inverse]  # (V, K)
         del points
@@ -267,7 +266,7 @@ class Rig:
     @property
     def basis(self) -> np.ndarray:
         """(V, K) float32 or float64: vertex offset per unit keypoint offset (read-only view; float32 when that keeps
-        edits within 1e-6 of the box diagonal, see :func:`_compact_basis`)."""
+        edits within 1e-6 of the box diagonal, see :func:`compact_basis`)."""
         view = self._basis_t.T  # (V, K), Fortran-ordered
         view.flags.writeable = False
         return view
@@ -303,13 +302,13 @@ class Rig:
         # One pass over the basis on the calling thread, in float64: the product is memory-bound, and a
         # multi-threaded BLAS call stalls for tens of milliseconds when another process holds the other cores.
         if rows is None:
-            _edit(self._basis_t, offsets, self._rest_vertices, out)
+            edit(self._basis_t, offsets, self._rest_vertices, out)
         else:
             rows = np.asarray(rows)
             if rows.ndim != 1 or rows.dtype.kind not in "iu" or (len(rows) and (
                     rows.min() < 0 or rows.max() >= len(out))):
                 raise InputError(f"rows must be (P,) vertex indices in [0, {len(out)})")
-            _edit_rows(self._basis_t, offsets, self._rest_vertices, rows.astype(np.int64, copy=False), out)
+            edit_rows(self._basis_t, offsets, self._rest_vertices, rows.astype(np.int64, copy=False), out)
         return out
 
     def deform_cage(self, keypoints: Any) -> np.ndarray:
@@ -512,155 +511,6 @@ def transfer_influence(
     return result
 
 
-def coincident_mvc_weights(vertices: Any, cage: Cage) -> np.ndarray:
-    """(V, C) mean value coordinates of ``vertices`` in ``cage``, computed once per distinct position.
-
-    CAD meshes store one vertex per triangle corner (ModelNet10's chairs have about four vertices per position), and
-    the coordinates of a position do not depend on how often it is stored: this is :func:`kpd.mvc.mvc_weights` at a
-    quarter of the cost on such meshes, with the same result.
-    """
-    vertices = as_points(vertices, "vertices")
-    points, inverse = _merge_coincident(vertices)
-    if len(points) == len(vertices):
-        return mvc_weights(vertices, cage.vertices, cage.faces)
-    return mvc_weights(points, cage.vertices, cage.faces)[inverse]
-
-
-def coincident_mvc_basis(vertices: Any, cage: Cage, rows: Any) -> np.ndarray:
-    """(V, R) float64: ``coincident_mvc_weights(vertices, cage) @ rows`` without the (V, C) weights.
-
-    Computed once per distinct position by the compiled kernel (:func:`kpd.mvc_fast.mvc_project`); with
-    ``rows = influence.T`` (C, K) this is a rig's edit basis before straightening.
-    """
-    vertices = as_points(vertices, "vertices")
-    points, inverse = _merge_coincident(vertices)
-    if len(points) == len(vertices):
-        return mvc_project(vertices, cage.vertices, cage.faces, rows)
-    return mvc_project(points, cage.vertices, cage.faces, rows)[inverse]
-
-
-def _compact_basis(basis: np.ndarray) -> np.ndarray:
-    """``basis`` (V, K) in float32 when that moves no vertex by more than 1e-6 of the box diagonal for keypoint
-    moves of up to a box diagonal each, else as it is.
-
-    Rounding to float32 changes each entry by at most 2^-24 of it, so a vertex moves by at most
-    ``2^-24 · Σ_k |B_vk| · max_k |Δp_k|``: within 1e-6 of a diagonal ``max_k |Δp_k|`` when every row's absolute
-    sum is below 16 (a mesh inside its cage has rows that sum to about 1 per keypoint that moves it).
-    """
-    if basis.dtype == np.float32 or not len(basis):
-        return basis
-    if _largest_row_sum(np.ascontiguousarray(basis, dtype=np.float64)) > _FLOAT32_ROW_SUM:
-        return basis
-    return basis.astype(np.float32)
-
-
-@njit(nogil=True)
-def _largest_row_sum(basis):  # pragma: no cover - compiled
-    """``np.abs(basis).sum(axis=1).max()`` without the (V, K) temporary (NaN if any entry is NaN)."""
-    largest = 0.0
-    for v in range(basis.shape[0]):
-        total = 0.0
-        for k in range(basis.shape[1]):
-            total += abs(basis[v, k])
-        if total != total:
-            return total
-        largest = max(largest, total)
-    return largest
-
-
-_EDIT_LANES = 256  # vertices per block of an edit
-
-
-@intrinsic
-def _store_streaming(typingctx, array, index, value):  # pragma: no cover - compiled
-    """``array[index] = value`` for a 1-d float64 array, as a non-temporal store: the line is written to memory
-    without being read into the cache first, as a plain store does (half the memory traffic of writing an output
-    that nothing reads soon). Other threads see it after :func:`_streaming_done`."""
-
-    def codegen(context, builder, signature, args):
-        data = context.make_array(signature.args[0])(context, builder, args[0]).data
-        store = builder.store(args[2], builder.gep(data, [args[1]]))
-        store.set_metadata("nontemporal", builder.module.add_metadata([ir.Constant(ir.IntType(32), 1)]))
-        return context.get_dummy_value()
-
-    return types.void(array, types.intp, types.float64), codegen
-
-
-@intrinsic
-def _streaming_done(typingctx):  # pragma: no cover - compiled
-    """A full memory fence (``mfence`` on x86, ``dmb`` on ARM): the non-temporal stores before it are in memory
-    for every thread after it."""
-
-    def codegen(context, builder, signature, args):
-        builder.fence("seq_cst")
-        return context.get_dummy_value()
-
-    return types.void(), codegen
-
-
-@njit(nogil=True, error_model="numpy")
-def _edit(basis_t, offsets, rest, out):  # pragma: no cover - compiled
-    """``out = rest + basis_t.T @ offsets`` with float64 sums: (K, V) basis of float32 or float64, (K, 3) offsets.
-
-    Blocks of vertices, each keypoint's row of the block in order: the loops over the block are SIMD code (one pass
-    at 1.37M vertices takes about 10 ms; a vertex at a time, 12 dependent sums, took 27 ms). The rows of keypoints
-    that did not move are not read: a drag of one keypoint reads one row of the basis, not K. The pass is bound by
-    memory, so ``out`` is written with non-temporal stores (:func:`_store_streaming`): 13-19% less time at 1.37M
-    vertices, one keypoint moved or all twelve."""
-    moved = np.zeros(offsets.shape[0], dtype=np.int64)
-    k = 0
-    for j in range(offsets.shape[0]):
-        if offsets[j, 0] != 0.0 or offsets[j, 1] != 0.0 or offsets[j, 2] != 0.0:
-            moved[k] = j
-            k += 1
-    n_all = rest.shape[0]
-    x = np.empty(_EDIT_LANES)
-    y = np.empty(_EDIT_LANES)
-    z = np.empty(_EDIT_LANES)
-    flat = out.reshape(-1)  # C-contiguous (V, 3): vertex v's coordinates at 3v, 3v + 1, 3v + 2
-    for start in range(0, n_all, _EDIT_LANES):
-        n = min(_EDIT_LANES, n_all - start)
-        for i in range(n):
-            x[i] = rest[start + i, 0]
-            y[i] = rest[start + i, 1]
-            z[i] = rest[start + i, 2]
-        for m in range(k):
-            j = moved[m]
-            o0 = offsets[j, 0]
-            o1 = offsets[j, 1]
-            o2 = offsets[j, 2]
-            row = basis_t[j, start:start + n]
-            for i in range(n):
-                b = np.float64(row[i])
-                x[i] += b * o0
-                y[i] += b * o1
-                z[i] += b * o2
-        for i in range(n):
-            v = 3 * (start + i)
-            _store_streaming(flat, v, x[i])
-            _store_streaming(flat, v + 1, y[i])
-            _store_streaming(flat, v + 2, z[i])
-    _streaming_done()
-
-
-@njit(nogil=True, error_model="numpy")
-def _edit_rows(basis_t, offsets, rest, rows, out):  # pragma: no cover - compiled
-    """:func:`_edit` for the vertices ``rows`` only."""
-    k = offsets.shape[0]
-    for v in rows:
-        x = rest[v, 0]
-        y = rest[v, 1]
-        z = rest[v, 2]
-        for j in range(k):
-            b = np.float64(basis_t[j, v])
-            x += b * offsets[j, 0]
-            y += b * offsets[j, 1]
-            z += b * offsets[j, 2]
-        out[v, 0] = x
-        out[v, 1] = y
-        out[v, 2] = z
-
-
 # What binding adds at its peak to a process that has read the mesh and loaded the model (the surface sample, the
 # mesh's copies, the basis and the straightening's system and factorisations; CAD meshes, full of slivers, are the
 # worst case), with what the commands that bind add to draw it: measured 2026-12-06 (12 keypoints) for the
@@ -745,17 +595,6 @@ def check_bind_memory(vertices: int, triangles: int, keypoints: int) -> None:
 
 def _size(count: int) -> str:
     return f"{count / 2**30:.1f} GiB" if count >= 2**30 else f"{count / 2**20:.0f} MiB"
-
-
-def distinct_points(vertices: Any) -> np.ndarray:
-    """(n, 3) the distinct positions among ``vertices`` (V, 3), in lexicographic order."""
-    return _merge_coincident(as_points(vertices, "vertices"))[0]
-
-
-def _merge_coincident(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distinct positions (n, 3) and, per vertex, the index of its position (V,): coincident corners merged
-    (:func:`kpd.grouping.merge_coincident`, the one grouping by position kpd has)."""
-    return merge_coincident(vertices)
 
 
 def _read_table(path: Path, columns: int | None) -> np.ndarray:

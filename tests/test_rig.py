@@ -295,20 +295,3 @@ def test_a_rig_file_of_the_first_format_still_loads(tmp_path):
     back = Rig.load(tmp_path / "old.npz")
     kp = rig.moved({1: [0.2, 0.0, 0.0]})
     np.testing.assert_array_equal(back.deform(kp), rig.deform(kp))
-
-
-def test_coincident_mvc_weights_equal_the_weights_of_every_vertex(data_dir):
-    """ModelNet10 chair_0956 stores about four vertices per position: the weights computed once per position are
-    the weights of every vertex, bit for bit, and the distinct positions are the mesh's."""
-    from kpd.cage import fit_cage
-    from kpd.mvc import mvc_weights
-    from kpd.rig import coincident_mvc_weights, distinct_points
-
-    mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0956.ply")
-    vertices = Normalizer().fit(mesh.vertices).apply(mesh.vertices)
-    points = distinct_points(vertices)
-    assert len(points) < len(vertices) / 3
-    assert np.array_equal(np.unique(vertices, axis=0), points)
-    cage = fit_cage(points, enclose=True)
-    np.testing.assert_array_equal(coincident_mvc_weights(vertices, cage),
-                                  mvc_weights(vertices, cage.vertices, cage.faces))
