@@ -33,6 +33,7 @@ from kpd.geometry import Normalizer, as_points, sample_surface
 from kpd.grouping import merge_coincident
 from kpd.io import Mesh, atomic_output
 from kpd.io.integrity import HASH_KEY, check_hash, content_hash, load_numpy
+from kpd.memory import bind_memory, check_bind_memory
 from kpd.mvc import mvc_weights
 from kpd.mvc_fast import mvc_project, mvc_weights_compiled
 from kpd.straighten import (STRAIGHTEN_REACH, STRAIGHTEN_THINNESS, STRAIGHTEN_TOLERANCE, has_sliver, merged_system,
@@ -44,6 +45,7 @@ from kpd.basis import edit as _edit  # noqa: F401
 from kpd.basis import edit_rows as _edit_rows  # noqa: F401
 from kpd.grouping import first_occurrence_groups  # noqa: F401
 from kpd.grouping import merge_coincident as _merge_coincident  # noqa: F401
+from kpd.memory import available_memory  # noqa: F401
 from kpd.straighten import _SEEDS_ON_TWO_THREADS, _STRAIGHTEN_CAP, _Correction, _factorised, _row  # noqa: F401
 from kpd.straighten import _sliver_weight  # noqa: F401
 from kpd.straighten import StraightenSystem as _StraightenSystem  # noqa: F401
@@ -509,92 +511,6 @@ def transfer_influence(
         gram = x.T @ (g[:, None] * x) + ridge * g.sum() * np.eye(x.shape[1])
         result[i, mask[i]] = np.linalg.solve(gram, x.T @ (g * moved[:, i]))
     return result
-
-
-# What binding adds at its peak to a process that has read the mesh and loaded the model (the surface sample, the
-# mesh's copies, the basis and the straightening's system and factorisations; CAD meshes, full of slivers, are the
-# worst case), with what the commands that bind add to draw it: measured 2026-12-06 (12 keypoints) for the
-# 1.37M-vertex, 5.5M-triangle CAD chair of docs/scale.md, Model.rig and one edit 572 MiB (198 MiB at 344k; the
-# 1.28M-vertex scan 427 MiB), kpd render 825 MiB, the editor about 1.16 GiB once bound; this gives 1.28 GiB.
-_BIND_BYTES = 150 * 2**20
-_BIND_BYTES_PER_VERTEX = 200
-_BIND_BYTES_PER_TRIANGLE = 100
-_BIND_BYTES_PER_KEYPOINT_VERTEX = 24  # the (V, K) basis in float64 and its corrected copy
-
-
-def bind_memory(vertices: int, triangles: int, keypoints: int) -> int:
-    """Bytes that binding a mesh of ``vertices`` and ``triangles`` to ``keypoints`` holds at its peak (an estimate
-    from measurements, docs/scale.md)."""
-    return int(_BIND_BYTES + vertices * (_BIND_BYTES_PER_VERTEX + keypoints * _BIND_BYTES_PER_KEYPOINT_VERTEX)
-               + triangles * _BIND_BYTES_PER_TRIANGLE)
-
-
-def available_memory() -> int | None:
-    """Bytes of memory this process can still use (Linux: MemAvailable, capped by a cgroup limit and by a limit on
-    the process's address space, ``ulimit -v``, less what it maps already), or None when the system does not say."""
-    available = None
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    available = int(line.split()[1]) * 1024
-                    break
-    except OSError:
-        pass
-    if available is None:
-        try:
-            available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-        except (ValueError, OSError, AttributeError):
-            return None
-    for limit_file, usage_file in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
-                                   ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
-                                    "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
-        try:
-            limit = Path(limit_file).read_text().strip()
-            usage = int(Path(usage_file).read_text().strip())
-        except (OSError, ValueError):
-            continue
-        if limit.isdigit() and int(limit) < 1 << 60:
-            available = min(available, int(limit) - usage)
-        break
-    mapped = _address_space_left()
-    return available if mapped is None else min(available, mapped)
-
-
-def _address_space_left() -> int | None:
-    """Bytes the process may still map under its address-space limit (``RLIMIT_AS``, as ``ulimit -v`` and some
-    batch schedulers set it), or None without a limit."""
-    try:
-        import resource
-
-        limit = resource.getrlimit(resource.RLIMIT_AS)[0]
-        if limit == resource.RLIM_INFINITY:
-            return None
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("VmSize:"):
-                    return limit - int(line.split()[1]) * 1024
-    except (ImportError, OSError, ValueError):
-        pass
-    return None
-
-
-def check_bind_memory(vertices: int, triangles: int, keypoints: int) -> None:
-    """Raise :class:`~kpd.errors.InputError` naming the mesh's size and the memory it needs when binding it would
-    not fit in the memory that is available (rather than being killed by the system midway)."""
-    need = bind_memory(vertices, triangles, keypoints)
-    have = available_memory()
-    if have is not None and need > have:
-        left = _address_space_left()
-        limited = left is not None and left < need  # the process's own limit refuses it, whatever the machine has
-        where = ("of address space is left under this process's limit (simplify the mesh, or raise the limit: "
-                 "ulimit -v)" if limited else "of memory is available (simplify the mesh, or free memory)")
-        raise InputError(f"a mesh of {vertices:,} vertices and {triangles:,} triangles needs about "
-                         f"{_size(need)} to bind; {_size(max(have, 0))} {where}")
-
-
-def _size(count: int) -> str:
-    return f"{count / 2**30:.1f} GiB" if count >= 2**30 else f"{count / 2**20:.0f} MiB"
 
 
 def _read_table(path: Path, columns: int | None) -> np.ndarray:
