@@ -27,14 +27,14 @@ from typing import Any
 import numpy as np
 
 from kpd.basis import coincident_mvc_basis, coincident_mvc_weights, compact_basis, distinct_points, edit, edit_rows
-from kpd.cage import Cage, cage_faces_from_vertices, default_m, fit_cage, influence_mask
+from kpd.cage import Cage, default_m, fit_cage, influence_mask
+from kpd.demo_format import read_demo
 from kpd.errors import InputError
 from kpd.geometry import Normalizer, as_points, sample_surface
 from kpd.grouping import merge_coincident
 from kpd.io import Mesh, atomic_output
 from kpd.io.integrity import HASH_KEY, check_hash, content_hash, load_numpy
 from kpd.memory import bind_memory, check_bind_memory
-from kpd.mvc import mvc_weights
 from kpd.mvc_fast import mvc_project, mvc_weights_compiled
 from kpd.straighten import (STRAIGHTEN_REACH, STRAIGHTEN_THINNESS, STRAIGHTEN_TOLERANCE, has_sliver, merged_system,
                             straighten_basis, straighten_system)
@@ -404,38 +404,11 @@ class Rig:
 
     @classmethod
     def from_demo(cls, directory: str | os.PathLike) -> "Rig":
-        """Import a rig in the authors' project-page demo format (docs/method.md §17).
-
-        Reads ``source_vertices.txt`` (V × 3), ``source_faces.txt`` (T × 3), ``source_keypoints.txt`` (K lines
-        ``%03d x y z``), ``cage.txt`` (C × 3), ``influence.txt`` (K × C, masked) and, when present, ``weights.txt``
-        (V × C); missing weights are computed. The cage's triangles are recovered from its vertex directions.
-        Everything is already in the model frame, so the normaliser is the identity.
-        """
-        directory = Path(directory)
-        if not directory.is_dir():
-            raise InputError(f"{directory}: not a folder of demo files")
-        vertices = _read_table(directory / "source_vertices.txt", 3)
-        faces = _read_table(directory / "source_faces.txt", 3)
-        if not np.allclose(faces, np.round(faces)):
-            raise InputError(f"{directory / 'source_faces.txt'}: face indices must be integers")
-        triangles = np.round(faces).astype(np.int64)
-        keypoints = _read_table(directory / "source_keypoints.txt", None)
-        if keypoints.shape[1] == 4:
-            keypoints = keypoints[:, 1:]
-        if keypoints.shape[1] != 3:
-            raise InputError(f"{directory / 'source_keypoints.txt'}: rows must be 'x y z' or 'index x y z'")
-        cage_vertices = _read_table(directory / "cage.txt", 3)
-        influence = _read_table(directory / "influence.txt", len(cage_vertices))
-        mesh = Mesh(vertices=vertices, triangles=triangles)
-        _check_faces(triangles, len(vertices), directory / "source_faces.txt")
-        cage = Cage(cage_vertices, cage_faces_from_vertices(cage_vertices))
-        weights_file = directory / "weights.txt"
-        if weights_file.exists():
-            weights = _read_table(weights_file, len(cage_vertices))
-        else:
-            weights = mvc_weights(vertices, cage.vertices, cage.faces)
+        """Import a rig in the authors' project-page demo format (:func:`kpd.demo_format.read_demo`, docs/method.md
+        §17). Everything is already in the model frame, so the normaliser is the identity."""
+        demo = read_demo(directory)
         identity = Normalizer.from_dict({"center": [0.0, 0.0, 0.0], "scale": 1.0})
-        return cls(mesh, identity, keypoints, cage, influence, weights)
+        return cls(demo.mesh, identity, demo.keypoints, demo.cage, demo.influence, demo.weights)
 
     def __repr__(self) -> str:
         return (
@@ -511,27 +484,6 @@ def transfer_influence(
         gram = x.T @ (g[:, None] * x) + ridge * g.sum() * np.eye(x.shape[1])
         result[i, mask[i]] = np.linalg.solve(gram, x.T @ (g * moved[:, i]))
     return result
-
-
-def _read_table(path: Path, columns: int | None) -> np.ndarray:
-    if not path.is_file():
-        raise InputError(f"{path}: missing demo file")
-    try:
-        table = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    except ValueError as exc:
-        raise InputError(f"{path}: not a table of numbers: {exc}") from exc
-    if table.size == 0:
-        raise InputError(f"{path}: empty")
-    if columns is not None and table.shape[1] != columns:
-        raise InputError(f"{path}: rows must have {columns} numbers; got {table.shape[1]}")
-    if not np.isfinite(table).all():
-        raise InputError(f"{path}: contains NaN or inf")
-    return table
-
-
-def _check_faces(triangles: np.ndarray, count: int, where: Path) -> None:
-    if triangles.min() < 0 or triangles.max() >= count:
-        raise InputError(f"{where}: face indices must lie in [0, {count}); got [{triangles.min()}, {triangles.max()}]")
 
 
 def _mesh_arrays(mesh: Mesh) -> dict[str, np.ndarray]:
