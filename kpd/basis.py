@@ -21,7 +21,7 @@ from kpd.mvc_fast import mvc_project
 
 __all__ = ["coincident_mvc_weights", "coincident_mvc_basis", "distinct_points", "compact_basis", "edit", "edit_rows"]
 
-_FLOAT32_ROW_SUM = 16.0  # a basis whose rows' absolute sums stay below this is kept in float32 (see _compact_basis)
+_FLOAT32_ROW_SUM = 16.0  # a basis whose rows' absolute sums stay below this is kept in float32 (see compact_basis)
 
 
 def coincident_mvc_weights(vertices: Any, cage: Cage) -> np.ndarray:
@@ -119,11 +119,10 @@ def _streaming_done(typingctx):  # pragma: no cover - compiled
 def edit(basis_t, offsets, rest, out):  # pragma: no cover - compiled
     """``out = rest + basis_t.T @ offsets`` with float64 sums: (K, V) basis of float32 or float64, (K, 3) offsets.
 
-    Blocks of vertices, each keypoint's row of the block in order: the loops over the block are SIMD code (one pass
-    at 1.37M vertices takes about 10 ms; a vertex at a time, 12 dependent sums, took 27 ms). The rows of keypoints
-    that did not move are not read: a drag of one keypoint reads one row of the basis, not K. The pass is bound by
-    memory, so ``out`` is written with non-temporal stores (:func:`_store_streaming`): 13-19% less time at 1.37M
-    vertices, one keypoint moved or all twelve."""
+    Blocks of vertices, each keypoint's row of the block in order: the loops over the block are SIMD code (over
+    twice as fast as a vertex at a time, whose K sums depend on each other). The rows of keypoints that did not move
+    are not read: a drag of one keypoint reads one row of the basis, not K. The pass is bound by memory, so ``out``
+    is written with non-temporal stores (:func:`_store_streaming`), which do not read its lines into the cache."""
     moved = np.zeros(offsets.shape[0], dtype=np.int64)
     k = 0
     for j in range(offsets.shape[0]):

@@ -13,9 +13,8 @@ __all__ = ["bind_memory", "available_memory", "check_bind_memory"]
 
 # What binding adds at its peak to a process that has read the mesh and loaded the model (the surface sample, the
 # mesh's copies, the basis and the straightening's system and factorisations; CAD meshes, full of slivers, are the
-# worst case), with what the commands that bind add to draw it: measured 2026-12-06 (12 keypoints) for the
-# 1.37M-vertex, 5.5M-triangle CAD chair of docs/scale.md, Model.rig and one edit 572 MiB (198 MiB at 344k; the
-# 1.28M-vertex scan 427 MiB), kpd render 825 MiB, the editor about 1.16 GiB once bound; this gives 1.28 GiB.
+# worst case), with what the commands that bind add to draw it: fitted above the peaks measured on the dense meshes
+# of docs/scale.md (docs/results.md), the editor's included.
 _BIND_BYTES = 150 * 2**20
 _BIND_BYTES_PER_VERTEX = 200
 _BIND_BYTES_PER_TRIANGLE = 100

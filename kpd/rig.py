@@ -77,8 +77,8 @@ class Rig:
     influence : (K, C) float64, masked influence W (row k: how much each cage vertex follows keypoint k).
     weights : (V, C) float64 or None, MVC weights of the mesh vertices w.r.t. the cage; the edit basis is then
         ``weights @ influence.T`` (+ ``correction``), in float64. ``None`` when ``basis`` is given.
-    correction : (V, K) float64 or None, added to ``weights @ influence.T`` (:func:`straighten_basis`); only with
-        ``weights``.
+    correction : (V, K) float64 or None, added to ``weights @ influence.T``
+        (:func:`~kpd.straighten.straighten_basis`); only with ``weights``.
     basis : (V, K) float32 or float64, the edit basis itself (what :meth:`bind` computes and :meth:`save` stores),
         instead of ``weights``.
     """
@@ -144,7 +144,7 @@ class Rig:
     def weights(self) -> np.ndarray:
         """(V, C) float64: the MVC weights of the mesh vertices w.r.t. the cage.
 
-        A rig read from weights (the authors' demo files, rig files before kpd-rig/3) holds them; a bound rig does
+        A rig read from weights (the authors' demo files, kpd-rig/1 and /2 files) holds them; a bound rig does
         not (its edits need only :attr:`basis`) and computes them here on each call, which takes V × C × 8 bytes.
         """
         if self._weights is not None:
@@ -155,8 +155,8 @@ class Rig:
 
     @property
     def correction(self) -> np.ndarray | None:
-        """(V, K) float64 or None: what the straightening of slivers (:func:`straighten_basis`) added to the edit
-        basis ``weights @ influence.T``; ``None`` when nothing was. A bound rig computes it on each call."""
+        """(V, K) float64 or None: what the straightening of slivers (:func:`~kpd.straighten.straighten_basis`) added
+        to the edit basis ``weights @ influence.T``; ``None`` when nothing was. A bound rig computes it on each call."""
         if not self._straightened:
             return None
         if self._correction is not None:
@@ -197,7 +197,8 @@ class Rig:
         enclose : grow the fitted cage until every mesh vertex is inside it (beyond the authors' rule, which leaves
             some points outside, where MVC misplaces them).
         seed : seed of the surface sample.
-        straighten : keep the mesh's sliver triangles from turning over in edits (:func:`straighten_basis`).
+        straighten : keep the mesh's sliver triangles from turning over in edits
+            (:func:`~kpd.straighten.straighten_basis`).
         model_vertices : (V, 3) float64 ``normalizer.apply(mesh.vertices)``, when the caller has it already (with
             ``normalizer`` given): not computed again.
         """
@@ -227,20 +228,19 @@ class Rig:
         masked = influence * influence_mask(keypoints, cage.vertices, m)
         check_bind_memory(len(vertices), len(mesh.triangles), k)
         # the basis is computed once per distinct position, the positions in the mesh's order: its neighbours are
-        # near each other in memory (the straightening's passes over the mesh took twice as long in sorted order).
+        # near each other in memory (sorted order halves the speed of the straightening's passes over the mesh).
         # Grouped in the mesh's own units, by the mesh (a command drawing it at once uses the same groups)
         first, inverse = mesh.position_groups()
         points = vertices if len(first) == len(vertices) else vertices[first]
         triangles = np.ascontiguousarray(mesh.triangles, dtype=np.int64)
         building = None
         # the straightening's system (the edge graph, the slivers' terms) does not depend on the basis: it is made on
-        # a thread of its own while the MVC basis takes the others (whose two threads leave part of the two cores
-        # idle: 2.9 s of CPU in 1.9 s at 1.37M points)
+        # a thread of its own while the MVC basis takes the others (whose threads leave part of the cores idle)
         with ThreadPoolExecutor(1, thread_name_prefix="kpd-straighten") as pool:
             if straighten and len(triangles) and has_sliver(np.ascontiguousarray(vertices), triangles,
                                                             STRAIGHTEN_THINNESS):
                 # the system looks the triangles' corners up on the distinct points itself: no renumbered copy of
-                # the triangles made here first (a pass over them all, 0.3 s at 5.5M triangles, before the MVC)
+                # the triangles made here first (a pass over them all, before the MVC)
                 building = pool.submit(merged_system, points, triangles, inverse if len(points) < len(vertices)
                                        else None)
             basis = mvc_project(points, cage.vertices, cage.faces, masked.T)  # (n, K) float64
@@ -268,7 +268,7 @@ class Rig:
     @property
     def basis(self) -> np.ndarray:
         """(V, K) float32 or float64: vertex offset per unit keypoint offset (read-only view; float32 when that keeps
-        edits within 1e-6 of the box diagonal, see :func:`compact_basis`)."""
+        edits within 1e-6 of the box diagonal, see :func:`kpd.basis.compact_basis`)."""
         view = self._basis_t.T  # (V, K), Fortran-ordered
         view.flags.writeable = False
         return view
@@ -356,8 +356,8 @@ class Rig:
             arrays["mesh_triangles"] = arrays["mesh_triangles"].astype(np.int32)
         arrays[HASH_KEY] = np.array(content_hash(arrays))
         with atomic_output(path) as tmp:
-            # an .npz as numpy.savez_compressed writes it, at the fastest deflate level: a scan's rig is written in
-            # a second or two instead of several, and is a few percent larger
+            # an .npz as numpy.savez_compressed writes it, at the fastest deflate level: several times faster to
+            # write than the default level, a few percent larger
             with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
                 for name, value in arrays.items():
                     value = np.asanyarray(value)

@@ -60,17 +60,13 @@ def straighten_basis(
     (a table's top edge, a lattice's slats, a leg) stay straight.
     A translation is kept exactly; any other affine motion (which turns nothing over) changes by no more than a
     sliver's height times its gradient across the sliver: the straightness asks a sliver to keep its thickness.
-    (Asking instead for the smooth field's own change across each sliver, through one more MVC evaluation per
-    sliver, gave the same folds and leakage on the training shapes; CAD meshes have about as many slivers as
-    vertices, so it would double the MVC cost of binding.)
+    (Asking instead for the smooth field's own change across each sliver needs one more MVC evaluation per sliver,
+    about as many as vertices on a CAD mesh, for the same folds and leakage.)
 
     The system is solved on the mesh with coincident vertices merged (CAD meshes store one vertex per corner), so
-    the corrected mesh has no cracks. ``thinness`` (0.1), ``reach`` (0.1) and the ends' 20 were chosen on 12
-    ModelNet10 training chairs and tables each (``benchmarks/bench_edits.py`` measures them on the test shapes):
-    their worst semantic edit folds 0.09% (chairs) and 0.56% (tables: 13 of one table's 2,310) of the triangles,
-    against 1.29% and 2.38% uncorrected, and the far-side leakage of single moves grows by 3% and 15%. Holding
-    the ends as firmly as the rest folds a little less (0.35% of that table) but lowers feet: on ModelNet10
-    chair_0890 with its back raised they move by 1.5% of the raise, by 0.8% at 20 (the rig test's limit is 1%).
+    the corrected mesh has no cracks. ``thinness`` (0.1), ``reach`` (0.1) and the ends' 20 were chosen on ModelNet10
+    training chairs and tables (docs/results.md, edit quality): 20 is the smallest end weight that keeps a chair's
+    feet within 1% of a raise of its back.
 
     The system is solved where it matters, not over every vertex: around the slivers whose own term alone would
     move one of their corners by more than ``tolerance`` (a vertex offset per unit keypoint offset; one Jacobi
@@ -78,16 +74,13 @@ def straighten_basis(
     across the sliver's height in a move of half the model box of every keypoint, grown until the correction just
     outside is below ``tolerance`` (:class:`StraightenSystem`). On a native mesh a thin sliver's weight is most of
     its corners' diagonal, and that step is its straightness itself. On a real scan only a few percent of the
-    triangles are slivers, and this solves 8% of the points (a 324k-vertex shoe scan: 0.22 s on a quiet machine,
-    against 3.0 s for every piece); the result differs from the solve over every piece with a sliver
-    (``tolerance=0``, as kpd did before) by at most 1.4e-5 there and 4e-7 on the test chairs (the many slivers
-    left out, each moving the correction by less than ``tolerance``, and the region's growth solved as patches
-    with the rest held, add up to that). A CAD mesh subdivided to a scan's size keeps a sliver in every triangle
-    of a sliver, but the edges around each one grow stiffer with each subdivision, and their many small terms add
-    up to a smooth correction over the whole mesh that turns no triangle over: on a ShapeNet chair subdivided to
-    86k and 342k points this solves 45% and 26% of the points, differs from the solve over every piece by 2.0e-4
-    and 9.0e-4, and turns over as many triangles in 72 single moves (each keypoint by 10% of the box along each
-    axis, both ways) at worst.
+    triangles are slivers, so only a small part of the points is solved; the result differs from the solve over
+    every piece with a sliver (``tolerance=0``) by the many slivers left out, each moving the correction by less
+    than ``tolerance``, and by the region's growth solved as patches with the rest held (the tests bound it by
+    1e-4). A CAD mesh subdivided to a scan's size keeps a sliver in every triangle of a sliver, but the edges
+    around each one grow stiffer with each subdivision, and their many small terms add up to a smooth correction
+    that turns no triangle over: there a larger part of the points is solved, and no more triangles turn over in
+    single moves than with the solve over every piece.
 
     Parameters
     ----------
@@ -124,13 +117,16 @@ def _straighten_merged(basis: np.ndarray, points: np.ndarray, triangles: np.ndar
 
 
 def merged_system(points: np.ndarray, triangles: np.ndarray, inverse: np.ndarray | None) -> "StraightenSystem":
-    """The straightening's system of a mesh's ``triangles`` on its distinct ``points``: ``inverse`` (V,) maps each
-    vertex to its point (None when no two vertices coincide)."""
+    """The straightening's system, with the default thinness and reach, of a mesh's ``triangles`` (T, 3) int64 on
+    its distinct ``points`` (n, 3): ``inverse`` (V,) maps each vertex to its point (None when no two vertices
+    coincide). It does not depend on the basis, so it can be made while the basis is computed."""
     return StraightenSystem(points, triangles, STRAIGHTEN_THINNESS, STRAIGHTEN_REACH, point_of=inverse)
 
 
 def straighten_system(system: "StraightenSystem", basis: np.ndarray, tolerance: float) -> bool:
-    """:func:`_straighten_merged` with its system made already."""
+    """Add the straightening's correction to ``basis`` (n, K) float64 of the system's points, in place: only the rows
+    of the points solved change (:meth:`StraightenSystem.solve` with ``tolerance``). Returns whether there was a
+    sliver to straighten."""
     if system.slivers == 0:
         return False
     correction = system.solve(basis, float(tolerance))
@@ -142,7 +138,7 @@ class _Correction:
     """The straightening's correction of the points solved so far, zero elsewhere: ``values`` (m, K), the rows of
     the points ``rows`` (m,), and each point's row in ``slot`` (n,) (-1: not solved). On a scan the region is a few
     percent of the points: an (n, K) array, faulted in page by page where the region's points fall and then added
-    whole, took longer than the region's solve (0.57 s of 1.3 s at 1.26M points)."""
+    whole, takes longer than the region's solve."""
 
     def __init__(self, n: int, k: int) -> None:
         self.slot = np.full(n, -1, dtype=np.int64)
@@ -166,8 +162,8 @@ class _Correction:
 def _factorised(system: Any) -> Callable[[np.ndarray], np.ndarray]:
     """``solve(rhs)`` for ``system``, a symmetric positive definite sparse matrix (CSC, both triangles): ``rhs`` (n, K)
     to (n, K), by QDLDL's LDLᵀ factorisation in an approximate minimum-degree order (which lets go of the GIL).
-    Half the time of SuperLU's LU in its symmetric mode on the straightening's systems (45 ms against 90 ms for
-    30k points of a subdivided CAD chair), to the same solution within rounding."""
+    Half the time of SuperLU's LU in its symmetric mode on the straightening's systems, to the same solution
+    within rounding."""
     import qdldl
 
     factor = qdldl.Solver(system)
@@ -258,8 +254,7 @@ class StraightenSystem:
         self.ends, self.along, self.height = ends[:s].copy(), along[:s].copy(), height[:s].copy()  # per sliver
         del ends, along, height
         self.pieces = int(self.label.max()) + 1
-        # what the region's seeds need of the system, made here beside the MVC basis, not after it (0.1 s at 1.77M
-        # slivers)
+        # what the region's seeds need of the system, made here beside the MVC basis, not after it
         self.step = _sliver_steps(points, indptr, indices, self.sliver_values, self.anchor, self.floor, self.ends,
                                   self.along, self.height, _STRAIGHTEN_CAP)
 
@@ -434,7 +429,7 @@ def _graph_pattern(tri, point_of, same, n):  # pragma: no cover - compiled
     for i in range(n):
         lo, hi = count[i], count[i + 1]
         if hi - lo > 64:  # a fan's centre: a real sort
-            other[lo:hi].sort()  # in place (assigning a sorted copy cost 1.8 s of a first run's compiling)
+            other[lo:hi].sort()  # in place (assigning a sorted copy makes the first run's compiling slower)
         for j in range(lo + 1, hi):  # insertion sort: rows are short (a no-op after the sort)
             value = other[j]
             k = j - 1
