@@ -57,12 +57,12 @@ def test_rig_checked_samples_once_and_binds_as_model_rig(chair_model, turned_cha
 
 
 def test_rig_checked_refuses_a_mesh_too_large_for_memory_before_any_work(chair_model, turned_chair, monkeypatch):
-    import kpd.rig
+    import kpd.memory
     from kpd.commands.keypoints import rig_checked
     from kpd.errors import InputError
     from kpd.runtime import Model
 
-    monkeypatch.setattr(kpd.rig, "available_memory", lambda: 1 << 20)
+    monkeypatch.setattr(kpd.memory, "available_memory", lambda: 1 << 20)
     monkeypatch.setattr(Model, "sample", lambda *a, **k: pytest.fail("sampled before the memory check"))
     with pytest.raises(InputError, match="to bind; 1 MiB of memory is available"):
         rig_checked(chair_model, turned_chair, 0, "turned.ply")

@@ -3,27 +3,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from kpd.cage import Cage
 from kpd.errors import InputError
 from kpd.geometry import Normalizer, farthest_point_sampling, sample_surface
 from kpd.io import Mesh, read_mesh
 from kpd.rig import Rig
-
-
-def box_mesh(size=(2.0, 1.0, 0.5), offset=(10.0, -3.0, 5.0)):
-    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
-    t = np.array(
-        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
-    )
-    return Mesh(vertices=v * size + offset, triangles=t)
-
-
-def corner_rig(mesh=None):
-    mesh = mesh or box_mesh()
-    norm = Normalizer().fit(mesh.vertices)
-    keypoints = norm.apply(mesh.vertices)  # one keypoint per box corner
-    return Rig.bind(mesh, keypoints, normalizer=norm)
+from rig_shapes import corner_rig
 
 
 def test_zero_edit_is_identity_and_keypoints_in_user_units():
@@ -107,49 +91,6 @@ def test_errors(tmp_path):
     with pytest.raises(InputError, match=r"influence must have shape \(K, C\) = \(8, 42\)"):
         Rig.bind(rig.mesh, rig.normalizer.apply(rig.keypoints), np.ones((8, 5)))
 
-
-def write_demo(rig: Rig, folder, *, shuffle_seed=0, with_weights=True):
-    """Write a rig in the authors' project-page format, with the cage vertices in another order."""
-    folder.mkdir()
-    order = np.random.default_rng(shuffle_seed).permutation(len(rig.cage.vertices))
-    vertices = rig.normalizer.apply(rig.mesh.vertices)
-    np.savetxt(folder / "source_vertices.txt", vertices)
-    np.savetxt(folder / "source_faces.txt", rig.mesh.triangles.astype(float))
-    kp = rig.normalizer.apply(rig.keypoints)
-    with open(folder / "source_keypoints.txt", "w") as fh:
-        for i, p in enumerate(kp):
-            fh.write("%03d %f %f %f\n" % (i, *p))
-    np.savetxt(folder / "cage.txt", rig.cage.vertices[order])
-    np.savetxt(folder / "influence.txt", rig.influence[:, order])
-    if with_weights:
-        np.savetxt(folder / "weights.txt", rig.weights[:, order])
-    return vertices
-
-
-@pytest.mark.parametrize("with_weights", [True, False])
-def test_from_demo_recovers_the_rig(tmp_path, with_weights):
-    rig = corner_rig()
-    vertices = write_demo(rig, tmp_path / "demo", with_weights=with_weights)
-    demo = Rig.from_demo(tmp_path / "demo")
-    assert len(demo.cage.faces) == 80
-    scale = rig.normalizer.scale_
-    kp = demo.keypoints + np.array([[0.0, 0.05, 0.0]] * 8) * (np.arange(8) == 2)[:, None]
-    expected = rig.normalizer.apply(rig.deform(rig.normalizer.invert(kp)))
-    np.testing.assert_allclose(demo.deform(kp), expected, atol=1e-5 if with_weights else 1e-6 * scale)
-    np.testing.assert_allclose(demo.deform(demo.keypoints), vertices, atol=1e-12)
-
-
-def test_from_demo_errors(tmp_path):
-    with pytest.raises(InputError, match="not a folder"):
-        Rig.from_demo(tmp_path / "none")
-    rig = corner_rig()
-    write_demo(rig, tmp_path / "demo")
-    (tmp_path / "demo" / "cage.txt").unlink()
-    with pytest.raises(InputError, match="cage.txt: missing demo file"):
-        Rig.from_demo(tmp_path / "demo")
-
-
-# --- real data -------------------------------------------------------------------------------------------------
 
 def modelnet_test_meshes(data_dir):
     return sorted((data_dir / "modelnet10").glob("*/test/*.ply"))
@@ -241,72 +182,6 @@ def test_transfer_influence_keeps_the_near_motion_and_shortens_the_reach(data_di
         transfer_influence(prediction.influence[:, :5], prediction.keypoints, points, loose, tight, m)
 
 
-def panel_with_slivers():
-    """A flat panel (the xz plane) of well-shaped triangles under a thin slat (0.01 high, 2 long) whose bottom edge
-    is the panel's top row and whose top edge has only its two ends: the slat is a fan of long slivers from its top
-    left corner, as CAD triangulations make them. Returns vertices (V, 3), triangles (T, 3) and the slat's rows."""
-    xs = np.linspace(-1.0, 1.0, 9)
-    zs = np.linspace(0.0, 0.99, 5)
-    grid = np.array([[x, 0.0, z] for z in zs for x in xs])  # row r, column c at 9 r + c; the top row at z = 0.99
-    vertices = np.concatenate([grid, [[-1.0, 0.0, 1.0], [1.0, 0.0, 1.0]]])  # 45, 46: the slat's top corners
-    triangles = []
-    for r in range(4):
-        for c in range(8):
-            i = 9 * r + c
-            triangles += [[i, i + 1, i + 10], [i, i + 10, i + 9]]
-    top = 36 + np.arange(9)
-    triangles += [[45, int(top[c]), int(top[c + 1])] for c in range(8)]
-    triangles += [[45, int(top[8]), 46]]
-    return vertices, np.array(triangles), np.arange(32 * 2, len(triangles))
-
-
-def test_straighten_basis_keeps_slivers_from_turning_over_and_leaves_affine_motion_alone():
-    from kpd.metrics import _turned
-    from kpd.triangles import cross as _normals
-    from kpd.rig import straighten_basis
-
-    vertices, triangles, slat = panel_with_slivers()
-    sag = 1.0 - vertices[:, [0]] ** 2  # (V, 1): a bend along the slat, largest in the middle
-    affine = np.stack([0.3 * vertices[:, 0] - vertices[:, 2] + 0.5, 0.1 + 0.0 * vertices[:, 0]], axis=1)
-    out = straighten_basis(np.concatenate([sag, affine], axis=1), vertices, triangles)
-    # an affine motion turns no triangle over: it changes by less than the slivers' thickness changes (1% here)
-    assert np.abs(out[:, 1:] - affine).max() < 0.01 * np.ptp(affine)
-    np.testing.assert_allclose(out[:, 2], 0.1, atol=1e-12)  # a translation exactly
-    lift = np.array([[0.0, 0.0, 0.2]])  # the bend as an edit: the middle of the slat rises by 0.2
-
-    def turned(basis):
-        return _turned(_normals(vertices, triangles), _normals(vertices + basis[:, :1] @ lift, triangles))
-
-    assert turned(sag)[slat].sum() >= 3 and not turned(sag)[~np.isin(np.arange(len(triangles)), slat)].any()
-    assert not turned(out).any()
-    # the slat's bottom row now moves as the line between its ends does; the panel's bottom row keeps its bend
-    top = out[36:45, 0]
-    assert np.abs(top - np.interp(vertices[36:45, 0], [-1, 1], [top[0], top[-1]])).max() < 0.01 * np.ptp(sag)
-    np.testing.assert_allclose(out[:9, 0], sag[:9, 0], atol=0.25)
-    assert np.ptp(out[:9, 0]) > 0.5
-    # no sliver (a box): the basis comes back as it is
-    box = box_mesh()
-    basis = np.random.default_rng(0).random((8, 3))
-    np.testing.assert_array_equal(straighten_basis(basis, box.vertices, box.triangles), basis)
-    with pytest.raises(InputError, match="thinness"):
-        straighten_basis(basis, box.vertices, box.triangles, thinness=0.0)
-    with pytest.raises(InputError, match=r"basis must be \(V, K\)"):
-        straighten_basis(basis[:5], box.vertices, box.triangles)
-
-
-def test_straighten_basis_merges_coincident_corners():
-    """A mesh stored with one vertex per triangle corner (as CAD files are) gets the same correction as the merged
-    mesh, the same at every copy of a corner, so the edited mesh has no cracks."""
-    from kpd.rig import straighten_basis
-
-    vertices, triangles, _ = panel_with_slivers()
-    basis = np.stack([1.0 - vertices[:, 0] ** 2, vertices[:, 0] * vertices[:, 2]], axis=1)
-    merged = straighten_basis(basis, vertices, triangles)
-    corners = triangles.ravel()
-    split = straighten_basis(basis[corners], vertices[corners], np.arange(len(corners)).reshape(-1, 3))
-    np.testing.assert_allclose(split, merged[corners], atol=1e-10)
-
-
 def test_rig_straightens_a_real_table_so_semantic_edits_do_not_fold(data_dir, tmp_path):
     """ModelNet10 table_0411 (a test table with lattice panels, 1,242 triangles): raising the top or widening it
     turns 14 of its slivers over (1.1%) without straightening, none with it; single moves reach no farther than
@@ -376,20 +251,3 @@ def test_a_rig_file_of_the_first_format_still_loads(tmp_path):
     back = Rig.load(tmp_path / "old.npz")
     kp = rig.moved({1: [0.2, 0.0, 0.0]})
     np.testing.assert_array_equal(back.deform(kp), rig.deform(kp))
-
-
-def test_coincident_mvc_weights_equal_the_weights_of_every_vertex(data_dir):
-    """ModelNet10 chair_0956 stores about four vertices per position: the weights computed once per position are
-    the weights of every vertex, bit for bit, and the distinct positions are the mesh's."""
-    from kpd.cage import fit_cage
-    from kpd.mvc import mvc_weights
-    from kpd.rig import coincident_mvc_weights, distinct_points
-
-    mesh = read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0956.ply")
-    vertices = Normalizer().fit(mesh.vertices).apply(mesh.vertices)
-    points = distinct_points(vertices)
-    assert len(points) < len(vertices) / 3
-    assert np.array_equal(np.unique(vertices, axis=0), points)
-    cage = fit_cage(points, enclose=True)
-    np.testing.assert_array_equal(coincident_mvc_weights(vertices, cage),
-                                  mvc_weights(vertices, cage.vertices, cage.faces))
