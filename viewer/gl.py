@@ -40,6 +40,7 @@ from kpd._compiled import njit
 from kpd.errors import KpdError
 from kpd.grouping import first_occurrence_groups, same_corners
 from kpd.viewer.camera import box
+from kpd.viewer.threads import draw_pool as _pool, in_halves as _halves  # noqa: F401
 
 __all__ = ["GLView", "ShadedMesh", "RigDrawing", "Shot", "Layer", "render_shots", "shading_normals", "NoWindowError",
            "stand_in"]
@@ -264,34 +265,6 @@ def _summed_used(lo, hi, face, starts, entries, inverse, used, out):  # pragma: 
     """:func:`_summed_groups` of the groups of the vertices ``used[lo:hi]``, into ``out[lo:hi]``."""
     for n in range(lo, hi):
         _group_normal(inverse[used[n]], face, starts, entries, out, n)
-
-
-_POOL: Any = None
-
-
-def _pool() -> Any:
-    global _POOL
-    if _POOL is None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _POOL = ThreadPoolExecutor(2 * _MAX_CULLING_THREADS, thread_name_prefix="kpd-draw")  # two callers at once
-    return _POOL
-
-
-def _two_threads() -> bool:
-    return (os.cpu_count() or 1) >= 2
-
-
-def _halves(kernel: Any, n: int, *args: Any) -> None:
-    """``kernel(lo, hi, *args)`` over [0, n): in two halves on two threads (compiled kernels that release the GIL)
-    when the machine has two cores and ``n`` is large, else at once."""
-    if n < 200_000 or not _two_threads():
-        kernel(0, n, *args)
-        return
-    half = n // 2
-    other = _pool().submit(kernel, half, n, *args)
-    kernel(0, half, *args)
-    other.result()
 
 
 def camera_lights(camera: Any) -> np.ndarray:
