@@ -236,21 +236,6 @@ def test_render_is_cleanly_shaded_and_frames_the_deformed_shape(data_dir, tmp_pa
     assert brightness.std() > 8  # shaded, not flat
 
 
-def test_shading_normals_turn_double_sided_triangles_towards_the_camera():
-    from kpd.viewer.gl import shading_normals
-
-    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
-    both = np.array([[0, 1, 2], [0, 2, 1]])  # the same triangle in both windings
-    assert np.allclose(shading_normals(vertices, both, None), 0)  # by winding they cancel: the old blotches
-    np.testing.assert_allclose(shading_normals(vertices, both, np.array([0.2, 0.2, 5.0])), np.tile([0, 0, 1.0], (3, 1)))
-    np.testing.assert_allclose(shading_normals(vertices, both, np.array([0.2, 0.2, -5.0])),
-                               np.tile([0, 0, -1.0], (3, 1)))
-    unwelded = np.vstack([vertices, vertices[[1, 2]] + [0, 0, 0]])  # copies of two corners at the same places
-    tris = np.array([[0, 1, 2], [3, 4, 0]])
-    normals = shading_normals(unwelded, tris, np.array([0.0, 0, 3.0]))
-    np.testing.assert_allclose(normals[1], normals[3])  # welded: the copies shade alike
-
-
 def test_edge_neighbours_name_the_third_corner_across_each_edge():
     from kpd.viewer.gl import edge_neighbours
 
@@ -496,10 +481,6 @@ def test_no_window_is_one_line(chair_rig, tmp_path):
 
 
 # --- the real window -------------------------------------------------------------------------------------------------
-
-
-
-
 
 
 def _last(path: Path, name: str, after: int = 0):

@@ -98,23 +98,6 @@ def test_distinct_triangles_is_its_sorting_twin_on_any_triangles():
     check()
 
 
-def test_prepared_normals_are_the_serial_kernels_bit_for_bit():
-    from kpd.viewer.gl import _Normals, _Welding, shading_normals
-
-    rng = np.random.default_rng(4)
-    vertices = rng.normal(size=(400, 3))
-    vertices[300:] = vertices[:100]  # copies of a position (a UV seam) share its normal
-    triangles = rng.integers(0, 400, size=(3000, 3))
-    welding = _Welding(vertices)
-    for eye in (None, np.array([0.5, -4.0, 2.0])):
-        expected = shading_normals(vertices, triangles, eye, welding=welding)
-        groups = _Normals(triangles, welding)(vertices, eye)  # (G, 3), two threads when large
-        np.testing.assert_array_equal(groups[welding.inverse], expected)
-    big = rng.integers(0, 400, size=(250_000, 3))  # past the size split over two threads
-    np.testing.assert_array_equal(_Normals(big, welding)(vertices, np.ones(3))[welding.inverse],
-                                  shading_normals(vertices, big, np.ones(3), welding=welding))
-
-
 def test_binding_and_drawing_a_mesh_at_once_group_its_positions_once(monkeypatch):
     import kpd.grouping
     import kpd.mesh
@@ -317,7 +300,6 @@ def test_culling_near_runs_first_keeps_the_same_triangles_and_judges_fewer(dense
         assert not (judged["in order"] & ~alone[layout.order]).any()  # judged with neighbours: fewer kept
         if zoom == 1.0:  # seen whole: much of the surface lies behind the rest
             assert judged["near first listed"] < 0.9 * judged["in order listed"], judged
-
 
 
 def test_a_block_of_triangles_is_hidden_only_when_each_of_them_is(dense_chair):
