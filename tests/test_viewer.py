@@ -236,62 +236,6 @@ def test_render_is_cleanly_shaded_and_frames_the_deformed_shape(data_dir, tmp_pa
     assert brightness.std() > 8  # shaded, not flat
 
 
-def test_edge_neighbours_name_the_third_corner_across_each_edge():
-    from kpd.viewer.gl import edge_neighbours
-
-    triangles = np.array([[0, 1, 2], [2, 1, 3], [4, 5, 6]])  # two sharing the edge 1-2, one alone
-    np.testing.assert_array_equal(edge_neighbours(triangles, 7), [[-1, 3, -1], [0, -1, -1], [-1, -1, -1]])
-
-
-def _nearest_at_samples(screen: np.ndarray, triangles: np.ndarray, width: int, height: int,
-                        samples: np.ndarray) -> set:
-    """The triangles nearest at some sample point, by the exact positions (the naive z-buffer)."""
-    pixels = np.stack(np.meshgrid(np.arange(width), np.arange(height)), axis=-1)  # (H, W, 2)
-    points = (pixels[:, :, None, :] + samples).reshape(-1, 2)  # (H W S, 2)
-    best = np.full(len(points), -np.inf)  # 1 / depth is affine on the screen: the largest is the nearest
-    owner = np.full(len(points), -1)
-    for t, (a, b, c) in enumerate(screen[triangles]):
-        lo, hi = np.minimum(np.minimum(a, b), c)[:2], np.maximum(np.maximum(a, b), c)[:2]
-        inside = np.flatnonzero((points >= lo).all(axis=1) & (points <= hi).all(axis=1))
-        area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
-        if not len(inside) or area == 0:
-            continue
-        p = points[inside]
-        wb = ((p[:, 0] - a[0]) * (c[1] - a[1]) - (p[:, 1] - a[1]) * (c[0] - a[0])) / area
-        wc = ((b[0] - a[0]) * (p[:, 1] - a[1]) - (b[1] - a[1]) * (p[:, 0] - a[0])) / area
-        wa = 1 - wb - wc
-        hit = (wa > 0) & (wb > 0) & (wc > 0)
-        nearness = wa / a[2] + wb / b[2] + wc / c[2]
-        better = hit & (nearness > best[inside])
-        best[inside[better]], owner[inside[better]] = nearness[better], t
-    return set(owner[owner >= 0].tolist())
-
-
-def test_visible_triangles_with_neighbours_keep_fewer_and_every_nearest_one():
-    """Judged with their neighbours across edges, fewer triangles of a dense sphere are kept than judged alone, all
-    of them among those, and among them every triangle nearest at a sample point."""
-    import open3d as o3d
-
-    from kpd.viewer.gl import Viewport, _project, edge_neighbours, visible_triangles
-    from kpd.viewer.render import ViewSettings, camera_pose
-
-    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=100)
-    vertices, triangles = np.asarray(sphere.vertices), np.asarray(sphere.triangles).astype(np.int64)
-    width, height = 64, 48
-    samples = np.array([[0.375, 0.125], [0.875, 0.375], [0.125, 0.625], [0.625, 0.875]])
-    camera = camera_pose(vertices, ViewSettings(width=width, height=height, azimuth=30, elevation=20))
-    viewport = Viewport(camera, width, height, samples)
-    alone = visible_triangles(vertices, triangles, viewport).copy()
-    paired = visible_triangles(vertices, triangles, viewport, neighbours=edge_neighbours(triangles, len(vertices)))
-    assert not (paired & ~alone).any()
-    assert paired.sum() < 0.9 * alone.sum()
-    screen = np.empty((len(vertices), 3))
-    _project(0, len(vertices), vertices, np.zeros(0, np.int64), viewport.view, viewport.focal, width / 2, height / 2,
-             screen)
-    nearest = _nearest_at_samples(screen, triangles, width, height, samples)
-    assert len(nearest) > 1000 and all(paired[t] for t in nearest)
-
-
 def test_stand_in_of_a_large_mesh_is_coarse_and_made_of_its_vertices():
     import open3d as o3d
 

@@ -6,6 +6,7 @@ import threading
 import numpy as np
 import pytest
 from test_viewer import HAS_XVFB, _clear_keypoint, _drags_with_nudges, _editor_window, _last, chair_rig  # noqa: F401
+from viewer_helpers import dense_chair  # noqa: F401
 
 from kpd.viewer.app import read_events, wait_for
 
@@ -130,20 +131,6 @@ def test_binding_and_drawing_a_mesh_at_once_group_its_positions_once(monkeypatch
     np.testing.assert_array_equal(rig.basis, alone.basis)
 
 
-@pytest.fixture(scope="module")
-def dense_chair(data_dir):
-    """The unseen ShapeNet chair subdivided twice (86k vertices, 344k triangles, half of them stored twice)."""
-    import open3d as o3d
-
-    from kpd.io import Mesh, read_mesh
-
-    mesh = read_mesh(data_dir / "keypointnet" / "models" / "03001627" / "fe6b3c001a86d844d5767a0de8dd037e" /
-                     "model.obj")
-    fine = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
-                                     o3d.utility.Vector3iVector(mesh.triangles.astype(np.int32))).subdivide_midpoint(2)
-    return Mesh(np.asarray(fine.vertices), np.asarray(fine.triangles, dtype=np.int64))
-
-
 @pytest.mark.parametrize("offset", [0.0, 300.0])  # away from the origin: float32 rounds the drawn positions coarser
 def test_a_frame_of_the_visible_triangles_is_the_picture_of_all_of_them(dense_chair, offset):
     """Culled and whole frames of a dense mesh are the same pixels, from outside, below, close up and from inside
@@ -224,112 +211,6 @@ def test_a_mesh_drawn_once_is_culled_in_its_own_order_to_the_same_picture(dense_
     image = render_rig(Rig.bind(mesh, keypoints), settings=ViewSettings(width=width, height=height),
                        backend="egl")
     assert made == [] and (image != 255).any(axis=2).mean() > 0.05
-
-
-def test_a_triangle_is_kept_wherever_its_corners_may_be_drawn():
-    """Pass 2 keeps a triangle when a sample point lies within the distance its drawn corners may stray (delta along
-    each axis) of it: whatever corners within that reach are drawn, the triangle covers no sample point of one left
-    out. Slivers and small triangles, each corner moved to every extreme of its reach and at random."""
-    import itertools
-
-    from kpd.viewer.gl import _showing
-
-    rng = np.random.default_rng(11)
-    width = height = 8
-    samples = np.array([[0.375, 0.125], [0.875, 0.375], [0.125, 0.625], [0.625, 0.875]])
-    delta = 0.05  # far more than a drawn corner strays (1/256 pixel and float32's rounding): a test that can fail
-    corners = []
-    for _ in range(3000):
-        a = rng.uniform(1.5, 6.5, size=2)
-        b = a + rng.uniform(-1.5, 1.5, size=2)
-        c = (a + b) / 2 + rng.uniform(-1.0, 1.0) * np.array([a[1] - b[1], b[0] - a[0]]) * 10.0 ** rng.uniform(-3, 0)
-        corners.append([a, b, c])  # from slivers (c near the middle of ab) to plump triangles
-    corners = np.array(corners)  # (T, 3, 2)
-    t = len(corners)
-    screen = np.concatenate([corners.reshape(-1, 2), np.ones((3 * t, 1))], axis=1)  # in front of the camera
-    triangles = np.arange(3 * t).reshape(t, 3)
-    keep = np.zeros(t, np.bool_)
-    _showing(0, triangles, screen, width, height, samples[:, 0].copy(), samples[:, 1].copy(), delta,
-             np.full(width * height * len(samples), np.inf, np.float32), 3e-3, np.arange(t, dtype=np.int32),
-             np.array([0, t], np.int64), np.array([t, 0], np.int64), keep, np.zeros(1, np.uint8))
-    points = (np.stack(np.meshgrid(np.arange(width), np.arange(height), indexing="ij"), -1).reshape(-1, 1, 2)
-              + samples).reshape(-1, 2)  # (P, 2) every sample point
-
-    def covers(p):  # (T, 3, 2) corners -> (T,) whether any sample point is inside (either winding, edges included)
-        e = []
-        for i in range(3):
-            edge, to = p[:, (i + 1) % 3, None] - p[:, i, None], points[None] - p[:, i, None]  # (T, 1, 2), (T, P, 2)
-            e.append(edge[..., 0] * to[..., 1] - edge[..., 1] * to[..., 0])
-        return (((e[0] >= 0) & (e[1] >= 0) & (e[2] >= 0)) | ((e[0] <= 0) & (e[1] <= 0) & (e[2] <= 0))).any(axis=1)
-
-    moves = [np.array(m).reshape(3, 2) for m in itertools.product((-delta, delta), repeat=6)]
-    moves += [rng.uniform(-delta, delta, size=(3, 2)) for _ in range(64)]
-    drawn = np.zeros(t, np.bool_)
-    for move in moves:
-        drawn |= covers(corners + move)
-    assert not (drawn & ~keep).any()  # never left out where a drawn triangle covers a sample point
-    assert (drawn & ~covers(corners)).sum() > 100  # many are covered only as drawn, not as projected
-    assert (keep & ~drawn).sum() < 0.1 * keep.sum(), ((keep & ~drawn).sum(), keep.sum())  # few kept needlessly
-
-
-def test_culling_near_runs_first_keeps_the_same_triangles_and_judges_fewer(dense_chair):
-    """A CullingLayout's runs of nearby triangles, taken nearest first, leave the hidden ones out in pass 1: the
-    same triangles are kept as when they are judged in the mesh's order (whole, below, close up, from inside), and
-    pass 2 judges far fewer."""
-    from kpd.viewer.gl import CullingLayout, Viewport, visible_triangles
-    from kpd.viewer.render import ViewSettings, camera_pose
-
-    vertices, triangles = dense_chair.vertices, dense_chair.triangles
-    layout = CullingLayout(vertices, triangles)
-    assert sorted(layout.order.tolist()) == list(range(len(triangles)))
-    np.testing.assert_array_equal(layout.used[layout.triangles], triangles[layout.order])  # the same triangles
-    assert len(layout.cells) > 100 and layout.cells[0] == 0 and layout.cells[-1] == len(triangles)
-    samples = np.array([[0.375, 0.125], [0.875, 0.375], [0.125, 0.625], [0.625, 0.875]])
-    for azimuth, elevation, zoom in [(30, 20, 1.0), (200, -40, 1.0), (75, 60, 4.0), (10, 5, 30.0)]:
-        camera = camera_pose(vertices, ViewSettings(width=400, height=300, azimuth=azimuth, elevation=elevation,
-                                                    zoom=zoom))
-        viewport = Viewport(camera, 400, 300, samples)
-        judged = {}
-        for name, cells in (("in order", None), ("near first", layout.cells)):
-            scratch: dict = {}
-            judged[name] = visible_triangles(vertices, layout.triangles, viewport, scratch=scratch,
-                                             neighbours=layout.neighbours, index=layout.used, cells=cells).copy()
-            judged[name + " listed"] = int(scratch["listed_count"].sum())
-        np.testing.assert_array_equal(judged["near first"], judged["in order"])
-        alone = visible_triangles(vertices, triangles, viewport)  # the mesh's own order, each triangle alone
-        assert not (judged["in order"] & ~alone[layout.order]).any()  # judged with neighbours: fewer kept
-        if zoom == 1.0:  # seen whole: much of the surface lies behind the rest
-            assert judged["near first listed"] < 0.9 * judged["in order listed"], judged
-
-
-def test_a_block_of_triangles_is_hidden_only_when_each_of_them_is(dense_chair):
-    """Pass 1 leaves out 32 nearby triangles at once when their common box is behind the depth reached: a block is
-    judged hidden only when each of its triangles, judged alone against the same depths, is; and seen whole, many
-    blocks of the far side are."""
-    from kpd.viewer.gl import _BLOCK, DEPTH_SLACK, CullingLayout, Viewport, _block_hidden, _margin, visible_triangles
-    from kpd.viewer.render import ViewSettings, camera_pose
-
-    vertices, triangles = dense_chair.vertices, dense_chair.triangles
-    layout = CullingLayout(vertices, triangles)
-    samples = np.array([[0.375, 0.125], [0.875, 0.375], [0.125, 0.625], [0.625, 0.875]])
-    camera = camera_pose(vertices, ViewSettings(width=400, height=300, azimuth=30, elevation=20))
-    viewport = Viewport(camera, 400, 300, samples)
-    scratch: dict = {}
-    visible_triangles(vertices, layout.triangles, viewport, scratch=scratch, neighbours=layout.neighbours,
-                      index=layout.used, cells=layout.cells)
-    screen, depth = scratch["screen"], scratch["depth"]  # the projected points and the depths at the end of pass 1
-    delta = _margin(vertices, viewport)
-    args = (layout.triangles, screen, 400, 300, samples[:, 0].copy(), samples[:, 1].copy(), delta, depth, DEPTH_SLACK)
-    blocks = range(0, len(layout.triangles) - _BLOCK, _BLOCK)
-    hidden = [s for s in blocks if _block_hidden(s, s + _BLOCK, *args)]
-    assert 0.1 * len(blocks) < len(hidden) < 0.9 * len(blocks)
-    for s in hidden[::7]:
-        assert all(_block_hidden(t, t + 1, *args) for t in range(s, s + _BLOCK))
-    # one triangle that shows makes a block of hidden ones worth looking at
-    shown = next(t for t in range(len(layout.triangles)) if not _block_hidden(t, t + 1, *args))
-    mixed = np.concatenate([layout.triangles[hidden[0]:hidden[0] + _BLOCK], layout.triangles[shown:shown + 1]])
-    assert _block_hidden(0, _BLOCK, mixed, *args[1:])
-    assert not _block_hidden(0, _BLOCK + 1, mixed, *args[1:])
 
 
 _HELD_BINDING = """
