@@ -1,7 +1,7 @@
 """kpd.viewer.culling: the triangles that show in a pixel, their neighbours across edges and their layout."""
 
 import numpy as np
-from viewer_helpers import dense_chair  # noqa: F401
+pytest_plugins = ["viewer_helpers"]  # the shared fixtures
 
 
 def test_edge_neighbours_name_the_third_corner_across_each_edge():
