@@ -46,149 +46,18 @@ from kpd.viewer.culling import (_BLOCK, DEPTH_SLACK, PIXEL_CENTRE, CullingLayout
                                 _project, _showing, edge_neighbours, visible_triangles)
 from kpd.viewer.shaded import (CULL_TRIANGLES, ShadedMesh, _distinct_triangles_reference, _texture_coordinates,  # noqa: F401
                                distinct_triangles, material_sides, mean_rgb as _mean_rgb, textured as _textured)
+from kpd.viewer.standins import (COARSE_STAND_IN_TRIANGLES, FINE_STAND_IN_CELLS, STAND_IN_TRIANGLES,  # noqa: F401
+                                 coarse_stand_in, fine_stand_in, image_maps, stand_in, stand_in_colors)
+PROXY_TRIANGLES, proxy_triangles = COARSE_STAND_IN_TRIANGLES, coarse_stand_in
 
 __all__ = ["GLView", "ShadedMesh", "RigDrawing", "Shot", "Layer", "render_shots", "shading_normals", "NoWindowError",
            "stand_in"]
 
 log = logging.getLogger(__name__)
 
-PROXY_TRIANGLES = 50000  # larger meshes are drawn by a coarse stand-in while a gesture is in progress
-# meshes drawing more triangles than this (up to PROXY_TRIANGLES) get a fine stand-in (FINE_STAND_IN_CELLS), which the
-# editor draws during gestures while the whole mesh's frames take long (kpd.viewer.app.draws_stand_in)
-STAND_IN_TRIANGLES = 10_000
-FINE_STAND_IN_CELLS = 250  # the fine stand-in's grid: cells across the mesh's largest side
-
 
 class NoWindowError(KpdError):
     """No OpenGL window could be opened (no display, no GL driver)."""
-
-
-def proxy_triangles(vertices: np.ndarray, triangles: np.ndarray, limit: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """A coarse stand-in of a large mesh for frames drawn during a gesture: vertices clustered on a grid, one
-    original vertex kept per cell, triangles that collapse dropped (and each set of corners once).
-
-    Returns None when the mesh has at most ``limit`` triangles, else ``(kept, faces)``: (P,) indices of the kept
-    original vertices and (Q, 3) triangles into ``kept`` with Q <= ``limit``. Its vertices are original vertices, so
-    the stand-in of a deformed mesh is the deformed mesh's rows ``kept``: no deformation of its own.
-    """
-    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
-    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
-    if len(triangles) <= limit:
-        return None
-    lo, hi = box([vertices])
-    extent = float((hi - lo).max()) or 1.0
-    size = extent / math.sqrt(limit)  # about sqrt(limit) cells across the largest side
-    scratch = _cluster_scratch(len(vertices), len(triangles))  # for every try (fresh: 6 ms of a 73 ms try at 1.37M)
-    for _ in range(12):
-        kept, faces = _clustered(vertices, triangles, lo, hi, size, scratch)
-        if len(faces) <= limit:
-            return kept, faces
-        size *= 1.1 * math.sqrt(len(faces) / limit)
-    return kept, faces[:limit]
-
-
-def fine_stand_in(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """A stand-in that looks like the mesh, for one of few vertices and many triangles (a CAD mesh: many of its
-    triangles cover less than a pixel): :func:`proxy_triangles`' clustering on a grid of
-    :data:`FINE_STAND_IN_CELLS` cells across the mesh's largest side, which only collapses what is smaller than a
-    cell. Of an unseen ShapeNet chair's 19,900 distinct triangles it keeps 10,468, and its picture at 960 x 720
-    differs from the whole mesh's in 0.4% of the shape's pixels. ``(kept, faces)`` as :func:`proxy_triangles`
-    gives them; None when it would keep more than three quarters of the triangles (nothing to gain)."""
-    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
-    triangles = np.ascontiguousarray(triangles, dtype=np.int64)
-    if not len(triangles):
-        return None
-    lo, hi = box([vertices])
-    extent = float((hi - lo).max()) or 1.0
-    kept, faces = _clustered(vertices, triangles, lo, hi, extent / FINE_STAND_IN_CELLS)
-    return (kept, faces) if 4 * len(faces) <= 3 * len(triangles) else None
-
-
-def stand_in(vertices: np.ndarray, triangles: np.ndarray, *, fine: bool = True) -> tuple[np.ndarray, np.ndarray] | None:
-    """The editor's stand-in of a mesh drawing ``triangles``: a coarse one of at most :data:`PROXY_TRIANGLES`
-    triangles for a larger mesh (:func:`proxy_triangles`), with ``fine`` a fine one for a mesh of more than
-    :data:`STAND_IN_TRIANGLES` (:func:`fine_stand_in`), else None. A stand-in is drawn in per-vertex colours
-    (:func:`stand_in_colors`): the editor asks for a fine one only for a mesh without a texture image
-    (:func:`image_maps`), which would change colour while it is dragged."""
-    if len(triangles) > PROXY_TRIANGLES:
-        return proxy_triangles(vertices, triangles, PROXY_TRIANGLES)
-    if fine and len(triangles) > STAND_IN_TRIANGLES:
-        return fine_stand_in(vertices, triangles)
-    return None
-
-
-def image_maps(mesh: Any) -> bool:
-    """Whether ``mesh`` is drawn with a texture image (not only plain material colours, which kpd.io reads as 1x1
-    images): its stand-ins, drawn in per-vertex colours, would change colour."""
-    return _textured(mesh) and any(t.shape[0] * t.shape[1] > 1 for t in mesh.textures)
-
-
-def stand_in_colors(mesh: Any) -> np.ndarray | None:
-    """(V, 3) float64 colours in [0, 1] for a stand-in of ``mesh``: its vertex colours, or of a mesh whose materials
-    are plain colours each vertex's material colour (of the last triangle it is a corner of: a cell of a stand-in
-    takes one of its vertices' colours); None for a mesh drawn in one colour."""
-    if not _textured(mesh):
-        return None if mesh.vertex_colors is None else np.asarray(mesh.vertex_colors, dtype=np.float64)
-    palette = np.array([_mean_rgb(texture) / 255.0 for texture in mesh.textures])  # an image map's: its mean
-    ids = (np.zeros(len(mesh.triangles), np.int64) if mesh.triangle_material_ids is None
-           else np.clip(np.asarray(mesh.triangle_material_ids, dtype=np.int64), 0, len(palette) - 1))
-    colors = np.full((len(mesh.vertices), 3), 0.8)
-    colors[np.asarray(mesh.triangles, dtype=np.int64).reshape(-1)] = np.repeat(palette[ids], 3, axis=0)
-    return colors
-
-
-def _cluster_scratch(num_vertices: int, num_triangles: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_clustered`'s working arrays: the cell of each vertex (numbered as first met), the first vertex of
-    each cell, and each triangle's first triangle over the same cells."""
-    return (np.empty(num_vertices, dtype=np.int64), np.empty(num_vertices, dtype=np.int64),
-            np.empty(num_triangles, dtype=np.int64))
-
-
-def _clustered(vertices: np.ndarray, triangles: np.ndarray, lo: np.ndarray, hi: np.ndarray, size: float,
-               scratch: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices clustered on a grid of cells of ``size`` from ``lo``: ``(kept, faces)``, the first vertex of each
-    cell and the triangles that do not collapse (each set of corners once) over them. ``scratch``: a
-    :func:`_cluster_scratch` to work in (made here if None)."""
-    cluster, first, same = scratch or _cluster_scratch(len(vertices), len(triangles))
-    span = np.floor((hi - lo) / size).astype(np.int64) + 1  # cells along each axis
-    count = _cells(vertices, lo, size, span, cluster, first)
-    same_corners(triangles, cluster, count, True, same)
-    faces = cluster[triangles[same == np.arange(len(triangles))]]  # (Q, 3)
-    return first[:count].copy(), faces
-
-
-@njit(nogil=True, error_model="numpy")
-def _cells(vertices, lo, size, span, group, first):  # pragma: no cover - compiled
-    """Vertices grouped by grid cell (``floor((v - lo) / size)`` on each axis) with a hash table: ``group[v]``
-    numbers the cells as first met, ``first[g]`` is the first vertex in cell g; returns the number of cells."""
-    n = vertices.shape[0]
-    keys = np.empty(n, dtype=np.int64)
-    slots = 1
-    while slots < 2 * n:
-        slots *= 2
-    table = np.full(slots, -1, dtype=np.int64)
-    mask = slots - 1
-    count = 0
-    for v in range(n):
-        ix = int(np.floor((vertices[v, 0] - lo[0]) / size))
-        iy = int(np.floor((vertices[v, 1] - lo[1]) / size))
-        iz = int(np.floor((vertices[v, 2] - lo[2]) / size))
-        k = (ix * span[1] + iy) * span[2] + iz
-        keys[v] = k
-        h = ((k * 2654435761) ^ (k >> 17)) & mask
-        while True:
-            g = table[h]
-            if g < 0:
-                table[h] = count
-                first[count] = v
-                group[v] = count
-                count += 1
-                break
-            if keys[first[g]] == k:
-                group[v] = g
-                break
-            h = (h + 1) & mask
-    return count
 
 
 # --- the window ----------------------------------------------------------------------------------------------------
