@@ -187,51 +187,6 @@ def test_kpd_view_ends_with_the_bindings_error_in_one_line(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
-def test_a_window_frame_of_the_visible_triangles_is_the_picture_on_the_screen(dense_chair, tmp_path, monkeypatch):
-    """On the screen a window is multisampled (Mesa's software renderer gives Open3D the four samples it asks for):
-    frames culled at the sample points the window's OpenGL context reports show the same pixels as whole frames,
-    read from the Xvfb screen; culled at the pixel centres alone they would not (the test can fail)."""
-    import os
-    import time
-
-    from kpd.viewer.display import grab_screen
-    from kpd.viewer.gl import PIXEL_CENTRE, GLView, ShadedMesh, Viewport
-    from kpd.viewer.render import ViewSettings, camera_pose, private_display
-
-    mesh = dense_chair
-    width, height = 480, 400
-    with private_display(width + 40, height + 40, fbdir=tmp_path) as display:
-        monkeypatch.setenv("DISPLAY", display)
-        view = GLView(width, height, visible=True, left=0, top=0)
-        try:
-            assert view.viewport(camera_pose(mesh.vertices, ViewSettings())).samples.shape == (4, 2)
-            shaded = ShadedMesh(mesh)
-            view.set_box(mesh.vertices)
-
-            def on_screen(camera, viewport) -> np.ndarray:
-                shaded.set_vertices(mesh.vertices, camera, viewport)
-                for i, part in enumerate(shaded.geometries):
-                    view.put(f"mesh:{i}", part)
-                view.set_camera(camera)
-                view.draw()
-                time.sleep(0.3)  # the server has the frame
-                return grab_screen(os.fspath(tmp_path))[:height, :width]
-
-            for azimuth, elevation, zoom in [(30, 20, 1.0), (200, -40, 2.0)]:
-                camera = camera_pose(mesh.vertices, ViewSettings(width=width, height=height, azimuth=azimuth,
-                                                                 elevation=elevation, zoom=zoom))
-                whole = on_screen(camera, None)
-                np.testing.assert_array_equal(on_screen(camera, view.viewport(camera)), whole)
-                assert len(shaded.geometries[0].triangles) < 0.8 * len(shaded.drawn)
-                if zoom == 1.0:  # the centres alone miss samples: the check above can fail
-                    centres = on_screen(camera, Viewport(camera, width, height, PIXEL_CENTRE))
-                    assert (centres != whole).any(axis=2).sum() > 100
-        finally:
-            view.close()
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
 def test_kpd_view_applies_a_saved_session_once_the_rig_is_bound(data_dir, tmp_path):
     """kpd view MODEL SHAPE --load-session: the session (checked before the window opens) is applied to the rig
     bound on the worker thread, so the keypoints it shows first are the session's; a bad session file ends before."""
