@@ -108,7 +108,7 @@ def test_a_stand_in_keeps_the_colours_of_plain_materials(data_dir):
     def whole_and_stand_in(view):
         drawing = RigDrawing(view, mesh, settings=settings, digits=False)
         drawing.set_stand_in(*stand_in(mesh.vertices, drawing.shaded.drawn, fine=not image_maps(mesh)))
-        return drawing.shaded, drawing.proxy
+        return drawing.shaded, drawing.stand_in
 
     pictures = _pictures(whole_and_stand_in, camera, width, height)
     shape = (pictures[0] != 255).any(axis=2)
