@@ -48,8 +48,8 @@ def test_a_window_frame_of_the_visible_triangles_is_the_picture_on_the_screen(de
     import os
     import time
 
-    from kpd.viewer.display import grab_screen
     from kpd.viewer.culling import PIXEL_CENTRE, Viewport
+    from kpd.viewer.display import grab_screen
     from kpd.viewer.glview import GLView
     from kpd.viewer.render import ViewSettings, camera_pose, private_display
     from kpd.viewer.shaded import ShadedMesh

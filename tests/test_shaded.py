@@ -59,9 +59,9 @@ def test_a_frame_of_the_visible_triangles_is_the_picture_of_all_of_them(dense_ch
     from kpd.io import Mesh
     from kpd.viewer.culling import visible_triangles
     from kpd.viewer.display import gl_display
-    from kpd.viewer.gl import GLView
-    from kpd.viewer.shaded import ShadedMesh
+    from kpd.viewer.glview import GLView
     from kpd.viewer.render import ViewSettings, camera_pose
+    from kpd.viewer.shaded import ShadedMesh
 
     mesh = Mesh(dense_chair.vertices + offset, dense_chair.triangles)
     width, height = 400, 300
@@ -98,9 +98,9 @@ def test_a_mesh_drawn_once_is_culled_in_its_own_order_to_the_same_picture(dense_
     from kpd.viewer import culling
     from kpd.viewer import shaded as shaded_module
     from kpd.viewer.display import gl_display
-    from kpd.viewer.gl import GLView
-    from kpd.viewer.shaded import ShadedMesh
+    from kpd.viewer.glview import GLView
     from kpd.viewer.render import ViewSettings, camera_pose, render_rig
+    from kpd.viewer.shaded import ShadedMesh
 
     mesh = dense_chair
     width, height = 400, 300

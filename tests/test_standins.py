@@ -23,7 +23,7 @@ def _pictures(shaded_meshes, camera, width: int, height: int) -> list:
     """(H, W, 3) int64 pictures of each ShadedMesh of ``shaded_meshes(view)`` drawn alone as ``camera`` sees it, in a
     hidden view (EGL)."""
     from kpd.viewer.display import gl_display
-    from kpd.viewer.gl import GLView
+    from kpd.viewer.glview import GLView
 
     with gl_display("egl", width, height):
         view = GLView(width, height)
@@ -85,8 +85,8 @@ def test_a_stand_in_keeps_the_colours_of_plain_materials(data_dir):
     stand-in is drawn in their colours, the same picture as the whole mesh's but for under 2% of the shape's
     pixels; a mesh with a texture image gets no fine stand-in (it would change colour while dragged)."""
     from kpd.io import Mesh, read_mesh
-    from kpd.viewer.gl import RigDrawing
     from kpd.viewer.render import ViewSettings, camera_pose
+    from kpd.viewer.rigdrawing import RigDrawing
     from kpd.viewer.shaded import ShadedMesh
     from kpd.viewer.standins import image_maps, stand_in, stand_in_colors
 

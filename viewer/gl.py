@@ -1,189 +1,52 @@
-"""The OpenGL drawing path: Open3D's legacy ``Visualizer`` (GLFW + OpenGL 3.3), used by the editor's 3D view and by
-every picture kpd draws.
+"""The OpenGL drawing path, used by the editor's 3D view and by every picture kpd draws: Open3D's legacy
+``Visualizer`` (GLFW + OpenGL 3.3), fast with Mesa's software rasteriser. Its parts, one module each, all importable
+from here:
 
-Why this path and not Open3D's Filament GUI: without a GPU both draw with Mesa's software rasteriser (llvmpipe), and
-measured on a 2-core machine under Xvfb the legacy renderer draws a 10k-vertex mesh with its keypoints in about 30 ms
-a frame and its first frame about 0.4 s after start, where a Filament frame takes 120-210 ms and its first frame
-24-38 s (shader compilation) when another process holds a core (``benchmarks/bench_viewer.py``).
-
-* :class:`ShadedMesh` -- a mesh ready to draw (one legacy ``TriangleMesh`` per texture). Its normals are recomputed
-  after every edit (:func:`shading_normals`, :class:`_Normals`): from welded positions (unwelded copies of a vertex
-  shade alike) and with each triangle turned towards the camera before averaging, i.e. two-sided lighting, so
-  double-sided and flipped triangles of CAD meshes come out cleanly shaded instead of in black and white blotches.
-  A frame of a large mesh uploads only the triangles that show in a pixel (:func:`visible_triangles`: the same
-  picture; a scan-sized mesh has several triangles a pixel), and can be prepared on another thread
-  (:meth:`ShadedMesh.prepare`) while the main thread takes input.
-* :class:`GLView` -- one window (visible for the editor, hidden for pictures) with named geometries that are updated
-  in place, a look-at camera (:class:`kpd.viewer.render.Camera`) and ``capture`` to an (H, W, 3) uint8 image.
-* :class:`RigDrawing` -- the geometries of one rig in a view: mesh, keypoint markers (selected ones larger), cage
-  wireframe, the rest shape as a ghost wireframe, keypoint numbers as camera-facing digits.
-* :func:`render_shots` -- pictures of several :class:`Shot` (meshes, keypoints, lines) with one hidden window.
+* :mod:`kpd.viewer.glview` -- :class:`GLView`, one window (visible for the editor, hidden for pictures) with named
+  geometries updated in place, a look-at camera and ``capture`` to an (H, W, 3) uint8 image;
+* :mod:`kpd.viewer.shaded` -- :class:`ShadedMesh`, a mesh ready to draw (one legacy ``TriangleMesh`` per texture);
+* :mod:`kpd.viewer.normals` -- the shading normals (two-sided lighting, welded by position) and the camera's lights;
+* :mod:`kpd.viewer.culling` -- the triangles that show in a pixel (:func:`visible_triangles`), all a frame of a large
+  mesh uploads;
+* :mod:`kpd.viewer.standins` -- the lighter meshes the editor draws in place of a large one during a gesture;
+* :mod:`kpd.viewer.markers` -- keypoint markers, line sets and camera-facing digits;
+* :mod:`kpd.viewer.rigdrawing` -- :class:`RigDrawing`, the geometries of one rig in a view;
+* :mod:`kpd.viewer.shots` -- :func:`render_shots`, pictures of several :class:`Shot` with one hidden window;
+* :mod:`kpd.viewer.threads` -- the worker threads the compiled passes share.
 """
 
 from __future__ import annotations
 
-import atexit
-import contextlib
-import itertools
-import logging
-import math
-import os
-import shutil
-import tempfile
-import threading
-from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, NamedTuple, Sequence
+from kpd.viewer.culling import DEPTH_SLACK, PIXEL_CENTRE, CullingLayout, Viewport, edge_neighbours, visible_triangles
+from kpd.viewer.glview import GLView, NoWindowError
+from kpd.viewer.markers import Digits, Markers, line_set, mesh_edges
+from kpd.viewer.normals import ShadingNormals, Welding, camera_lights, shade, shading_normals
+from kpd.viewer.rigdrawing import RigDrawing
+from kpd.viewer.shaded import CULL_TRIANGLES, ShadedMesh, distinct_triangles, material_sides
+from kpd.viewer.shots import Layer, Shot, frame_points, render_shots
+from kpd.viewer.standins import (COARSE_STAND_IN_TRIANGLES, FINE_STAND_IN_CELLS, STAND_IN_TRIANGLES, coarse_stand_in,
+                                 fine_stand_in, image_maps, stand_in, stand_in_colors)
 
-import numpy as np
+# private names the tests of the modules above read, importable from here as before the split
+from kpd.viewer.culling import _BLOCK as _BLOCK, _block_hidden as _block_hidden, _margin as _margin  # isort: skip
+from kpd.viewer.culling import _project as _project, _showing as _showing  # isort: skip
+from kpd.viewer.glview import _raster_threads as _raster_threads, _runtime_dir as _runtime_dir  # isort: skip
+from kpd.viewer.glview import _sample_points as _sample_points  # isort: skip
+from kpd.viewer.shaded import _distinct_triangles_reference as _distinct_triangles_reference  # isort: skip
+from kpd.viewer.shaded import _texture_coordinates as _texture_coordinates  # isort: skip
+from kpd.viewer.shots import _shaded_layer as _shaded_layer  # isort: skip
 
-from kpd._compiled import njit
-from kpd.errors import KpdError
-from kpd.grouping import first_occurrence_groups, same_corners
-from kpd.viewer.camera import box
-from kpd.viewer.threads import draw_pool as _pool, in_halves as _halves  # noqa: F401
-from kpd.viewer.normals import ShadingNormals as _Normals, Welding as _Welding, camera_lights, shade, shading_normals  # noqa: F401
-from kpd.viewer.culling import (_BLOCK, DEPTH_SLACK, PIXEL_CENTRE, CullingLayout, Viewport, _block_hidden, _margin,  # noqa: F401
-                                _project, _showing, edge_neighbours, visible_triangles)
-from kpd.viewer.shaded import (CULL_TRIANGLES, ShadedMesh, _distinct_triangles_reference, _texture_coordinates,  # noqa: F401
-                               distinct_triangles, material_sides, mean_rgb as _mean_rgb, textured as _textured)
-from kpd.viewer.standins import (COARSE_STAND_IN_TRIANGLES, FINE_STAND_IN_CELLS, STAND_IN_TRIANGLES,  # noqa: F401
-                                 coarse_stand_in, fine_stand_in, image_maps, stand_in, stand_in_colors)
+__all__ = [
+    "GLView", "NoWindowError", "ShadedMesh", "RigDrawing", "Shot", "Layer", "render_shots", "frame_points",
+    "shading_normals", "ShadingNormals", "Welding", "camera_lights", "shade",
+    "PIXEL_CENTRE", "DEPTH_SLACK", "Viewport", "visible_triangles", "edge_neighbours", "CullingLayout",
+    "CULL_TRIANGLES", "distinct_triangles", "material_sides",
+    "COARSE_STAND_IN_TRIANGLES", "STAND_IN_TRIANGLES", "FINE_STAND_IN_CELLS", "coarse_stand_in", "fine_stand_in",
+    "stand_in", "stand_in_colors", "image_maps",
+    "Markers", "Digits", "line_set", "mesh_edges",
+    "PROXY_TRIANGLES", "proxy_triangles",
+]
+
+# the names these had before "stand-in" was the one word for them and the normals' classes were public
 PROXY_TRIANGLES, proxy_triangles = COARSE_STAND_IN_TRIANGLES, coarse_stand_in
-from kpd.viewer.glview import GLView, NoWindowError, _raster_threads, _runtime_dir, _sample_points  # noqa: F401
-from kpd.viewer.markers import Digits, Markers, line_set, mesh_edges  # noqa: F401
-from kpd.viewer.rigdrawing import RigDrawing  # noqa: F401
-
-__all__ = ["GLView", "ShadedMesh", "RigDrawing", "Shot", "Layer", "render_shots", "shading_normals", "NoWindowError",
-           "stand_in"]
-
-log = logging.getLogger(__name__)
-
-
-# --- pictures ------------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class Layer:
-    """One mesh of a picture: drawn shaded (``style="solid"``), as a wireframe (``"wire"``) or as points."""
-
-    mesh: Any  # kpd.io.Mesh, or (N, 3) points for style "points"
-    color: tuple | None = None  # None: the mesh's own colours or texture, else plain grey
-    style: str = "solid"
-
-
-@dataclass
-class Shot:
-    """What one picture shows: layers, keypoints (numbered markers), the camera (framing all of it by default)."""
-
-    layers: list = field(default_factory=list)
-    keypoints: np.ndarray | None = None  # (K, 3)
-    selection: tuple = ()
-    lines: list = field(default_factory=list)  # [(points (P, 3), edges (E, 2), color)]
-    camera: Any = None
-
-
-def frame_points(shot: Shot) -> np.ndarray:
-    """(N, 3): everything a shot shows, for framing the camera on it."""
-    parts = []
-    for layer in shot.layers:
-        parts.append(np.asarray(layer.mesh.vertices if hasattr(layer.mesh, "vertices") else layer.mesh))
-    if shot.keypoints is not None:
-        parts.append(np.asarray(shot.keypoints))
-    for points, _, _ in shot.lines:
-        parts.append(np.asarray(points))
-    return np.vstack(parts)
-
-
-def _shaded_layer(shaded: dict, slot: int, mesh: Any, color: Sequence[float], *, override: bool) -> ShadedMesh:
-    """A :class:`ShadedMesh` of ``mesh`` for layer ``slot`` of a shot, kept in ``shaded``: the slot's previous one when
-    ``mesh`` differs from its mesh only in where the vertices are, with the same vertices at the same positions as
-    each other (a shape and its variants, which a rig deforms alike at coincident vertices), so that the work on the
-    triangles (distinct triangles, welding, normals' layout) is done once: 0.6 s a shot for a contact sheet of a
-    1.37M-vertex chair's variants. The same picture as a new one (what it keeps depends on those alone).
-
-    A mesh drawn in several parts (one per texture) gets a new one each shot: the legacy renderer draws its
-    geometries in an order that follows their addresses, which decides a sample where two parts meet at one depth (a
-    pixel of a 3-material ShapeNet bench's variant differed when its parts were kept)."""
-    previous = shaded.get(slot)
-    if previous is not None and len(previous.parts) == 1 and previous.override == override and \
-            previous.color == tuple(map(float, color)):
-        old = previous.mesh
-        same = len(old.vertices) == len(mesh.vertices) and all(
-            getattr(old, name) is getattr(mesh, name)
-            for name in ("triangles", "triangle_uvs", "triangle_material_ids", "textures", "vertex_colors"))
-        # grouped here, not kept on the mesh (22 MB a variant of 1.37M vertices, held by the caller)
-        if same and (old is mesh or np.array_equal(previous.welding.inverse,
-                                                   first_occurrence_groups(mesh.vertices)[1])):
-            previous.mesh = mesh
-            return previous
-    shaded[slot] = ShadedMesh(mesh, color, override=override, once=True)
-    return shaded[slot]
-
-
-def render_shots(shots: Iterable[Shot], settings: Any, *, view: GLView | None = None,
-                 keypoint_radius: float | None = None) -> list[np.ndarray]:
-    """Draw each shot with one hidden window; a list of (H, W, 3) uint8 with the keypoint numbers drawn in. The
-    shots are taken once, in order: they may be made as they are asked for.
-
-    The caller provides the display (``private_display`` for no screen); ``view`` reuses an open window.
-    """
-    import open3d as o3d
-
-    from kpd.viewer.render import camera_pose, keypoint_palette, label_image_at
-
-    own = view is None
-    view = view or GLView(settings.width, settings.height, background=settings.background)
-    view.vis.get_render_option().point_size = max(2.0, settings.height / 130)
-    images = []
-    shaded_layers: dict[int, ShadedMesh] = {}  # each layer slot's last mesh, ready to draw (_shaded_layer)
-    try:
-        for shot in shots:
-            view.clear()
-            points = frame_points(shot)
-            camera = shot.camera or camera_pose(points, settings)
-            view.set_box(points)
-            view.camera = camera
-            lo, hi = box([points])
-            diagonal = float(np.linalg.norm(hi - lo)) or 1.0
-            for i, layer in enumerate(shot.layers):
-                if layer.style in ("points", "splats"):
-                    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(layer.mesh, np.float64)))
-                    color = np.asarray(layer.color or (0.55, 0.65, 0.85), dtype=np.float64)
-                    if layer.style == "splats":  # lit as a surface: normals from the neighbours, towards the camera
-                        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(12))
-                        cloud.orient_normals_towards_camera_location(np.asarray(camera.eye, dtype=np.float64))
-                        colors = shade(np.tile(color, (len(cloud.points), 1)), np.asarray(cloud.normals), camera)
-                        cloud.colors = o3d.utility.Vector3dVector(colors.astype(np.float64))
-                    else:
-                        cloud.paint_uniform_color(color)
-                    view.put(f"layer:{i}", cloud)
-                elif layer.style == "wire":
-                    view.put(f"layer:{i}", line_set(layer.mesh.vertices, mesh_edges(layer.mesh.triangles),
-                                                    layer.color or (0.3, 0.3, 0.3)))
-                else:
-                    shaded = _shaded_layer(shaded_layers, i, layer.mesh, layer.color or settings.mesh_color,
-                                           override=layer.color is not None)
-                    shaded.set_vertices(layer.mesh.vertices, camera, view.viewport(camera))
-                    for j, part in enumerate(shaded.geometries):
-                        view.put(f"layer:{i}:{j}", part)
-            for i, (points_, edges, color) in enumerate(shot.lines):
-                view.put(f"lines:{i}", line_set(points_, edges, color))
-            radius = None
-            if shot.keypoints is not None and settings.show_keypoints:
-                k = len(shot.keypoints)
-                radius = keypoint_radius or settings.keypoint_size * diagonal
-                markers = Markers(keypoint_palette(k), radius)
-                scales = np.ones(k)
-                scales[[i for i in shot.selection if 0 <= i < k]] = 1.6
-                markers.set(shot.keypoints, scales, camera)
-                view.put("keypoints", markers.geometry)
-            view.set_camera(camera)
-            image = view.capture()
-            if radius is not None and settings.show_labels:
-                image = label_image_at(image, shot.keypoints, radius, camera)
-            images.append(image)
-    finally:
-        if own:
-            view.close()
-    return images
-
+_Welding, _Normals = Welding, ShadingNormals

@@ -46,8 +46,8 @@ class ShadedMesh:
     """A mesh as legacy Open3D geometries: one ``TriangleMesh`` per texture (or one for the whole mesh).
 
     Each frame (:meth:`set_vertices`) uploads the triangles that cover a pixel centre (:func:`visible_triangles`),
-    over their own vertices, with colours shaded by the mesh's shading normals (:class:`ShadingNormals`): what the picture
-    needs of a mesh with more triangles than pixels, and the same picture.
+    over their own vertices, with colours shaded by the mesh's shading normals (:class:`ShadingNormals`): what the
+    picture needs of a mesh with more triangles than pixels, and the same picture.
 
     Parameters
     ----------
