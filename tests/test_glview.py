@@ -5,7 +5,7 @@ import subprocess
 
 import numpy as np
 import pytest
-from test_viewer import HAS_XVFB
+from viewer_helpers import HAS_XVFB
 
 pytest_plugins = ["viewer_helpers"]  # the shared fixtures
 

@@ -3,33 +3,24 @@ under Xvfb with xdotool."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
-import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import pytest
+from viewer_helpers import HAS_XVFB, clear_keypoint, drags_with_nudges, editor_window, kpd, last_event, screen_pixels
 
 from kpd.errors import InputError
-from kpd.viewer.render import ViewSettings, keypoint_palette, project, read_png
 from kpd.viewer.app import read_events, wait_for
+from kpd.viewer.render import ViewSettings, keypoint_palette, read_png
 from kpd.viewer.session import EditSession, component_offsets, propose
 
-REPO = Path(__file__).resolve().parents[1]
-HAS_XVFB = shutil.which("Xvfb") is not None and shutil.which("xdotool") is not None
-
-
-def kpd(*argv: str, env: dict | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "kpd.cli", *map(str, argv)], capture_output=True, text=True,
-                          env=env, timeout=timeout, cwd=REPO)
+pytest_plugins = ["viewer_helpers"]  # the shared fixtures
 
 
 # --- edit sessions ------------------------------------------------------------------------------------------------
@@ -140,17 +131,6 @@ def test_propose_with_and_without_prior():
 
 
 # --- commands on a real chair -------------------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def chair_rig(data_dir, tmp_path_factory):
-    from kpd.runtime import Model
-
-    mesh = sorted((data_dir / "modelnet10" / "chair" / "test").glob("chair_*"))[0]
-    rig = Model.load("chair").rig(mesh)
-    path = tmp_path_factory.mktemp("rig") / "chair_rig.npz"
-    rig.save(path)
-    return path
 
 
 def _one_line_error(done: subprocess.CompletedProcess, match: str) -> None:
@@ -312,72 +292,6 @@ def test_no_window_is_one_line(chair_rig, tmp_path):
 # --- the real window -------------------------------------------------------------------------------------------------
 
 
-def _last(path: Path, name: str, after: int = 0):
-    found = [e for e in read_events(path)[after:] if e["event"] == name]
-    return found[-1] if found else None
-
-
-class _Window(NamedTuple):
-    """A running editor on a private Xvfb: its events file, xdotool, its ready event and the 3D view's top-left corner
-    on the screen."""
-
-    events: Path
-    xdo: Callable[..., str]
-    ready: dict
-    origin: tuple[int, int]
-    display: str
-
-
-@contextlib.contextmanager
-def _editor_window(tmp_path: Path, *args: object, size: str = "480x400", screen: Path | None = None
-                   ) -> Iterator[_Window]:
-    """``kpd view ARGS --size SIZE --events ...`` in a real window on a private Xvfb, stopped on exit; with ``screen``
-    (a folder) the server keeps its screen there for ``grab_screen``."""
-    from kpd.viewer.render import private_display
-
-    events = tmp_path / "events.jsonl"
-    with private_display(1400, 900, fbdir=screen) as display:
-        env = dict(os.environ, DISPLAY=display)
-        window = subprocess.Popen(
-            [sys.executable, "-m", "kpd.cli", "view", *map(str, args), "--size", size, "--events", str(events)],
-            env=env, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-
-        def xdo(*xargs: object) -> str:
-            return subprocess.run(["xdotool", *map(str, xargs)], env=env, check=True, capture_output=True,
-                                  text=True).stdout
-
-        try:
-            ready = wait_for(lambda: _last(events, "ready"), 90, "the editor window")
-            wid = wait_for(lambda: subprocess.run(["xdotool", "search", "--name", f"^{ready['title']}$"], env=env,
-                                               capture_output=True, text=True).stdout.split(), 30, "the X window")[-1]
-            geometry = dict(line.split("=") for line in xdo("getwindowgeometry", "--shell", wid).split())
-            yield _Window(events, xdo, ready, (int(geometry["X"]), int(geometry["Y"])), display)
-        finally:
-            window.terminate()
-            try:
-                window.wait(10)
-            except subprocess.TimeoutExpired:
-                window.kill()
-                window.wait()
-        assert b"Traceback" not in window.stderr.read(), "the editor raised"
-
-
-def _screen_pixels(win: _Window, keypoints: np.ndarray) -> np.ndarray:
-    """(K, 2) screen positions of keypoints in the editor's 3D view (the camera of its ready event)."""
-    vx, vy, w, h = win.ready["viewport"]
-    pixels, _ = project(np.asarray(keypoints), np.array(win.ready["view"]), np.array(win.ready["projection"]), w, h)
-    return pixels + np.array([win.origin[0] + vx, win.origin[1] + vy])
-
-
-def _clear_keypoint(win: _Window, keypoints: np.ndarray) -> int:
-    """A keypoint well inside the view and far from the others' markers on screen."""
-    vx, vy, w, h = win.ready["viewport"]
-    pixels = _screen_pixels(win, keypoints) - np.array([win.origin[0] + vx, win.origin[1] + vy])
-    gaps = np.linalg.norm(pixels[:, None] - pixels[None], axis=2) + np.eye(len(pixels)) * 1e9
-    inside = (pixels[:, 0] > 60) & (pixels[:, 0] < w - 60) & (pixels[:, 1] > 80) & (pixels[:, 1] < h - 60)
-    return int(np.argmax(np.where(inside, gaps.min(axis=1), -1)))
-
-
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
 def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
@@ -386,22 +300,22 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
 
     rig = Rig.load(chair_rig)
     out = tmp_path / "edited.ply"
-    with _editor_window(tmp_path, "--rig", chair_rig, "--out", out) as win:
+    with editor_window(tmp_path, "--rig", chair_rig, "--out", out) as win:
         events, xdo, ready = win.events, win.xdo, win.ready
         np.testing.assert_allclose(ready["keypoints"], rig.keypoints)
-        index = _clear_keypoint(win, rig.keypoints)
-        x, y = np.rint(_screen_pixels(win, rig.keypoints)[index]).astype(int)
+        index = clear_keypoint(win, rig.keypoints)
+        x, y = np.rint(screen_pixels(win, rig.keypoints)[index]).astype(int)
         xdo("mousemove", x, y)
         xdo("mousedown", 1)
-        selected = wait_for(lambda: _last(events, "select"), 60, "the selection")
+        selected = wait_for(lambda: last_event(events, "select"), 60, "the selection")
         assert selected["selection"] == [index] and selected["picked"] == index
         for step in range(1, 6):
             xdo("mousemove", x + 4 * step, y - 10 * step)
         xdo("mouseup", 1)
-        released = wait_for(lambda: _last(events, "release"), 120, "the end of the drag")
+        released = wait_for(lambda: last_event(events, "release"), 120, "the end of the drag")
         assert released["moved"]
         xdo("key", "s")
-        saved = wait_for(lambda: _last(events, "save"), 60, "the saved mesh")
+        saved = wait_for(lambda: last_event(events, "save"), 60, "the saved mesh")
         keypoints = np.array(saved["keypoints"])
         moved = np.flatnonzero(np.abs(keypoints - rig.keypoints).max(axis=1) > 0)
         assert moved.tolist() == [index]  # the prior is off: only the selection moved
@@ -413,11 +327,11 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
         assert np.abs(mesh.vertices - rig.mesh.vertices).max() > 1e-3 * scale  # the mesh did change
         count = len(read_events(events))
         xdo("key", "u")
-        undone = wait_for(lambda: _last(events, "undo", count), 60, "undo")
+        undone = wait_for(lambda: last_event(events, "undo", count), 60, "undo")
         np.testing.assert_allclose(undone["keypoints"], rig.keypoints)
         count = len(read_events(events))
         xdo("key", "s")
-        wait_for(lambda: _last(events, "save", count), 60, "the second save")
+        wait_for(lambda: last_event(events, "save", count), 60, "the second save")
         np.testing.assert_allclose(read_mesh(out).vertices, rig.mesh.vertices, atol=1e-5 * scale)
 
 
@@ -436,7 +350,7 @@ def test_editor_window_shows_the_outer_side_of_faces_with_two_materials(tmp_path
     write_mesh(tmp_path / "box.obj", two_sided_box(green_out, green_first=True))
     screen = tmp_path / "screen"
     screen.mkdir()
-    with _editor_window(tmp_path, "chair", tmp_path / "box.obj", screen=screen) as win:
+    with editor_window(tmp_path, "chair", tmp_path / "box.obj", screen=screen) as win:
         time.sleep(1.0)  # ready (the rig bound): its frame is on the screen
         vx, vy, w, h = (int(round(v)) for v in win.ready["viewport"])
         x, y = win.origin[0] + vx, win.origin[1] + vy
@@ -458,13 +372,13 @@ def test_editor_window_shows_the_number_of_every_keypoint_in_view(data_dir, tmp_
 
     screen = tmp_path / "screen"
     screen.mkdir()
-    with _editor_window(tmp_path, "shoe", data_dir / "scans" / "sneaker.ply", size="640x520", screen=screen) as win:
+    with editor_window(tmp_path, "shoe", data_dir / "scans" / "sneaker.ply", size="640x520", screen=screen) as win:
         time.sleep(1.0)  # ready (the rig bound): its frame is on the screen
         keypoints = np.array(win.ready["keypoints"])
         vx, vy, w, h = (int(round(v)) for v in win.ready["viewport"])
         x, y = win.origin[0] + vx, win.origin[1] + vy
         image = grab_screen(screen)[y:y + h, x:x + w].astype(int)
-    pixels = _screen_pixels(win, keypoints) - np.array([x, y])
+    pixels = screen_pixels(win, keypoints) - np.array([x, y])
     ink = np.rint(255 * 0.75 * keypoint_palette(len(keypoints))).astype(int)
     shown = []
     for k, (px, py) in enumerate(pixels):
@@ -473,29 +387,6 @@ def test_editor_window_shows_the_number_of_every_keypoint_in_view(data_dir, tmp_
         around = image[max(int(py) - 40, 0):int(py) + 10, max(int(px) - 10, 0):int(px) + 50]  # up and to the right
         shown.append(int((np.abs(around - ink[k]).max(axis=2) <= 24).sum()))
     assert len(shown) >= 8 and min(shown) >= 4, shown  # a "1" in its colour is 10-12 pixels here
-
-
-def _drags_with_nudges(win, keypoints: np.ndarray, index: int, count: int, *, timeout: float) -> np.ndarray:
-    """``count`` drags of keypoint ``index`` towards the middle of the view (so it stays in sight), each followed by
-    an arrow-key nudge (undone by the next one); returns the keypoints the window reports after the last nudge."""
-    events, xdo = win.events, win.xdo
-    vx, vy, w, h = win.ready["viewport"]
-    centre = np.array([win.origin[0] + vx + w / 2, win.origin[1] + vy + h / 2])
-    towards = np.sign(centre - _screen_pixels(win, keypoints)[index])
-    for drag in range(count):
-        x, y = np.rint(_screen_pixels(win, keypoints)[index]).astype(int)
-        xdo("mousemove", x, y)
-        xdo("mousedown", 1)
-        for step in range(1, 6):
-            xdo("mousemove", x + int(towards[0] * 2 * step), y + int(towards[1] * 3 * step))
-        xdo("mouseup", 1)
-        released = wait_for(lambda: [e for e in read_events(events) if e["event"] == "release"][drag:], timeout,
-                            f"the end of drag {drag + 1}")[0]
-        assert released["moved"] and released["selection"] == [index]
-        xdo("key", "Left" if drag % 2 else "Right")
-        nudges = wait_for(lambda: [e for e in read_events(events) if e["event"] == "nudge"][drag:], timeout, "a nudge")
-        keypoints = np.array(nudges[0]["keypoints"])
-    return keypoints
 
 
 @pytest.mark.slow
@@ -509,20 +400,20 @@ def test_editor_scripted_session_of_many_drags_and_keys(chair_rig, tmp_path):
 
     rig = Rig.load(chair_rig)
     out = tmp_path / "edited.ply"
-    with _editor_window(tmp_path, "--rig", chair_rig, "--out", out, "--screenshot", tmp_path / "shot.png") as win:
+    with editor_window(tmp_path, "--rig", chair_rig, "--out", out, "--screenshot", tmp_path / "shot.png") as win:
         events, xdo = win.events, win.xdo
         xdo("key", "p")
-        first = wait_for(lambda: _last(events, "screenshot"), 60, "the first screenshot")
-        index = _clear_keypoint(win, rig.keypoints)
+        first = wait_for(lambda: last_event(events, "screenshot"), 60, "the first screenshot")
+        index = clear_keypoint(win, rig.keypoints)
         keypoints = rig.keypoints
-        keypoints = _drags_with_nudges(win, keypoints, index, 8, timeout=60)
+        keypoints = drags_with_nudges(win, keypoints, index, 8, timeout=60)
         xdo("key", "u")
-        wait_for(lambda: _last(events, "undo"), 60, "undo")
+        wait_for(lambda: last_event(events, "undo"), 60, "undo")
         xdo("key", "y")
-        redone = wait_for(lambda: _last(events, "redo"), 60, "redo")
+        redone = wait_for(lambda: last_event(events, "redo"), 60, "redo")
         np.testing.assert_allclose(redone["keypoints"], keypoints)
         xdo("key", "s")
-        saved = wait_for(lambda: _last(events, "save"), 60, "the saved mesh")
+        saved = wait_for(lambda: last_event(events, "save"), 60, "the saved mesh")
         xdo("key", "p")
         second = wait_for(lambda: [e for e in read_events(events) if e["event"] == "screenshot"][1:], 60,
                        "the second screenshot")[0]
@@ -544,8 +435,8 @@ def test_editor_scripted_session_of_many_drags_and_keys(chair_rig, tmp_path):
     assert changed.sum() > 200
     ys, xs = np.nonzero(changed)
     centroid = np.array([xs.mean(), ys.mean()]) + np.array(win.origin) + np.array(win.ready["viewport"][:2])
-    path_mid = (_screen_pixels(win, rig.keypoints)[index] + _screen_pixels(win, final)[index]) / 2
-    others = np.linalg.norm(_screen_pixels(win, rig.keypoints) - path_mid, axis=1)
+    path_mid = (screen_pixels(win, rig.keypoints)[index] + screen_pixels(win, final)[index]) / 2
+    others = np.linalg.norm(screen_pixels(win, rig.keypoints) - path_mid, axis=1)
     assert np.linalg.norm(centroid - path_mid) < np.sort(others)[len(others) // 2]  # near the dragged keypoint
 
 
@@ -559,7 +450,7 @@ def test_editor_window_pca_slider_explores_the_category(chair_rig, tmp_path):
 
     rig = Rig.load(chair_rig)
     prior = Model.load("chair").prior
-    with _editor_window(tmp_path, "--rig", chair_rig, "--model", "chair") as win:
+    with editor_window(tmp_path, "--rig", chair_rig, "--model", "chair") as win:
         assert len(win.ready["sliders"]) == min(len(prior.components_), 8)
         sx, sy, sw, sh = win.ready["sliders"][0]  # on the screen (the panel is a window of its own)
         assert sw > 150  # drawn across the panel, not a thumb's width

@@ -1,11 +1,10 @@
 """The editor on a mesh of over a million vertices, in a real window under Xvfb driven by xdotool."""
 
 import subprocess
-import threading
 
 import numpy as np
 import pytest
-from test_viewer import HAS_XVFB, _clear_keypoint, _drags_with_nudges, _editor_window, _last, chair_rig  # noqa: F401
+from viewer_helpers import HAS_XVFB, clear_keypoint, drags_with_nudges, editor_window, kpd, last_event
 
 from kpd.viewer.app import read_events, wait_for
 
@@ -24,22 +23,22 @@ def test_editor_session_of_many_drags_on_a_million_vertex_mesh_loses_nothing(tmp
     assert len(mesh.vertices) > 1_000_000
     write_mesh(tmp_path / "chair.ply", mesh)
     out = tmp_path / "edited.ply"
-    with _editor_window(tmp_path, "chair", tmp_path / "chair.ply", "--out", out, size="640x480") as win:
+    with editor_window(tmp_path, "chair", tmp_path / "chair.ply", "--out", out, size="640x480") as win:
         events, xdo = win.events, win.xdo
         keypoints = np.array(win.ready["keypoints"])
         rest = keypoints.copy()
-        index = _clear_keypoint(win, keypoints)
-        keypoints = _drags_with_nudges(win, keypoints, index, 5, timeout=120)
+        index = clear_keypoint(win, keypoints)
+        keypoints = drags_with_nudges(win, keypoints, index, 5, timeout=120)
         xdo("key", "u")
-        wait_for(lambda: _last(events, "undo"), 120, "undo")
+        wait_for(lambda: last_event(events, "undo"), 120, "undo")
         xdo("key", "y")
-        redone = wait_for(lambda: _last(events, "redo"), 120, "redo")
+        redone = wait_for(lambda: last_event(events, "redo"), 120, "redo")
         np.testing.assert_allclose(redone["keypoints"], keypoints)
         last = wait_for(lambda: [f for f in read_events(events) if f["event"] == "frame"
                                  and f["time"] > redone["time"] and not f["stand_in"]], 120, "the whole mesh")[-1]
         np.testing.assert_allclose(last["keypoints"], keypoints)  # nothing lost: the final state, whole
         xdo("key", "s")
-        saved = wait_for(lambda: _last(events, "save"), 120, "the saved mesh")
+        saved = wait_for(lambda: last_event(events, "save"), 120, "the saved mesh")
         np.testing.assert_allclose(saved["keypoints"], keypoints)
         frames = [e for e in read_events(events) if e["event"] == "frame"]
         inputs = [e for e in read_events(events) if e["event"] == "input"]
@@ -110,7 +109,7 @@ sys.exit(app.run())
 
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
-def test_editor_shows_the_mesh_at_once_and_answers_input_while_it_binds(chair_rig, tmp_path):  # noqa: F811
+def test_editor_shows_the_mesh_at_once_and_answers_input_while_it_binds(chair_rig, tmp_path):
     """A rig still to be made (viewer.app.Binding): the mesh is on the screen before the rig is ready, a drag and
     keys meanwhile are taken (the view turns; edits wait, the panel says why), and the keypoints appear when the
     binding returns."""
@@ -131,7 +130,7 @@ def test_editor_shows_the_mesh_at_once_and_answers_input_while_it_binds(chair_ri
             subprocess.run(["xdotool", *map(str, args)], env=env, check=True, capture_output=True)
 
         try:
-            wait_for(lambda: _last(events, "shown"), 120, "the mesh")
+            wait_for(lambda: last_event(events, "shown"), 120, "the mesh")
             xdo("mousemove", 240, 200)
             xdo("mousedown", 1)
             for step in range(1, 5):
@@ -141,9 +140,9 @@ def test_editor_shows_the_mesh_at_once_and_answers_input_while_it_binds(chair_ri
             xdo("key", "Right")
             wait_for(lambda: [e for e in read_events(events) if e["event"] == "frame" and e["serial"] >= 5], 60,
                      "a frame of the turned view")
-            assert _last(events, "ready") is None
+            assert last_event(events, "ready") is None
             release.touch()
-            wait_for(lambda: _last(events, "ready"), 60, "the rig")
+            wait_for(lambda: last_event(events, "ready"), 60, "the rig")
             wait_for(lambda: [e for e in read_events(events) if e["event"] == "frame" and e["keypoints"]], 60,
                      "a frame with the keypoints")
         finally:
@@ -174,7 +173,6 @@ def test_kpd_view_ends_with_the_bindings_error_in_one_line(tmp_path):
 
     from kpd.io import Mesh, write_mesh
     from kpd.viewer.render import private_display
-    from test_viewer import kpd
 
     flat = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]])  # every triangle without area: nothing to sample
     write_mesh(tmp_path / "flat.ply", Mesh(flat, np.array([[0, 1, 2], [1, 2, 3]])))
@@ -193,9 +191,7 @@ def test_kpd_view_applies_a_saved_session_once_the_rig_is_bound(data_dir, tmp_pa
     import os
 
     from kpd.runtime import Model
-    from kpd.viewer.render import private_display
     from kpd.viewer.session import EditSession
-    from test_viewer import kpd
 
     shape = data_dir / "modelnet10" / "chair" / "test" / "chair_0956.ply"
     rest = Model.load("chair").rig(shape).keypoints
@@ -205,7 +201,7 @@ def test_kpd_view_applies_a_saved_session_once_the_rig_is_bound(data_dir, tmp_pa
     (tmp_path / "bad.json").write_text("{not json")
     done = kpd("view", "chair", shape, "--load-session", tmp_path / "bad.json", env=dict(os.environ, DISPLAY=":404"))
     assert done.returncode == 2 and "not a JSON edit session" in done.stderr
-    with _editor_window(tmp_path, "chair", shape, "--load-session", tmp_path / "session.json") as win:
+    with editor_window(tmp_path, "chair", shape, "--load-session", tmp_path / "session.json") as win:
         np.testing.assert_allclose(win.ready["keypoints"], session.keypoints, atol=1e-9)
         assert win.ready["undo"] == 1
 
