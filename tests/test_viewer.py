@@ -3,33 +3,24 @@ under Xvfb with xdotool."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
-import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import pytest
+from viewer_helpers import HAS_XVFB, clear_keypoint, drags_with_nudges, editor_window, kpd, last_event, screen_pixels
 
 from kpd.errors import InputError
-from kpd.viewer.render import ViewSettings, keypoint_palette, project, read_png
 from kpd.viewer.app import read_events, wait_for
+from kpd.viewer.render import ViewSettings, keypoint_palette, read_png
 from kpd.viewer.session import EditSession, component_offsets, propose
 
-REPO = Path(__file__).resolve().parents[1]
-HAS_XVFB = shutil.which("Xvfb") is not None and shutil.which("xdotool") is not None
-
-
-def kpd(*argv: str, env: dict | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "kpd.cli", *map(str, argv)], capture_output=True, text=True,
-                          env=env, timeout=timeout, cwd=REPO)
+pytest_plugins = ["viewer_helpers"]  # the shared fixtures
 
 
 # --- edit sessions ------------------------------------------------------------------------------------------------
@@ -142,17 +133,6 @@ def test_propose_with_and_without_prior():
 # --- commands on a real chair -------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def chair_rig(data_dir, tmp_path_factory):
-    from kpd.runtime import Model
-
-    mesh = sorted((data_dir / "modelnet10" / "chair" / "test").glob("chair_*"))[0]
-    rig = Model.load("chair").rig(mesh)
-    path = tmp_path_factory.mktemp("rig") / "chair_rig.npz"
-    rig.save(path)
-    return path
-
-
 def _one_line_error(done: subprocess.CompletedProcess, match: str) -> None:
     assert done.returncode == 2, done.stderr
     lines = done.stderr.strip().splitlines()
@@ -236,192 +216,6 @@ def test_render_is_cleanly_shaded_and_frames_the_deformed_shape(data_dir, tmp_pa
     assert brightness.std() > 8  # shaded, not flat
 
 
-def test_shading_normals_turn_double_sided_triangles_towards_the_camera():
-    from kpd.viewer.gl import shading_normals
-
-    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
-    both = np.array([[0, 1, 2], [0, 2, 1]])  # the same triangle in both windings
-    assert np.allclose(shading_normals(vertices, both, None), 0)  # by winding they cancel: the old blotches
-    np.testing.assert_allclose(shading_normals(vertices, both, np.array([0.2, 0.2, 5.0])), np.tile([0, 0, 1.0], (3, 1)))
-    np.testing.assert_allclose(shading_normals(vertices, both, np.array([0.2, 0.2, -5.0])),
-                               np.tile([0, 0, -1.0], (3, 1)))
-    unwelded = np.vstack([vertices, vertices[[1, 2]] + [0, 0, 0]])  # copies of two corners at the same places
-    tris = np.array([[0, 1, 2], [3, 4, 0]])
-    normals = shading_normals(unwelded, tris, np.array([0.0, 0, 3.0]))
-    np.testing.assert_allclose(normals[1], normals[3])  # welded: the copies shade alike
-
-
-def test_edge_neighbours_name_the_third_corner_across_each_edge():
-    from kpd.viewer.gl import edge_neighbours
-
-    triangles = np.array([[0, 1, 2], [2, 1, 3], [4, 5, 6]])  # two sharing the edge 1-2, one alone
-    np.testing.assert_array_equal(edge_neighbours(triangles, 7), [[-1, 3, -1], [0, -1, -1], [-1, -1, -1]])
-
-
-def _nearest_at_samples(screen: np.ndarray, triangles: np.ndarray, width: int, height: int,
-                        samples: np.ndarray) -> set:
-    """The triangles nearest at some sample point, by the exact positions (the naive z-buffer)."""
-    pixels = np.stack(np.meshgrid(np.arange(width), np.arange(height)), axis=-1)  # (H, W, 2)
-    points = (pixels[:, :, None, :] + samples).reshape(-1, 2)  # (H W S, 2)
-    best = np.full(len(points), -np.inf)  # 1 / depth is affine on the screen: the largest is the nearest
-    owner = np.full(len(points), -1)
-    for t, (a, b, c) in enumerate(screen[triangles]):
-        lo, hi = np.minimum(np.minimum(a, b), c)[:2], np.maximum(np.maximum(a, b), c)[:2]
-        inside = np.flatnonzero((points >= lo).all(axis=1) & (points <= hi).all(axis=1))
-        area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
-        if not len(inside) or area == 0:
-            continue
-        p = points[inside]
-        wb = ((p[:, 0] - a[0]) * (c[1] - a[1]) - (p[:, 1] - a[1]) * (c[0] - a[0])) / area
-        wc = ((b[0] - a[0]) * (p[:, 1] - a[1]) - (b[1] - a[1]) * (p[:, 0] - a[0])) / area
-        wa = 1 - wb - wc
-        hit = (wa > 0) & (wb > 0) & (wc > 0)
-        nearness = wa / a[2] + wb / b[2] + wc / c[2]
-        better = hit & (nearness > best[inside])
-        best[inside[better]], owner[inside[better]] = nearness[better], t
-    return set(owner[owner >= 0].tolist())
-
-
-def test_visible_triangles_with_neighbours_keep_fewer_and_every_nearest_one():
-    """Judged with their neighbours across edges, fewer triangles of a dense sphere are kept than judged alone, all
-    of them among those, and among them every triangle nearest at a sample point."""
-    import open3d as o3d
-
-    from kpd.viewer.gl import Viewport, _project, edge_neighbours, visible_triangles
-    from kpd.viewer.render import ViewSettings, camera_pose
-
-    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=100)
-    vertices, triangles = np.asarray(sphere.vertices), np.asarray(sphere.triangles).astype(np.int64)
-    width, height = 64, 48
-    samples = np.array([[0.375, 0.125], [0.875, 0.375], [0.125, 0.625], [0.625, 0.875]])
-    camera = camera_pose(vertices, ViewSettings(width=width, height=height, azimuth=30, elevation=20))
-    viewport = Viewport(camera, width, height, samples)
-    alone = visible_triangles(vertices, triangles, viewport).copy()
-    paired = visible_triangles(vertices, triangles, viewport, neighbours=edge_neighbours(triangles, len(vertices)))
-    assert not (paired & ~alone).any()
-    assert paired.sum() < 0.9 * alone.sum()
-    screen = np.empty((len(vertices), 3))
-    _project(0, len(vertices), vertices, np.zeros(0, np.int64), viewport.view, viewport.focal, width / 2, height / 2,
-             screen)
-    nearest = _nearest_at_samples(screen, triangles, width, height, samples)
-    assert len(nearest) > 1000 and all(paired[t] for t in nearest)
-
-
-def test_stand_in_of_a_large_mesh_is_coarse_and_made_of_its_vertices():
-    import open3d as o3d
-
-    from kpd.viewer.gl import proxy_triangles
-
-    sphere = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=120)
-    vertices, triangles = np.asarray(sphere.vertices), np.asarray(sphere.triangles).astype(np.int64)
-    assert proxy_triangles(vertices, triangles, len(triangles)) is None  # small enough: drawn whole
-    kept, faces = proxy_triangles(vertices, triangles, 5000)
-    assert 1000 < len(faces) <= 5000 < len(triangles)
-    assert faces.min() >= 0 and faces.max() < len(kept) and len(np.unique(kept)) == len(kept)
-    assert (np.diff(np.sort(faces, axis=1), axis=1) > 0).all()  # no collapsed triangles
-    radii = np.linalg.norm(vertices[kept], axis=1)
-    np.testing.assert_allclose(radii, 1.0, atol=1e-9)  # original vertices: the deformed mesh's rows give its stand-in
-
-
-def _pictures(shaded_meshes, camera, width: int, height: int) -> list:
-    """(H, W, 3) int64 pictures of each ShadedMesh of ``shaded_meshes(view)`` drawn alone as ``camera`` sees it, in a
-    hidden view (EGL)."""
-    from kpd.viewer.display import gl_display
-    from kpd.viewer.gl import GLView
-
-    with gl_display("egl", width, height):
-        view = GLView(width, height)
-        try:
-            pictures = []
-            for shown in shaded_meshes(view):
-                view.clear()
-                shown.set_vertices(shown.mesh.vertices, camera)
-                for i, part in enumerate(shown.geometries):
-                    view.put(f"mesh:{i}", part)
-                view.set_camera(camera)
-                pictures.append(view.capture().astype(np.int64))
-        finally:
-            view.close()
-    return pictures
-
-
-SHAPENET_CHAIR = ("keypointnet", "models", "03001627", "eaf231f17fccb96d81dff5c2e57ad46e", "model.obj")
-
-
-def test_a_cad_mesh_of_many_triangles_gets_a_fine_stand_in_that_looks_like_it(data_dir):
-    """An unseen ShapeNet chair (9,848 vertices, 19,900 distinct triangles): its stand-in is made of its own
-    vertices, draws at most three quarters of its triangles, and its picture is the whole mesh's but for under 1%
-    of the shape's pixels; a mesh of few triangles gets none, a large one the coarse one."""
-    from kpd.io import Mesh, read_mesh
-    from kpd.viewer.gl import PROXY_TRIANGLES, STAND_IN_TRIANGLES, ShadedMesh, fine_stand_in, proxy_triangles, stand_in
-    from kpd.viewer.render import ViewSettings, camera_pose
-
-    mesh = read_mesh(data_dir.joinpath(*SHAPENET_CHAIR))
-    shaded = ShadedMesh(mesh)
-    drawn = shaded.drawn
-    assert STAND_IN_TRIANGLES < len(drawn) <= PROXY_TRIANGLES
-    kept, faces = stand_in(mesh.vertices, drawn)
-    assert len(faces) <= 0.75 * len(drawn) and len(faces) > 0.3 * len(drawn)
-    assert faces.min() >= 0 and faces.max() < len(kept) and len(np.unique(kept)) == len(kept)
-    assert (np.diff(np.sort(faces, axis=1), axis=1) > 0).all()  # no collapsed triangles
-    assert stand_in(mesh.vertices, drawn[:STAND_IN_TRIANGLES]) is None  # few triangles: drawn whole
-    assert stand_in(mesh.vertices, drawn, fine=False) is None  # textures or materials: drawn whole
-    flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)
-    assert fine_stand_in(flat, np.array([[0, 1, 2], [1, 3, 2]])) is None  # nothing to collapse
-    big = np.tile(drawn, (3, 1))
-    np.testing.assert_array_equal(stand_in(mesh.vertices, big)[1],
-                                  proxy_triangles(mesh.vertices, big, PROXY_TRIANGLES)[1])
-    width, height = 480, 360
-    settings = ViewSettings(width=width, height=height, azimuth=30, elevation=20, up="+y")
-    camera = camera_pose(mesh.vertices, settings)
-    pictures = _pictures(lambda _view: (shaded, ShadedMesh(Mesh(vertices=mesh.vertices[kept], triangles=faces))),
-                         camera, width, height)
-    shape = (pictures[0] != 255).any(axis=2)
-    assert shape.mean() > 0.05  # the chair is in the picture
-    differs = np.abs(pictures[1] - pictures[0]).max(axis=2) > 24
-    assert differs.sum() < 0.01 * shape.sum(), differs.sum() / shape.sum()
-
-
-def test_a_stand_in_keeps_the_colours_of_plain_materials(data_dir):
-    """The ShapeNet chair with two plain-colour materials (as kpd.io reads an OBJ's materials without maps): its
-    stand-in is drawn in their colours, the same picture as the whole mesh's but for under 2% of the shape's
-    pixels; a mesh with a texture image gets no fine stand-in (it would change colour while dragged)."""
-    from kpd.io import Mesh, read_mesh
-    from kpd.viewer.gl import RigDrawing, ShadedMesh, image_maps, stand_in, stand_in_colors
-    from kpd.viewer.render import ViewSettings, camera_pose
-
-    chair = read_mesh(data_dir.joinpath(*SHAPENET_CHAIR))
-    centres = chair.vertices[chair.triangles].mean(axis=1)
-    ids = (centres[:, 1] > np.median(centres[:, 1])).astype(np.int64)  # the upper half red, the lower blue
-    red, blue = np.array([[[200, 40, 40]]], np.uint8), np.array([[[40, 60, 200]]], np.uint8)
-    mesh = Mesh(vertices=chair.vertices, triangles=chair.triangles, textures=[blue, red], triangle_material_ids=ids,
-                triangle_uvs=np.zeros((3 * len(chair.triangles), 2)))
-    assert not image_maps(mesh)
-    colors = stand_in_colors(mesh)
-    only_red = np.setdiff1d(chair.triangles[ids == 1], chair.triangles[ids == 0])
-    assert len(only_red) > 1000
-    np.testing.assert_allclose(colors[only_red], np.tile(red[0, 0] / 255.0, (len(only_red), 1)))
-    width, height = 480, 360
-    settings = ViewSettings(width=width, height=height, azimuth=30, elevation=20, up="+y")
-    camera = camera_pose(mesh.vertices, settings)
-
-    def whole_and_stand_in(view):
-        drawing = RigDrawing(view, mesh, settings=settings, digits=False)
-        drawing.set_stand_in(*stand_in(mesh.vertices, drawing.shaded.drawn, fine=not image_maps(mesh)))
-        return drawing.shaded, drawing.proxy
-
-    pictures = _pictures(whole_and_stand_in, camera, width, height)
-    shape = (pictures[0] != 255).any(axis=2)
-    assert (pictures[0][..., 0] > pictures[0][..., 2] + 60).mean() > 0.02  # red in the picture
-    assert (pictures[0][..., 2] > pictures[0][..., 0] + 60).mean() > 0.02  # and blue
-    differs = np.abs(pictures[1] - pictures[0]).max(axis=2) > 24
-    assert differs.sum() < 0.02 * shape.sum(), differs.sum() / shape.sum()
-    mapped = Mesh(vertices=chair.vertices, triangles=chair.triangles, textures=[np.full((4, 4, 3), 90, np.uint8)],
-                  triangle_uvs=np.zeros((3 * len(chair.triangles), 2)))
-    drawn = ShadedMesh(mesh).drawn
-    assert image_maps(mapped) and stand_in(mapped.vertices, drawn, fine=not image_maps(mapped)) is None
-
-
 def test_the_editor_draws_a_fine_stand_in_while_the_whole_mesh_draws_slowly():
     from kpd.viewer.app import GESTURE_BUDGET_MS, draws_stand_in
     from kpd.viewer.gl import PROXY_TRIANGLES
@@ -498,76 +292,6 @@ def test_no_window_is_one_line(chair_rig, tmp_path):
 # --- the real window -------------------------------------------------------------------------------------------------
 
 
-
-
-
-
-def _last(path: Path, name: str, after: int = 0):
-    found = [e for e in read_events(path)[after:] if e["event"] == name]
-    return found[-1] if found else None
-
-
-class _Window(NamedTuple):
-    """A running editor on a private Xvfb: its events file, xdotool, its ready event and the 3D view's top-left corner
-    on the screen."""
-
-    events: Path
-    xdo: Callable[..., str]
-    ready: dict
-    origin: tuple[int, int]
-    display: str
-
-
-@contextlib.contextmanager
-def _editor_window(tmp_path: Path, *args: object, size: str = "480x400", screen: Path | None = None
-                   ) -> Iterator[_Window]:
-    """``kpd view ARGS --size SIZE --events ...`` in a real window on a private Xvfb, stopped on exit; with ``screen``
-    (a folder) the server keeps its screen there for ``grab_screen``."""
-    from kpd.viewer.render import private_display
-
-    events = tmp_path / "events.jsonl"
-    with private_display(1400, 900, fbdir=screen) as display:
-        env = dict(os.environ, DISPLAY=display)
-        window = subprocess.Popen(
-            [sys.executable, "-m", "kpd.cli", "view", *map(str, args), "--size", size, "--events", str(events)],
-            env=env, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-
-        def xdo(*xargs: object) -> str:
-            return subprocess.run(["xdotool", *map(str, xargs)], env=env, check=True, capture_output=True,
-                                  text=True).stdout
-
-        try:
-            ready = wait_for(lambda: _last(events, "ready"), 90, "the editor window")
-            wid = wait_for(lambda: subprocess.run(["xdotool", "search", "--name", f"^{ready['title']}$"], env=env,
-                                               capture_output=True, text=True).stdout.split(), 30, "the X window")[-1]
-            geometry = dict(line.split("=") for line in xdo("getwindowgeometry", "--shell", wid).split())
-            yield _Window(events, xdo, ready, (int(geometry["X"]), int(geometry["Y"])), display)
-        finally:
-            window.terminate()
-            try:
-                window.wait(10)
-            except subprocess.TimeoutExpired:
-                window.kill()
-                window.wait()
-        assert b"Traceback" not in window.stderr.read(), "the editor raised"
-
-
-def _screen_pixels(win: _Window, keypoints: np.ndarray) -> np.ndarray:
-    """(K, 2) screen positions of keypoints in the editor's 3D view (the camera of its ready event)."""
-    vx, vy, w, h = win.ready["viewport"]
-    pixels, _ = project(np.asarray(keypoints), np.array(win.ready["view"]), np.array(win.ready["projection"]), w, h)
-    return pixels + np.array([win.origin[0] + vx, win.origin[1] + vy])
-
-
-def _clear_keypoint(win: _Window, keypoints: np.ndarray) -> int:
-    """A keypoint well inside the view and far from the others' markers on screen."""
-    vx, vy, w, h = win.ready["viewport"]
-    pixels = _screen_pixels(win, keypoints) - np.array([win.origin[0] + vx, win.origin[1] + vy])
-    gaps = np.linalg.norm(pixels[:, None] - pixels[None], axis=2) + np.eye(len(pixels)) * 1e9
-    inside = (pixels[:, 0] > 60) & (pixels[:, 0] < w - 60) & (pixels[:, 1] > 80) & (pixels[:, 1] < h - 60)
-    return int(np.argmax(np.where(inside, gaps.min(axis=1), -1)))
-
-
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
 def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
@@ -576,22 +300,22 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
 
     rig = Rig.load(chair_rig)
     out = tmp_path / "edited.ply"
-    with _editor_window(tmp_path, "--rig", chair_rig, "--out", out) as win:
+    with editor_window(tmp_path, "--rig", chair_rig, "--out", out) as win:
         events, xdo, ready = win.events, win.xdo, win.ready
         np.testing.assert_allclose(ready["keypoints"], rig.keypoints)
-        index = _clear_keypoint(win, rig.keypoints)
-        x, y = np.rint(_screen_pixels(win, rig.keypoints)[index]).astype(int)
+        index = clear_keypoint(win, rig.keypoints)
+        x, y = np.rint(screen_pixels(win, rig.keypoints)[index]).astype(int)
         xdo("mousemove", x, y)
         xdo("mousedown", 1)
-        selected = wait_for(lambda: _last(events, "select"), 60, "the selection")
+        selected = wait_for(lambda: last_event(events, "select"), 60, "the selection")
         assert selected["selection"] == [index] and selected["picked"] == index
         for step in range(1, 6):
             xdo("mousemove", x + 4 * step, y - 10 * step)
         xdo("mouseup", 1)
-        released = wait_for(lambda: _last(events, "release"), 120, "the end of the drag")
+        released = wait_for(lambda: last_event(events, "release"), 120, "the end of the drag")
         assert released["moved"]
         xdo("key", "s")
-        saved = wait_for(lambda: _last(events, "save"), 60, "the saved mesh")
+        saved = wait_for(lambda: last_event(events, "save"), 60, "the saved mesh")
         keypoints = np.array(saved["keypoints"])
         moved = np.flatnonzero(np.abs(keypoints - rig.keypoints).max(axis=1) > 0)
         assert moved.tolist() == [index]  # the prior is off: only the selection moved
@@ -603,11 +327,11 @@ def test_editor_window_pick_drag_save_undo(chair_rig, tmp_path):
         assert np.abs(mesh.vertices - rig.mesh.vertices).max() > 1e-3 * scale  # the mesh did change
         count = len(read_events(events))
         xdo("key", "u")
-        undone = wait_for(lambda: _last(events, "undo", count), 60, "undo")
+        undone = wait_for(lambda: last_event(events, "undo", count), 60, "undo")
         np.testing.assert_allclose(undone["keypoints"], rig.keypoints)
         count = len(read_events(events))
         xdo("key", "s")
-        wait_for(lambda: _last(events, "save", count), 60, "the second save")
+        wait_for(lambda: last_event(events, "save", count), 60, "the second save")
         np.testing.assert_allclose(read_mesh(out).vertices, rig.mesh.vertices, atol=1e-5 * scale)
 
 
@@ -626,7 +350,7 @@ def test_editor_window_shows_the_outer_side_of_faces_with_two_materials(tmp_path
     write_mesh(tmp_path / "box.obj", two_sided_box(green_out, green_first=True))
     screen = tmp_path / "screen"
     screen.mkdir()
-    with _editor_window(tmp_path, "chair", tmp_path / "box.obj", screen=screen) as win:
+    with editor_window(tmp_path, "chair", tmp_path / "box.obj", screen=screen) as win:
         time.sleep(1.0)  # ready (the rig bound): its frame is on the screen
         vx, vy, w, h = (int(round(v)) for v in win.ready["viewport"])
         x, y = win.origin[0] + vx, win.origin[1] + vy
@@ -648,13 +372,13 @@ def test_editor_window_shows_the_number_of_every_keypoint_in_view(data_dir, tmp_
 
     screen = tmp_path / "screen"
     screen.mkdir()
-    with _editor_window(tmp_path, "shoe", data_dir / "scans" / "sneaker.ply", size="640x520", screen=screen) as win:
+    with editor_window(tmp_path, "shoe", data_dir / "scans" / "sneaker.ply", size="640x520", screen=screen) as win:
         time.sleep(1.0)  # ready (the rig bound): its frame is on the screen
         keypoints = np.array(win.ready["keypoints"])
         vx, vy, w, h = (int(round(v)) for v in win.ready["viewport"])
         x, y = win.origin[0] + vx, win.origin[1] + vy
         image = grab_screen(screen)[y:y + h, x:x + w].astype(int)
-    pixels = _screen_pixels(win, keypoints) - np.array([x, y])
+    pixels = screen_pixels(win, keypoints) - np.array([x, y])
     ink = np.rint(255 * 0.75 * keypoint_palette(len(keypoints))).astype(int)
     shown = []
     for k, (px, py) in enumerate(pixels):
@@ -663,29 +387,6 @@ def test_editor_window_shows_the_number_of_every_keypoint_in_view(data_dir, tmp_
         around = image[max(int(py) - 40, 0):int(py) + 10, max(int(px) - 10, 0):int(px) + 50]  # up and to the right
         shown.append(int((np.abs(around - ink[k]).max(axis=2) <= 24).sum()))
     assert len(shown) >= 8 and min(shown) >= 4, shown  # a "1" in its colour is 10-12 pixels here
-
-
-def _drags_with_nudges(win, keypoints: np.ndarray, index: int, count: int, *, timeout: float) -> np.ndarray:
-    """``count`` drags of keypoint ``index`` towards the middle of the view (so it stays in sight), each followed by
-    an arrow-key nudge (undone by the next one); returns the keypoints the window reports after the last nudge."""
-    events, xdo = win.events, win.xdo
-    vx, vy, w, h = win.ready["viewport"]
-    centre = np.array([win.origin[0] + vx + w / 2, win.origin[1] + vy + h / 2])
-    towards = np.sign(centre - _screen_pixels(win, keypoints)[index])
-    for drag in range(count):
-        x, y = np.rint(_screen_pixels(win, keypoints)[index]).astype(int)
-        xdo("mousemove", x, y)
-        xdo("mousedown", 1)
-        for step in range(1, 6):
-            xdo("mousemove", x + int(towards[0] * 2 * step), y + int(towards[1] * 3 * step))
-        xdo("mouseup", 1)
-        released = wait_for(lambda: [e for e in read_events(events) if e["event"] == "release"][drag:], timeout,
-                            f"the end of drag {drag + 1}")[0]
-        assert released["moved"] and released["selection"] == [index]
-        xdo("key", "Left" if drag % 2 else "Right")
-        nudges = wait_for(lambda: [e for e in read_events(events) if e["event"] == "nudge"][drag:], timeout, "a nudge")
-        keypoints = np.array(nudges[0]["keypoints"])
-    return keypoints
 
 
 @pytest.mark.slow
@@ -699,20 +400,20 @@ def test_editor_scripted_session_of_many_drags_and_keys(chair_rig, tmp_path):
 
     rig = Rig.load(chair_rig)
     out = tmp_path / "edited.ply"
-    with _editor_window(tmp_path, "--rig", chair_rig, "--out", out, "--screenshot", tmp_path / "shot.png") as win:
+    with editor_window(tmp_path, "--rig", chair_rig, "--out", out, "--screenshot", tmp_path / "shot.png") as win:
         events, xdo = win.events, win.xdo
         xdo("key", "p")
-        first = wait_for(lambda: _last(events, "screenshot"), 60, "the first screenshot")
-        index = _clear_keypoint(win, rig.keypoints)
+        first = wait_for(lambda: last_event(events, "screenshot"), 60, "the first screenshot")
+        index = clear_keypoint(win, rig.keypoints)
         keypoints = rig.keypoints
-        keypoints = _drags_with_nudges(win, keypoints, index, 8, timeout=60)
+        keypoints = drags_with_nudges(win, keypoints, index, 8, timeout=60)
         xdo("key", "u")
-        wait_for(lambda: _last(events, "undo"), 60, "undo")
+        wait_for(lambda: last_event(events, "undo"), 60, "undo")
         xdo("key", "y")
-        redone = wait_for(lambda: _last(events, "redo"), 60, "redo")
+        redone = wait_for(lambda: last_event(events, "redo"), 60, "redo")
         np.testing.assert_allclose(redone["keypoints"], keypoints)
         xdo("key", "s")
-        saved = wait_for(lambda: _last(events, "save"), 60, "the saved mesh")
+        saved = wait_for(lambda: last_event(events, "save"), 60, "the saved mesh")
         xdo("key", "p")
         second = wait_for(lambda: [e for e in read_events(events) if e["event"] == "screenshot"][1:], 60,
                        "the second screenshot")[0]
@@ -734,8 +435,8 @@ def test_editor_scripted_session_of_many_drags_and_keys(chair_rig, tmp_path):
     assert changed.sum() > 200
     ys, xs = np.nonzero(changed)
     centroid = np.array([xs.mean(), ys.mean()]) + np.array(win.origin) + np.array(win.ready["viewport"][:2])
-    path_mid = (_screen_pixels(win, rig.keypoints)[index] + _screen_pixels(win, final)[index]) / 2
-    others = np.linalg.norm(_screen_pixels(win, rig.keypoints) - path_mid, axis=1)
+    path_mid = (screen_pixels(win, rig.keypoints)[index] + screen_pixels(win, final)[index]) / 2
+    others = np.linalg.norm(screen_pixels(win, rig.keypoints) - path_mid, axis=1)
     assert np.linalg.norm(centroid - path_mid) < np.sort(others)[len(others) // 2]  # near the dragged keypoint
 
 
@@ -749,7 +450,7 @@ def test_editor_window_pca_slider_explores_the_category(chair_rig, tmp_path):
 
     rig = Rig.load(chair_rig)
     prior = Model.load("chair").prior
-    with _editor_window(tmp_path, "--rig", chair_rig, "--model", "chair") as win:
+    with editor_window(tmp_path, "--rig", chair_rig, "--model", "chair") as win:
         assert len(win.ready["sliders"]) == min(len(prior.components_), 8)
         sx, sy, sw, sh = win.ready["sliders"][0]  # on the screen (the panel is a window of its own)
         assert sw > 150  # drawn across the panel, not a thumb's width

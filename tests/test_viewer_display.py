@@ -38,35 +38,6 @@ def test_private_display_runs_and_its_screen_can_be_grabbed(tmp_path):
     assert after.returncode != 0  # the server stopped with the block
 
 
-def test_software_rasteriser_gets_eight_threads_a_processor_unless_the_user_says(monkeypatch):
-    from kpd.viewer.gl import _raster_threads
-
-    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
-    _raster_threads()
-    assert os.environ["LP_NUM_THREADS"] == str(min(8 * (os.cpu_count() or 1), 16))
-    monkeypatch.setenv("LP_NUM_THREADS", "1")
-    _raster_threads()
-    assert os.environ["LP_NUM_THREADS"] == "1"
-
-
-def test_a_picture_leaves_no_runtime_folder_behind(data_dir, tmp_path):
-    """Without $XDG_RUNTIME_DIR, OpenGL is given a private folder for its time (GLFW and Mesa ask for one); it is
-    gone when kpd render ends, nothing else left in the temporary folder."""
-    import sys
-
-    temporary = tmp_path / "tmp"
-    temporary.mkdir()
-    env = {k: v for k, v in os.environ.items() if k != "XDG_RUNTIME_DIR"}
-    env["TMPDIR"] = str(temporary)
-    chair = data_dir / "modelnet10" / "chair" / "test" / "chair_0956.ply"
-    out = tmp_path / "r.png"
-    done = subprocess.run([sys.executable, "-m", "kpd.cli", "render", "chair", str(chair), "--size", "160x120",
-                           "--out", str(out)], env=env, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
-    assert out.stat().st_size > 0
-    assert list(temporary.iterdir()) == []
-
-
 def test_the_editor_asked_to_end_closes_and_leaves_nothing_behind(data_dir, tmp_path):
     """``kill`` (SIGTERM) ends ``kpd view`` as Ctrl+C does: the window closes, its private runtime folder goes, one
     line says why, and the status is 128 + 15 (before, the process died at once and left the folder)."""

@@ -1,13 +1,14 @@
 """The editor on a mesh of over a million vertices, in a real window under Xvfb driven by xdotool."""
 
 import subprocess
-import threading
 
 import numpy as np
 import pytest
-from test_viewer import HAS_XVFB, _clear_keypoint, _drags_with_nudges, _editor_window, _last, chair_rig  # noqa: F401
+from viewer_helpers import HAS_XVFB, clear_keypoint, drags_with_nudges, editor_window, kpd, last_event
 
 from kpd.viewer.app import read_events, wait_for
+
+pytest_plugins = ["viewer_helpers"]  # the shared fixtures
 
 
 @pytest.mark.slow
@@ -22,22 +23,22 @@ def test_editor_session_of_many_drags_on_a_million_vertex_mesh_loses_nothing(tmp
     assert len(mesh.vertices) > 1_000_000
     write_mesh(tmp_path / "chair.ply", mesh)
     out = tmp_path / "edited.ply"
-    with _editor_window(tmp_path, "chair", tmp_path / "chair.ply", "--out", out, size="640x480") as win:
+    with editor_window(tmp_path, "chair", tmp_path / "chair.ply", "--out", out, size="640x480") as win:
         events, xdo = win.events, win.xdo
         keypoints = np.array(win.ready["keypoints"])
         rest = keypoints.copy()
-        index = _clear_keypoint(win, keypoints)
-        keypoints = _drags_with_nudges(win, keypoints, index, 5, timeout=120)
+        index = clear_keypoint(win, keypoints)
+        keypoints = drags_with_nudges(win, keypoints, index, 5, timeout=120)
         xdo("key", "u")
-        wait_for(lambda: _last(events, "undo"), 120, "undo")
+        wait_for(lambda: last_event(events, "undo"), 120, "undo")
         xdo("key", "y")
-        redone = wait_for(lambda: _last(events, "redo"), 120, "redo")
+        redone = wait_for(lambda: last_event(events, "redo"), 120, "redo")
         np.testing.assert_allclose(redone["keypoints"], keypoints)
         last = wait_for(lambda: [f for f in read_events(events) if f["event"] == "frame"
                                  and f["time"] > redone["time"] and not f["stand_in"]], 120, "the whole mesh")[-1]
         np.testing.assert_allclose(last["keypoints"], keypoints)  # nothing lost: the final state, whole
         xdo("key", "s")
-        saved = wait_for(lambda: _last(events, "save"), 120, "the saved mesh")
+        saved = wait_for(lambda: last_event(events, "save"), 120, "the saved mesh")
         np.testing.assert_allclose(saved["keypoints"], keypoints)
         frames = [e for e in read_events(events) if e["event"] == "frame"]
         inputs = [e for e in read_events(events) if e["event"] == "input"]
@@ -51,68 +52,6 @@ def test_editor_session_of_many_drags_on_a_million_vertex_mesh_loses_nothing(tmp
     assert shift.max() > 1e-3 * np.ptp(mesh.vertices)
     near = np.linalg.norm(mesh.vertices - rest[index], axis=1).argsort()[:100]
     assert shift[near].mean() > np.median(shift)  # what moved is around the dragged keypoint
-
-
-def test_distinct_triangles_drop_a_triangle_stored_again_either_way_round():
-    from kpd.viewer.gl import distinct_triangles
-
-    triangles = np.array([[0, 1, 2], [2, 1, 0], [1, 2, 3], [0, 1, 2], [3, 2, 1], [0, 2, 3]])
-    np.testing.assert_array_equal(distinct_triangles(triangles), [0, 2, 5])
-    big = triangles + (1 << 21)  # indices past 2^21 take the sorting path
-    np.testing.assert_array_equal(distinct_triangles(big), [0, 2, 5])
-    assert distinct_triangles(np.zeros((0, 3), np.int64)).shape == (0,)
-
-
-def test_two_materials_over_one_face_are_its_two_sides_or_painted_over():
-    from kpd.viewer.gl import _Welding, material_sides
-
-    # over the corners of 0-1-2 (also as 3-4-5, at the same places): material 0 one way round, material 1 the
-    # other way (the face's two sides), then material 2 the first way again (painted over material 0)
-    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0], [1, 0, 0], [0, 0, 0], [1, 1, 0]], float)
-    triangles = np.array([[0, 1, 2], [3, 4, 5], [1, 2, 0], [1, 6, 2], [4, 6, 3]])
-    ids = np.array([0, 1, 2, 0, 0])
-    hidden, sided = material_sides(triangles, ids, _Welding(vertices))
-    np.testing.assert_array_equal(hidden, [True, False, False, False, False])  # 3 and 4 alike: one material
-    np.testing.assert_array_equal(sided, [False, True, True, False, False])
-    ids = np.array([0, 1, 0, 0, 1])  # 0 and 2 alike in one material; 1-6-2 has material 1 on the other side
-    triangles[4] = triangles[4, ::-1]
-    hidden, sided = material_sides(triangles, ids, _Welding(vertices))
-    np.testing.assert_array_equal(hidden, [False, False, False, False, False])
-    np.testing.assert_array_equal(sided, [True, True, True, True, True])
-    empty = material_sides(np.zeros((0, 3), np.int64), np.zeros(0, np.int64), _Welding(vertices))
-    assert empty[0].shape == empty[1].shape == (0,)
-
-
-def test_distinct_triangles_is_its_sorting_twin_on_any_triangles():
-    from hypothesis import given, settings
-    from hypothesis import strategies as st
-
-    from kpd.viewer.gl import _distinct_triangles_reference, distinct_triangles
-
-    @settings(max_examples=60, deadline=None)
-    @given(n=st.integers(1, 300), top=st.integers(1, 12), seed=st.integers(0, 2**16))
-    def check(n, top, seed):
-        triangles = np.random.default_rng(seed).integers(0, top, size=(n, 3))  # repeats, either way round, collapsed
-        np.testing.assert_array_equal(distinct_triangles(triangles), _distinct_triangles_reference(triangles))
-
-    check()
-
-
-def test_prepared_normals_are_the_serial_kernels_bit_for_bit():
-    from kpd.viewer.gl import _Normals, _Welding, shading_normals
-
-    rng = np.random.default_rng(4)
-    vertices = rng.normal(size=(400, 3))
-    vertices[300:] = vertices[:100]  # copies of a position (a UV seam) share its normal
-    triangles = rng.integers(0, 400, size=(3000, 3))
-    welding = _Welding(vertices)
-    for eye in (None, np.array([0.5, -4.0, 2.0])):
-        expected = shading_normals(vertices, triangles, eye, welding=welding)
-        groups = _Normals(triangles, welding)(vertices, eye)  # (G, 3), two threads when large
-        np.testing.assert_array_equal(groups[welding.inverse], expected)
-    big = rng.integers(0, 400, size=(250_000, 3))  # past the size split over two threads
-    np.testing.assert_array_equal(_Normals(big, welding)(vertices, np.ones(3))[welding.inverse],
-                                  shading_normals(vertices, big, np.ones(3), welding=welding))
 
 
 def test_binding_and_drawing_a_mesh_at_once_group_its_positions_once(monkeypatch):
@@ -147,209 +86,6 @@ def test_binding_and_drawing_a_mesh_at_once_group_its_positions_once(monkeypatch
     np.testing.assert_array_equal(rig.basis, alone.basis)
 
 
-@pytest.fixture(scope="module")
-def dense_chair(data_dir):
-    """The unseen ShapeNet chair subdivided twice (86k vertices, 344k triangles, half of them stored twice)."""
-    import open3d as o3d
-
-    from kpd.io import Mesh, read_mesh
-
-    mesh = read_mesh(data_dir / "keypointnet" / "models" / "03001627" / "fe6b3c001a86d844d5767a0de8dd037e" /
-                     "model.obj")
-    fine = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
-                                     o3d.utility.Vector3iVector(mesh.triangles.astype(np.int32))).subdivide_midpoint(2)
-    return Mesh(np.asarray(fine.vertices), np.asarray(fine.triangles, dtype=np.int64))
-
-
-@pytest.mark.parametrize("offset", [0.0, 300.0])  # away from the origin: float32 rounds the drawn positions coarser
-def test_a_frame_of_the_visible_triangles_is_the_picture_of_all_of_them(dense_chair, offset):
-    """Culled and whole frames of a dense mesh are the same pixels, from outside, below, close up and from inside
-    the mesh (corners behind the camera), while the culled ones draw far fewer triangles."""
-    from kpd.io import Mesh
-    from kpd.viewer.display import gl_display
-    from kpd.viewer.gl import GLView, ShadedMesh, visible_triangles
-    from kpd.viewer.render import ViewSettings, camera_pose
-
-    mesh = Mesh(dense_chair.vertices + offset, dense_chair.triangles)
-    width, height = 400, 300
-    with gl_display("egl", width, height):
-        view = GLView(width, height)
-        try:
-            assert view.viewport(camera_pose(mesh.vertices, ViewSettings())) is not None  # one sample a pixel here
-            shaded = ShadedMesh(mesh)
-            view.set_box(mesh.vertices)
-            for azimuth, elevation, zoom in [(30, 20, 1.0), (200, -40, 1.0), (75, 60, 4.0), (10, 5, 30.0)]:
-                camera = camera_pose(mesh.vertices, ViewSettings(width=width, height=height, azimuth=azimuth,
-                                                                 elevation=elevation, zoom=zoom))
-                pictures = []
-                for viewport in (None, view.viewport(camera)):
-                    shaded.set_vertices(mesh.vertices, camera, viewport)
-                    for i, part in enumerate(shaded.geometries):
-                        view.put(f"mesh:{i}", part)
-                    view.set_camera(camera)
-                    pictures.append(view.capture())
-                np.testing.assert_array_equal(pictures[1], pictures[0])
-                assert (pictures[0] != 255).any(axis=2).mean() > 0.05  # the chair is in the picture
-                kept = visible_triangles(mesh.vertices, shaded.drawn, view.viewport(camera))
-                if zoom == 1.0:  # seen whole: most triangles are hidden or between pixel centres
-                    assert kept.mean() < (0.4 if offset == 0 else 0.9), kept.mean()
-        finally:
-            view.close()
-
-
-def test_a_mesh_drawn_once_is_culled_in_its_own_order_to_the_same_picture(dense_chair, monkeypatch):
-    """A mesh drawn once (kpd render, render_rig) is culled in its own order, each triangle judged alone, with
-    neither a CullingLayout nor the edges' neighbours made: the same pixels as the editor's culling, more
-    triangles kept (each of those the editor keeps among them)."""
-    from kpd.rig import Rig
-    from kpd.viewer import gl
-    from kpd.viewer.display import gl_display
-    from kpd.viewer.gl import GLView, ShadedMesh
-    from kpd.viewer.render import ViewSettings, camera_pose, render_rig
-
-    mesh = dense_chair
-    width, height = 400, 300
-    paired, alone = ShadedMesh(mesh), ShadedMesh(mesh, once=True)
-    assert paired.parts[0].layout_for_culling is not None and alone.parts[0].layout_for_culling is None
-    with gl_display("egl", width, height):
-        view = GLView(width, height)
-        try:
-            view.set_box(mesh.vertices)
-            for azimuth, elevation, zoom in [(30, 20, 1.0), (200, -40, 1.0), (75, 60, 4.0)]:
-                camera = camera_pose(mesh.vertices, ViewSettings(width=width, height=height, azimuth=azimuth,
-                                                                 elevation=elevation, zoom=zoom))
-                pictures, drawn = [], []
-                for shaded in (paired, alone):
-                    shaded.set_vertices(mesh.vertices, camera, view.viewport(camera))
-                    for i, part in enumerate(shaded.geometries):
-                        view.put(f"mesh:{i}", part)
-                    view.set_camera(camera)
-                    pictures.append(view.capture())
-                    part = shaded.parts[0]  # the verdicts on its triangles (the same in both)
-                    drawn.append((part.keep if part.layout_for_culling is not None else part.scratch["keep"]).copy())
-                np.testing.assert_array_equal(alone.parts[0].triangles, paired.parts[0].triangles)
-                np.testing.assert_array_equal(pictures[1], pictures[0])
-                # fewer kept with the pairs, all among those kept alone; and culled all the same
-                assert not (drawn[0] & ~drawn[1]).any() and drawn[1].sum() > drawn[0].sum()
-                assert drawn[1].mean() < 0.5, drawn[1].mean()
-        finally:
-            view.close()
-    made = []
-    monkeypatch.setattr(gl, "edge_neighbours", lambda *a: made.append("neighbours"))
-    monkeypatch.setattr(gl, "CullingLayout", lambda *a: made.append("layout"))
-    keypoints = mesh.vertices[[0, 100, 2000, 30000]]
-    image = render_rig(Rig.bind(mesh, keypoints), settings=ViewSettings(width=width, height=height),
-                       backend="egl")
-    assert made == [] and (image != 255).any(axis=2).mean() > 0.05
-
-
-def test_a_triangle_is_kept_wherever_its_corners_may_be_drawn():
-    """Pass 2 keeps a triangle when a sample point lies within the distance its drawn corners may stray (delta along
-    each axis) of it: whatever corners within that reach are drawn, the triangle covers no sample point of one left
-    out. Slivers and small triangles, each corner moved to every extreme of its reach and at random."""
-    import itertools
-
-    from kpd.viewer.gl import _showing
-
-    rng = np.random.default_rng(11)
-    width = height = 8
-    samples = np.array([[0.375, 0.125], [0.875, 0.375], [0.125, 0.625], [0.625, 0.875]])
-    delta = 0.05  # far more than a drawn corner strays (1/256 pixel and float32's rounding): a test that can fail
-    corners = []
-    for _ in range(3000):
-        a = rng.uniform(1.5, 6.5, size=2)
-        b = a + rng.uniform(-1.5, 1.5, size=2)
-        c = (a + b) / 2 + rng.uniform(-1.0, 1.0) * np.array([a[1] - b[1], b[0] - a[0]]) * 10.0 ** rng.uniform(-3, 0)
-        corners.append([a, b, c])  # from slivers (c near the middle of ab) to plump triangles
-    corners = np.array(corners)  # (T, 3, 2)
-    t = len(corners)
-    screen = np.concatenate([corners.reshape(-1, 2), np.ones((3 * t, 1))], axis=1)  # in front of the camera
-    triangles = np.arange(3 * t).reshape(t, 3)
-    keep = np.zeros(t, np.bool_)
-    _showing(0, triangles, screen, width, height, samples[:, 0].copy(), samples[:, 1].copy(), delta,
-             np.full(width * height * len(samples), np.inf, np.float32), 3e-3, np.arange(t, dtype=np.int32),
-             np.array([0, t], np.int64), np.array([t, 0], np.int64), keep, np.zeros(1, np.uint8))
-    points = (np.stack(np.meshgrid(np.arange(width), np.arange(height), indexing="ij"), -1).reshape(-1, 1, 2)
-              + samples).reshape(-1, 2)  # (P, 2) every sample point
-
-    def covers(p):  # (T, 3, 2) corners -> (T,) whether any sample point is inside (either winding, edges included)
-        e = []
-        for i in range(3):
-            edge, to = p[:, (i + 1) % 3, None] - p[:, i, None], points[None] - p[:, i, None]  # (T, 1, 2), (T, P, 2)
-            e.append(edge[..., 0] * to[..., 1] - edge[..., 1] * to[..., 0])
-        return (((e[0] >= 0) & (e[1] >= 0) & (e[2] >= 0)) | ((e[0] <= 0) & (e[1] <= 0) & (e[2] <= 0))).any(axis=1)
-
-    moves = [np.array(m).reshape(3, 2) for m in itertools.product((-delta, delta), repeat=6)]
-    moves += [rng.uniform(-delta, delta, size=(3, 2)) for _ in range(64)]
-    drawn = np.zeros(t, np.bool_)
-    for move in moves:
-        drawn |= covers(corners + move)
-    assert not (drawn & ~keep).any()  # never left out where a drawn triangle covers a sample point
-    assert (drawn & ~covers(corners)).sum() > 100  # many are covered only as drawn, not as projected
-    assert (keep & ~drawn).sum() < 0.1 * keep.sum(), ((keep & ~drawn).sum(), keep.sum())  # few kept needlessly
-
-
-def test_culling_near_runs_first_keeps_the_same_triangles_and_judges_fewer(dense_chair):
-    """A CullingLayout's runs of nearby triangles, taken nearest first, leave the hidden ones out in pass 1: the
-    same triangles are kept as when they are judged in the mesh's order (whole, below, close up, from inside), and
-    pass 2 judges far fewer."""
-    from kpd.viewer.gl import CullingLayout, Viewport, visible_triangles
-    from kpd.viewer.render import ViewSettings, camera_pose
-
-    vertices, triangles = dense_chair.vertices, dense_chair.triangles
-    layout = CullingLayout(vertices, triangles)
-    assert sorted(layout.order.tolist()) == list(range(len(triangles)))
-    np.testing.assert_array_equal(layout.used[layout.triangles], triangles[layout.order])  # the same triangles
-    assert len(layout.cells) > 100 and layout.cells[0] == 0 and layout.cells[-1] == len(triangles)
-    samples = np.array([[0.375, 0.125], [0.875, 0.375], [0.125, 0.625], [0.625, 0.875]])
-    for azimuth, elevation, zoom in [(30, 20, 1.0), (200, -40, 1.0), (75, 60, 4.0), (10, 5, 30.0)]:
-        camera = camera_pose(vertices, ViewSettings(width=400, height=300, azimuth=azimuth, elevation=elevation,
-                                                    zoom=zoom))
-        viewport = Viewport(camera, 400, 300, samples)
-        judged = {}
-        for name, cells in (("in order", None), ("near first", layout.cells)):
-            scratch: dict = {}
-            judged[name] = visible_triangles(vertices, layout.triangles, viewport, scratch=scratch,
-                                             neighbours=layout.neighbours, index=layout.used, cells=cells).copy()
-            judged[name + " listed"] = int(scratch["listed_count"].sum())
-        np.testing.assert_array_equal(judged["near first"], judged["in order"])
-        alone = visible_triangles(vertices, triangles, viewport)  # the mesh's own order, each triangle alone
-        assert not (judged["in order"] & ~alone[layout.order]).any()  # judged with neighbours: fewer kept
-        if zoom == 1.0:  # seen whole: much of the surface lies behind the rest
-            assert judged["near first listed"] < 0.9 * judged["in order listed"], judged
-
-
-
-def test_a_block_of_triangles_is_hidden_only_when_each_of_them_is(dense_chair):
-    """Pass 1 leaves out 32 nearby triangles at once when their common box is behind the depth reached: a block is
-    judged hidden only when each of its triangles, judged alone against the same depths, is; and seen whole, many
-    blocks of the far side are."""
-    from kpd.viewer.gl import _BLOCK, DEPTH_SLACK, CullingLayout, Viewport, _block_hidden, _margin, visible_triangles
-    from kpd.viewer.render import ViewSettings, camera_pose
-
-    vertices, triangles = dense_chair.vertices, dense_chair.triangles
-    layout = CullingLayout(vertices, triangles)
-    samples = np.array([[0.375, 0.125], [0.875, 0.375], [0.125, 0.625], [0.625, 0.875]])
-    camera = camera_pose(vertices, ViewSettings(width=400, height=300, azimuth=30, elevation=20))
-    viewport = Viewport(camera, 400, 300, samples)
-    scratch: dict = {}
-    visible_triangles(vertices, layout.triangles, viewport, scratch=scratch, neighbours=layout.neighbours,
-                      index=layout.used, cells=layout.cells)
-    screen, depth = scratch["screen"], scratch["depth"]  # the projected points and the depths at the end of pass 1
-    delta = _margin(vertices, viewport)
-    args = (layout.triangles, screen, 400, 300, samples[:, 0].copy(), samples[:, 1].copy(), delta, depth, DEPTH_SLACK)
-    blocks = range(0, len(layout.triangles) - _BLOCK, _BLOCK)
-    hidden = [s for s in blocks if _block_hidden(s, s + _BLOCK, *args)]
-    assert 0.1 * len(blocks) < len(hidden) < 0.9 * len(blocks)
-    for s in hidden[::7]:
-        assert all(_block_hidden(t, t + 1, *args) for t in range(s, s + _BLOCK))
-    # one triangle that shows makes a block of hidden ones worth looking at
-    shown = next(t for t in range(len(layout.triangles)) if not _block_hidden(t, t + 1, *args))
-    mixed = np.concatenate([layout.triangles[hidden[0]:hidden[0] + _BLOCK], layout.triangles[shown:shown + 1]])
-    assert _block_hidden(0, _BLOCK, mixed, *args[1:])
-    assert not _block_hidden(0, _BLOCK + 1, mixed, *args[1:])
-
-
 _HELD_BINDING = """
 import sys, time
 from pathlib import Path
@@ -373,7 +109,7 @@ sys.exit(app.run())
 
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
-def test_editor_shows_the_mesh_at_once_and_answers_input_while_it_binds(chair_rig, tmp_path):  # noqa: F811
+def test_editor_shows_the_mesh_at_once_and_answers_input_while_it_binds(chair_rig, tmp_path):
     """A rig still to be made (viewer.app.Binding): the mesh is on the screen before the rig is ready, a drag and
     keys meanwhile are taken (the view turns; edits wait, the panel says why), and the keypoints appear when the
     binding returns."""
@@ -394,7 +130,7 @@ def test_editor_shows_the_mesh_at_once_and_answers_input_while_it_binds(chair_ri
             subprocess.run(["xdotool", *map(str, args)], env=env, check=True, capture_output=True)
 
         try:
-            wait_for(lambda: _last(events, "shown"), 120, "the mesh")
+            wait_for(lambda: last_event(events, "shown"), 120, "the mesh")
             xdo("mousemove", 240, 200)
             xdo("mousedown", 1)
             for step in range(1, 5):
@@ -404,9 +140,9 @@ def test_editor_shows_the_mesh_at_once_and_answers_input_while_it_binds(chair_ri
             xdo("key", "Right")
             wait_for(lambda: [e for e in read_events(events) if e["event"] == "frame" and e["serial"] >= 5], 60,
                      "a frame of the turned view")
-            assert _last(events, "ready") is None
+            assert last_event(events, "ready") is None
             release.touch()
-            wait_for(lambda: _last(events, "ready"), 60, "the rig")
+            wait_for(lambda: last_event(events, "ready"), 60, "the rig")
             wait_for(lambda: [e for e in read_events(events) if e["event"] == "frame" and e["keypoints"]], 60,
                      "a frame with the keypoints")
         finally:
@@ -437,7 +173,6 @@ def test_kpd_view_ends_with_the_bindings_error_in_one_line(tmp_path):
 
     from kpd.io import Mesh, write_mesh
     from kpd.viewer.render import private_display
-    from test_viewer import kpd
 
     flat = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]])  # every triangle without area: nothing to sample
     write_mesh(tmp_path / "flat.ply", Mesh(flat, np.array([[0, 1, 2], [1, 2, 3]])))
@@ -450,60 +185,13 @@ def test_kpd_view_ends_with_the_bindings_error_in_one_line(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
-def test_a_window_frame_of_the_visible_triangles_is_the_picture_on_the_screen(dense_chair, tmp_path, monkeypatch):
-    """On the screen a window is multisampled (Mesa's software renderer gives Open3D the four samples it asks for):
-    frames culled at the sample points the window's OpenGL context reports show the same pixels as whole frames,
-    read from the Xvfb screen; culled at the pixel centres alone they would not (the test can fail)."""
-    import os
-    import time
-
-    from kpd.viewer.display import grab_screen
-    from kpd.viewer.gl import PIXEL_CENTRE, GLView, ShadedMesh, Viewport
-    from kpd.viewer.render import ViewSettings, camera_pose, private_display
-
-    mesh = dense_chair
-    width, height = 480, 400
-    with private_display(width + 40, height + 40, fbdir=tmp_path) as display:
-        monkeypatch.setenv("DISPLAY", display)
-        view = GLView(width, height, visible=True, left=0, top=0)
-        try:
-            assert view.viewport(camera_pose(mesh.vertices, ViewSettings())).samples.shape == (4, 2)
-            shaded = ShadedMesh(mesh)
-            view.set_box(mesh.vertices)
-
-            def on_screen(camera, viewport) -> np.ndarray:
-                shaded.set_vertices(mesh.vertices, camera, viewport)
-                for i, part in enumerate(shaded.geometries):
-                    view.put(f"mesh:{i}", part)
-                view.set_camera(camera)
-                view.draw()
-                time.sleep(0.3)  # the server has the frame
-                return grab_screen(os.fspath(tmp_path))[:height, :width]
-
-            for azimuth, elevation, zoom in [(30, 20, 1.0), (200, -40, 2.0)]:
-                camera = camera_pose(mesh.vertices, ViewSettings(width=width, height=height, azimuth=azimuth,
-                                                                 elevation=elevation, zoom=zoom))
-                whole = on_screen(camera, None)
-                np.testing.assert_array_equal(on_screen(camera, view.viewport(camera)), whole)
-                assert len(shaded.geometries[0].triangles) < 0.8 * len(shaded.drawn)
-                if zoom == 1.0:  # the centres alone miss samples: the check above can fail
-                    centres = on_screen(camera, Viewport(camera, width, height, PIXEL_CENTRE))
-                    assert (centres != whole).any(axis=2).sum() > 100
-        finally:
-            view.close()
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
 def test_kpd_view_applies_a_saved_session_once_the_rig_is_bound(data_dir, tmp_path):
     """kpd view MODEL SHAPE --load-session: the session (checked before the window opens) is applied to the rig
     bound on the worker thread, so the keypoints it shows first are the session's; a bad session file ends before."""
     import os
 
     from kpd.runtime import Model
-    from kpd.viewer.render import private_display
     from kpd.viewer.session import EditSession
-    from test_viewer import kpd
 
     shape = data_dir / "modelnet10" / "chair" / "test" / "chair_0956.ply"
     rest = Model.load("chair").rig(shape).keypoints
@@ -513,117 +201,8 @@ def test_kpd_view_applies_a_saved_session_once_the_rig_is_bound(data_dir, tmp_pa
     (tmp_path / "bad.json").write_text("{not json")
     done = kpd("view", "chair", shape, "--load-session", tmp_path / "bad.json", env=dict(os.environ, DISPLAY=":404"))
     assert done.returncode == 2 and "not a JSON edit session" in done.stderr
-    with _editor_window(tmp_path, "chair", shape, "--load-session", tmp_path / "session.json") as win:
+    with editor_window(tmp_path, "chair", shape, "--load-session", tmp_path / "session.json") as win:
         np.testing.assert_allclose(win.ready["keypoints"], session.keypoints, atol=1e-9)
         assert win.ready["undo"] == 1
 
 
-def test_a_sheet_of_variants_draws_each_as_a_new_mesh_would_with_the_triangles_worked_out_once(data_dir, tmp_path,
-                                                                                               monkeypatch):
-    """A contact sheet of the sneaker scan and its variants (the same triangles, moved vertices, coincident ones kept
-    together) makes one ShadedMesh for them all, and one more for a variant where two vertices that were apart now
-    coincide (its welding differs): the same picture as a ShadedMesh made for each. A mesh drawn in parts (a
-    3-material ShapeNet bench) gets one for each cell, as the legacy renderer's order of parts follows their objects."""
-    from kpd.io import read_mesh
-    from kpd.viewer import gl
-    from kpd.viewer.pictures import render_sheet
-
-    made = []
-    real = gl.ShadedMesh
-
-    def counted(*args, **kwargs):
-        made.append(args[0])
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(gl, "ShadedMesh", counted)
-    mesh = read_mesh(data_dir / "scans" / "sneaker.ply")
-    v = mesh.vertices
-    variants = [mesh.with_vertices(v + 0.05 * np.sin(3 * v[:, [1, 2, 0]])),
-                mesh.with_vertices(v * [1.0, 1.2, 0.9])]
-    first, inverse = mesh.position_groups()
-    merged = v.copy()
-    merged[inverse == inverse[first[1]]] = v[first[0]]  # the second position's vertices moved onto the first's
-    variants.append(mesh.with_vertices(merged))
-    render_sheet([mesh, *variants], tmp_path / "reused.png", up="y", cell=2.0)
-    assert [id(m) for m in made] == [id(mesh), id(variants[2])]
-    bench = read_mesh(data_dir / "shapenetcore_obj" / "bench" / "50db85e4889831dff155d75bbf62b80" / "models" /
-                      "model_normalized.obj")
-    assert len(bench.textures) == 3
-    made.clear()
-    bench_variants = [bench, bench.with_vertices(bench.vertices * 1.1)]
-    render_sheet(bench_variants, tmp_path / "bench.png", up="y", cell=2.0)
-    assert [id(m) for m in made] == [id(m) for m in bench_variants]
-    monkeypatch.setattr(gl, "_shaded_layer", lambda shaded, slot, m, color, *, override: real(
-        m, color, override=override, once=True))
-    render_sheet([mesh, *variants], tmp_path / "fresh.png", up="y", cell=2.0)
-    assert (tmp_path / "reused.png").read_bytes() == (tmp_path / "fresh.png").read_bytes()
-
-
-def test_a_sheet_holds_one_mesh_at_a_time_of_those_made_as_asked_for(tmp_path):
-    """render_sheet over a sequence whose meshes are made when asked for (kpd sample's variants) holds a few at
-    once, not all of them (16 variants of a 1.37M-vertex mesh held were 0.5 GB), and draws what the list of the same
-    meshes draws."""
-    import weakref
-    from collections.abc import Sequence
-
-    from kpd.io import Mesh
-    from kpd.viewer.pictures import render_sheet
-
-    base = tall_box()
-    alive, most = set(), [0]
-
-    class Made(Sequence):
-        def __len__(self):
-            return 8
-
-        def __getitem__(self, i):
-            if not 0 <= i < 8:
-                raise IndexError(i)
-            mesh = Mesh(base.vertices * (1 + 0.1 * i), base.triangles)
-            alive.add(id(mesh))
-            weakref.finalize(mesh, alive.discard, id(mesh))
-            most[0] = max(most[0], len(alive))
-            return mesh
-
-    keypoints = [base.vertices[:4] * (1 + 0.1 * i) for i in range(8)]
-    render_sheet(Made(), tmp_path / "made.png", keypoints=keypoints, cell=1.5)
-    assert 1 <= most[0] <= 3, most[0]
-    render_sheet(list(Made()), tmp_path / "list.png", keypoints=keypoints, cell=1.5)
-    assert (tmp_path / "made.png").read_bytes() == (tmp_path / "list.png").read_bytes()
-
-
-def tall_box() -> "Mesh":
-    import open3d as o3d
-
-    from kpd.io import Mesh
-
-    box = o3d.geometry.TriangleMesh.create_box(0.3, 0.6, 0.3).subdivide_midpoint(2)
-    return Mesh(np.asarray(box.vertices) - 0.15, np.asarray(box.triangles, dtype=np.int64))
-
-
-def test_texture_coordinates_in_one_pass_are_the_numpy_steps_to_the_bit():
-    """A textured part's UVs (a compiled pass since a 1.28M-vertex textured scan spent 1 s in numpy's steps): moved by
-    whole tiles into the first, kept within the outer texel centres, v turned; NaN and inf as numpy gives them, UVs
-    in float32 too, of chosen triangles only."""
-    from kpd.viewer.gl import _texture_coordinates
-
-    rng = np.random.default_rng(3)
-    T = 3000
-    uv = rng.normal(0.0, 3.0, (3 * T, 2))
-    for value, share in ((np.nan, 0.01), (np.inf, 0.01), (-np.inf, 0.01), (0.0, 0.05), (1.0, 0.05), (-0.0, 0.02)):
-        uv[rng.random(uv.shape) < share] = value
-    chosen = np.sort(rng.choice(T, T // 2, replace=False))
-    for dtype in (np.float64, np.float32):
-        u = uv.astype(dtype)
-        for height, width in ((512, 1024), (7, 1)):
-            expected = np.array(u[(3 * chosen[:, None] + np.arange(3)).ravel()], dtype=np.float64).reshape(-1, 3, 2)
-            with np.errstate(invalid="ignore"):
-                expected -= np.floor(expected.min(axis=1, keepdims=True))
-            edge = 0.5 / np.array([width, height], dtype=np.float64)
-            expected = np.clip(expected, edge, 1.0 - edge)
-            expected[:, :, 1] = 1.0 - expected[:, :, 1]
-            out = np.empty((len(chosen), 3, 2))
-            _texture_coordinates(u, chosen, 0.5 / width, 0.5 / height, out)
-            assert np.isnan(expected).any() and (expected != np.round(expected)).any()
-            np.testing.assert_array_equal(out, expected)  # NaN where numpy has NaN
-            assert (np.signbit(out) == np.signbit(expected)).all()

@@ -403,22 +403,22 @@ class EditorApp:
         it; its whole frame comes from :meth:`_refine`."""
         started = time.perf_counter()
         serial = self._inputs
-        fast = self.drawing.proxy is not None and draws_stand_in(len(self.drawing.shaded.drawn), self._whole_ms)
+        fast = self.drawing.stand_in is not None and draws_stand_in(len(self.drawing.shaded.drawn), self._whole_ms)
         self._show(mesh=self._dirty_mesh, fast=fast)
         self._dirty = self._dirty_mesh = False
         self.view.draw()
         self._frames += 1
         milliseconds = 1000 * (time.perf_counter() - started)
-        if not self.drawing._proxy_shown and self._frames > 1:  # the first frame's draw compiles llvmpipe's shaders
+        if not self.drawing.stand_in_shown and self._frames > 1:  # the first frame's draw compiles llvmpipe's shaders
             self._whole_ms.append(milliseconds)
         self._emit("frame", serial=serial, draw_ms=round(milliseconds, 3), frame=self._frames,
-                   stand_in=self.drawing._proxy_shown)
+                   stand_in=self.drawing.stand_in_shown)
 
     def _refine(self) -> bool:
         """Once input pauses, a large mesh's whole frame in place of its stand-in: prepared on the frame thread
         after :data:`_PREPARE_AFTER` s (the deformation, normals, the triangles that show, colours), drawn from
         :data:`_REFINE_AFTER` s when it is ready and still the state on the screen. Returns whether it drew."""
-        if not self.drawing._proxy_shown:
+        if not self.drawing.stand_in_shown:
             return False
         idle = time.monotonic() - self._last_input
         if idle < _PREPARE_AFTER:
@@ -520,8 +520,9 @@ class EditorApp:
 
     def _show(self, *, mesh: bool = True, fast: bool = False) -> None:
         # a frame drawn by a large mesh's stand-in needs the stand-in's vertices only
-        stand_in = fast and self.drawing.proxy is not None and not self.settings.xray
-        self.drawing.show(self._frame(self.drawing._kept if stand_in else None), self.camera, mesh=mesh, fast=fast)
+        stand_in = fast and self.drawing.stand_in is not None and not self.settings.xray
+        rows = self.drawing.stand_in_rows if stand_in else None
+        self.drawing.show(self._frame(rows), self.camera, mesh=mesh, fast=fast)
 
     def _bound(self) -> bool:
         """Whether the rig is ready for editing; says so in the panel when not."""

@@ -59,7 +59,7 @@ def render_rig(rig: Any, keypoints: Any = None, *, settings: ViewSettings | None
     selection : keypoint indices drawn as selected.
     backend : one of :data:`BACKENDS` (see the module notes).
     timeout : seconds to wait for a window backend's child process.
-    shaded : ``kpd.viewer.gl.ShadedMesh(rig.mesh, settings.mesh_color)`` made beforehand (``kpd render`` makes it on
+    shaded : ``kpd.viewer.shaded.ShadedMesh(rig.mesh, settings.mesh_color)`` made beforehand (``kpd render`` makes it on
         a thread while the mesh is bound), or None.
 
     Returns
@@ -98,7 +98,9 @@ def render_frames(rig: Any, keypoint_sets: Sequence[Any], *, settings: ViewSetti
 
 def _render_gl(rig: Any, frames: list[Frame], settings: ViewSettings, camera: Camera, *,
                on_display: bool = False, shaded: Any = None) -> list[np.ndarray]:
-    from kpd.viewer.gl import GLView, RigDrawing, ShadedMesh
+    from kpd.viewer.glview import GLView
+    from kpd.viewer.rigdrawing import RigDrawing
+    from kpd.viewer.shaded import ShadedMesh
 
     if shaded is None:  # each picture drawn once
         shaded = ShadedMesh(rig.mesh, settings.mesh_color, once=True)

@@ -1,0 +1,143 @@
+"""What the viewer's tests share: the kpd command, meshes to draw and an editor window to drive, on a private Xvfb
+with xdotool. Test modules take the fixtures with ``pytest_plugins = ["viewer_helpers"]``."""
+
+import contextlib
+import os
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import pytest
+
+from kpd.viewer.app import read_events, wait_for
+from kpd.viewer.render import project
+
+
+@pytest.fixture(scope="module")
+def dense_chair(data_dir):
+    """The unseen ShapeNet chair subdivided twice (86k vertices, 344k triangles, half of them stored twice)."""
+    import open3d as o3d
+
+    from kpd.io import Mesh, read_mesh
+
+    mesh = read_mesh(data_dir / "keypointnet" / "models" / "03001627" / "fe6b3c001a86d844d5767a0de8dd037e" /
+                     "model.obj")
+    fine = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
+                                     o3d.utility.Vector3iVector(mesh.triangles.astype(np.int32))).subdivide_midpoint(2)
+    return Mesh(np.asarray(fine.vertices), np.asarray(fine.triangles, dtype=np.int64))
+
+
+REPO = Path(__file__).resolve().parents[1]
+HAS_XVFB = shutil.which("Xvfb") is not None and shutil.which("xdotool") is not None
+
+
+def kpd(*argv: str, env: dict | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
+    """``kpd ARGV`` run in a fresh interpreter from the repository's root."""
+    return subprocess.run([sys.executable, "-m", "kpd.cli", *map(str, argv)], capture_output=True, text=True,
+                          env=env, timeout=timeout, cwd=REPO)
+
+
+@pytest.fixture(scope="module")
+def chair_rig(data_dir, tmp_path_factory):
+    """A rig of the first ModelNet10 test chair by the shipped chair model, saved (its path)."""
+    from kpd.runtime import Model
+
+    mesh = sorted((data_dir / "modelnet10" / "chair" / "test").glob("chair_*"))[0]
+    rig = Model.load("chair").rig(mesh)
+    path = tmp_path_factory.mktemp("rig") / "chair_rig.npz"
+    rig.save(path)
+    return path
+
+
+def last_event(path: Path, name: str, after: int = 0):
+    """The last ``name`` event an editor wrote to ``path`` after its first ``after`` events, or None."""
+    found = [e for e in read_events(path)[after:] if e["event"] == name]
+    return found[-1] if found else None
+
+
+class EditorWindow(NamedTuple):
+    """A running editor on a private Xvfb: its events file, xdotool, its ready event and the 3D view's top-left corner
+    on the screen."""
+
+    events: Path
+    xdo: Callable[..., str]
+    ready: dict
+    origin: tuple[int, int]
+    display: str
+
+
+@contextlib.contextmanager
+def editor_window(tmp_path: Path, *args: object, size: str = "480x400", screen: Path | None = None
+                  ) -> Iterator[EditorWindow]:
+    """``kpd view ARGS --size SIZE --events ...`` in a real window on a private Xvfb, stopped on exit; with ``screen``
+    (a folder) the server keeps its screen there for ``grab_screen``."""
+    from kpd.viewer.render import private_display
+
+    events = tmp_path / "events.jsonl"
+    with private_display(1400, 900, fbdir=screen) as display:
+        env = dict(os.environ, DISPLAY=display)
+        window = subprocess.Popen(
+            [sys.executable, "-m", "kpd.cli", "view", *map(str, args), "--size", size, "--events", str(events)],
+            env=env, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+        def xdo(*xargs: object) -> str:
+            return subprocess.run(["xdotool", *map(str, xargs)], env=env, check=True, capture_output=True,
+                                  text=True).stdout
+
+        try:
+            ready = wait_for(lambda: last_event(events, "ready"), 90, "the editor window")
+            wid = wait_for(lambda: subprocess.run(["xdotool", "search", "--name", f"^{ready['title']}$"], env=env,
+                                               capture_output=True, text=True).stdout.split(), 30, "the X window")[-1]
+            geometry = dict(line.split("=") for line in xdo("getwindowgeometry", "--shell", wid).split())
+            yield EditorWindow(events, xdo, ready, (int(geometry["X"]), int(geometry["Y"])), display)
+        finally:
+            window.terminate()
+            try:
+                window.wait(10)
+            except subprocess.TimeoutExpired:
+                window.kill()
+                window.wait()
+        assert b"Traceback" not in window.stderr.read(), "the editor raised"
+
+
+def screen_pixels(win: EditorWindow, keypoints: np.ndarray) -> np.ndarray:
+    """(K, 2) screen positions of keypoints in the editor's 3D view (the camera of its ready event)."""
+    vx, vy, w, h = win.ready["viewport"]
+    pixels, _ = project(np.asarray(keypoints), np.array(win.ready["view"]), np.array(win.ready["projection"]), w, h)
+    return pixels + np.array([win.origin[0] + vx, win.origin[1] + vy])
+
+
+def clear_keypoint(win: EditorWindow, keypoints: np.ndarray) -> int:
+    """A keypoint well inside the view and far from the others' markers on screen."""
+    vx, vy, w, h = win.ready["viewport"]
+    pixels = screen_pixels(win, keypoints) - np.array([win.origin[0] + vx, win.origin[1] + vy])
+    gaps = np.linalg.norm(pixels[:, None] - pixels[None], axis=2) + np.eye(len(pixels)) * 1e9
+    inside = (pixels[:, 0] > 60) & (pixels[:, 0] < w - 60) & (pixels[:, 1] > 80) & (pixels[:, 1] < h - 60)
+    return int(np.argmax(np.where(inside, gaps.min(axis=1), -1)))
+
+
+def drags_with_nudges(win, keypoints: np.ndarray, index: int, count: int, *, timeout: float) -> np.ndarray:
+    """``count`` drags of keypoint ``index`` towards the middle of the view (so it stays in sight), each followed by
+    an arrow-key nudge (undone by the next one); returns the keypoints the window reports after the last nudge."""
+    events, xdo = win.events, win.xdo
+    vx, vy, w, h = win.ready["viewport"]
+    centre = np.array([win.origin[0] + vx + w / 2, win.origin[1] + vy + h / 2])
+    towards = np.sign(centre - screen_pixels(win, keypoints)[index])
+    for drag in range(count):
+        x, y = np.rint(screen_pixels(win, keypoints)[index]).astype(int)
+        xdo("mousemove", x, y)
+        xdo("mousedown", 1)
+        for step in range(1, 6):
+            xdo("mousemove", x + int(towards[0] * 2 * step), y + int(towards[1] * 3 * step))
+        xdo("mouseup", 1)
+        released = wait_for(lambda: [e for e in read_events(events) if e["event"] == "release"][drag:], timeout,
+                            f"the end of drag {drag + 1}")[0]
+        assert released["moved"] and released["selection"] == [index]
+        xdo("key", "Left" if drag % 2 else "Right")
+        nudges = wait_for(lambda: [e for e in read_events(events) if e["event"] == "nudge"][drag:], timeout, "a nudge")
+        keypoints = np.array(nudges[0]["keypoints"])
+    return keypoints
