@@ -33,6 +33,9 @@ from kpd._compiled import compiled_on_first_call
 from kpd.io.atomic import atomic_files
 from kpd.io.common import incomplete, verify_companion
 from kpd.io.images import read_image
+from kpd.io.mtl import (DEFAULT_KD as _DEFAULT_KD, MAP_KEYS as _MAP_KEYS, Material, find_map as _find_map,  # noqa: F401
+                        library_files as _library_files, map_file as _map_file, map_statements as _map_statements,
+                        read_library, renamed_library as _renamed_library, strip_comment as _strip_comment)
 from kpd.io.numbers import BLANKS, in_halves, scan_numbers
 from kpd.mesh import Mesh, PointSet, count_phrase
 from kpd.triangles import turned_normals
@@ -40,11 +43,6 @@ from kpd.triangles import turned_normals
 __all__ = ["read", "write", "companions", "ObjSource"]
 
 log = logging.getLogger("kpd.io.obj")
-
-# MTL statements that name a file (the file name is the last token, after any options)
-_MAP_KEYS = (b"map_kd", b"map_ka", b"map_ks", b"map_ns", b"map_d", b"map_bump", b"bump", b"disp", b"decal",
-             b"refl", b"norm", b"map_pr", b"map_pm", b"map_ps", b"map_ke", b"map_rma", b"map_orm")
-_DEFAULT_KD = (0.8, 0.8, 0.8)  # faces without a material (and materials without Kd), as the drawing code's grey
 
 
 # --- reading -------------------------------------------------------------------------------------------------------
@@ -488,78 +486,6 @@ def _colors(values: np.ndarray) -> np.ndarray | None:
     return np.ascontiguousarray(values)
 
 
-def _strip_comment(s: bytes) -> bytes:
-    i = s.find(b"#")
-    return s if i < 0 else s[:i]
-
-
-@dataclass
-class Material:
-    """One ``newmtl`` of a material library: its ``Kd`` colour and its ``map_Kd`` image file (resolved)."""
-
-    name: str
-    kd: tuple = _DEFAULT_KD
-    map_kd: Path | None = None
-    map_kd_name: str | None = None
-
-
-def _map_file(statement: bytes) -> bytes:
-    """The file name of a map statement's arguments (the last token, after options such as ``-s 1 1 1``)."""
-    parts = statement.split()
-    return parts[-1] if parts else b""
-
-
-def read_library(p: Path, mtl: Path) -> dict[str, Material]:
-    """The materials of one ``.mtl`` file, by name."""
-    materials: dict[str, Material] = {}
-    current = None
-    for raw in mtl.read_bytes().split(b"\n"):
-        s = _strip_comment(raw).strip()
-        if not s:
-            continue
-        parts = s.split(None, 1)
-        key, rest = parts[0].lower(), (parts[1].strip() if len(parts) > 1 else b"")
-        if key == b"newmtl":
-            current = Material(rest.decode("utf-8", "replace"))
-            materials[current.name] = current
-        elif current is None:
-            continue
-        elif key == b"kd":
-            try:
-                values = [float(x) for x in rest.split()[:3]]
-                if len(values) == 1:
-                    values *= 3
-                if len(values) == 3:
-                    current.kd = tuple(min(max(x, 0.0), 1.0) for x in values)
-            except ValueError:
-                log.warning("%s: material %s has an unreadable Kd %r; drawn grey", p, current.name,
-                            rest.decode("utf-8", "replace"))
-        elif key == b"map_kd":
-            name = _map_file(rest).decode("utf-8", "replace").replace("\\", "/")
-            current.map_kd_name = name
-            current.map_kd = _find_map(mtl.parent, name, rest.decode("utf-8", "replace").replace("\\", "/"))
-    return materials
-
-
-def _find_map(folder: Path, name: str, whole: str) -> Path | None:
-    for candidate in (folder / name, folder / whole, folder / Path(name).name):
-        if candidate.is_file():
-            return candidate
-    return None
-
-
-def _library_files(p: Path, names: str) -> list[tuple[str, Path | None]]:
-    """The files of one ``mtllib`` statement (several names may follow it; a name may hold spaces)."""
-    whole = p.parent / names
-    if whole.is_file():
-        return [(names, whole)]
-    out = []
-    for name in names.split():
-        f = p.parent / name
-        out.append((name, f if f.is_file() else None))
-    return out
-
-
 def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | PointSet":
     """Read an OBJ file (see the module notes); ``name`` is the path as the user gave it, for messages. With
     ``points``, a file without faces gives a :class:`~kpd.mesh.PointSet` of its vertices instead of an error."""
@@ -702,17 +628,6 @@ def _unique(name: str, taken: set) -> str:
     return f"{base}_{k}{suffix}"
 
 
-def _map_statements(data: bytes) -> list[tuple[int, bytes]]:
-    """(line index, arguments) of each map statement of an ``.mtl``."""
-    out = []
-    for i, raw in enumerate(data.split(b"\n")):
-        parts = raw.strip().split(None, 1)
-        key, rest = (parts[0], parts[1]) if len(parts) == 2 else (b"", b"")
-        if key.lower() in _MAP_KEYS and rest.strip():
-            out.append((i, _strip_comment(rest).strip()))
-    return out
-
-
 def _write_from_source(target: Path, mesh: Mesh, source: ObjSource) -> None:
     """The source's bytes with its ``v`` lines (and referenced ``vn`` lines) rewritten when the positions changed and
     its ``mtllib`` statements naming the copied libraries, spliced by :func:`kpd.io.text.write_spliced`."""
@@ -747,19 +662,6 @@ def _write_from_source(target: Path, mesh: Mesh, source: ObjSource) -> None:
         target.parent.joinpath(new).write_bytes(_renamed_library(lib.read_bytes(), renames))
     for image, new in images.items():
         target.parent.joinpath(new).write_bytes(image.read_bytes())
-
-
-def _renamed_library(data: bytes, renames: dict) -> bytes:
-    lines = data.split(b"\n")
-    for i, arguments in _map_statements(data):
-        name = _map_file(arguments)
-        new = renames.get(name.decode("utf-8", "replace").replace("\\", "/"))
-        if new is None:
-            continue
-        line = lines[i]
-        cut = line.rfind(name)
-        lines[i] = line[:cut] + new.encode("utf-8") + line[cut + len(name):]
-    return b"\n".join(lines)
 
 
 def _write_arrays(target: Path, mesh: Mesh) -> None:
