@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -43,3 +45,15 @@ def test_read_table_and_count_lines(tmp_path):
     path.write_bytes(b"\xff\xfe1 2 3\n")
     with pytest.raises(InputError, match="not a text file"):
         read_table(path)
+
+
+def test_images_do_not_import_the_common_module_that_checks_them():
+    """kpd.io.common checks written PNGs through kpd.io.images, so images must not import common (no circle)."""
+    import ast
+
+    import kpd.io.images
+
+    tree = ast.parse(Path(kpd.io.images.__file__).read_text())
+    imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+    imported |= {alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
+    assert "kpd.io.common" not in imported and "kpd.io.atomic" in imported

@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from kpd.errors import InputError
-from kpd.io import obj, read_mesh
+from kpd.io import numbers, obj, read_mesh
 
 
 def lines_reference(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -61,7 +61,7 @@ def test_lines_equal_a_line_by_line_reading(pieces):
 @pytest.mark.parametrize("halves", [False, True])
 def test_lines_of_real_files_equal_a_line_by_line_reading(data_dir, monkeypatch, halves):
     if halves:  # the kernels' two halves on two threads, at any size
-        monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
+        monkeypatch.setattr(numbers, "THREADED_ROWS", 1)
     files = sorted((data_dir / "shapenetcore_obj").rglob("*.obj"))[:6] + sorted((data_dir / "scans").rglob("*.obj"))[:2]
     assert len(files) >= 6
     for f in files:
@@ -96,7 +96,7 @@ def random_words(rng: random.Random, n: int) -> list[str]:
 @pytest.mark.parametrize("halves", [False, True])
 def test_numbers_are_the_values_python_reads_to_the_bit(tmp_path, monkeypatch, halves):
     if halves:
-        monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
+        monkeypatch.setattr(numbers, "THREADED_ROWS", 1)
     rng = random.Random(7)
     with localcontext() as context:
         context.prec = 80  # the half-way decimals exactly
@@ -131,7 +131,7 @@ def faces_reference(lines: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarra
 @pytest.mark.parametrize("form", ["v", "v/vt", "v/vt/vn", "v//vn"])
 def test_faces_equal_a_word_by_word_reading(tmp_path, monkeypatch, form, sides, halves):
     if halves:
-        monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
+        monkeypatch.setattr(numbers, "THREADED_ROWS", 1)
     rng = random.Random(form)
     n = 50
     head = [f"v {i} {i % 7} {i % 3}" for i in range(n)] + [f"vt {i / n} 0.5" for i in range(n)] + \
@@ -177,7 +177,7 @@ def test_a_line_unlike_the_first_reads_as_any_file(tmp_path, monkeypatch, form, 
     """Triangles of the first line's form are read in one pass; a line that is not one, first, between or last,
     gives the faces of a word-by-word reading (the two passes), or the error naming its line."""
     if halves:
-        monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
+        monkeypatch.setattr(numbers, "THREADED_ROWS", 1)
     head = [f"v {i} 0 {i % 3}" for i in range(9)] + [f"vt {i / 9} 0.5" for i in range(9)] + ["vn 0 0 1"] * 9
     plain = ["f " + form.format(1 + i % 7, 2 + i % 7, 3 + i % 7) for i in range(40)]
     for at in (0, 17, 40):

@@ -20,7 +20,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from kpd.errors import InputError, WriteError
-from kpd.io import Mesh, PointSet, obj, off, read_mesh, read_points, read_shape, text, write_mesh
+from kpd.io import Mesh, PointSet, numbers, off, read_mesh, read_points, read_shape, text, write_mesh
 
 
 def grid_mesh(normals: bool, colors: bool, n: int = 12, seed: int = 0) -> Mesh:
@@ -348,7 +348,7 @@ def test_numbers_are_the_values_python_reads_to_the_bit(tmp_path, monkeypatch, h
     """Every word as Python's float() reads it, across blocks of a few hundred bytes (the same rows whatever the
     block size), on one thread or two."""
     if halves:
-        monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
+        monkeypatch.setattr(numbers, "THREADED_ROWS", 1)
         monkeypatch.setattr(off, "_BLOCK", 300)
     rng = random.Random(11)
     with localcontext() as context:
@@ -370,7 +370,7 @@ def test_a_large_off_reads_as_written(tmp_path, monkeypatch, halves):
     """A hundred thousand vertices and twice as many faces, written by kpd: the 9-digit decimals back exactly, in
     blocks of 64 KiB on two threads as in one block."""
     if halves:
-        monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
+        monkeypatch.setattr(numbers, "THREADED_ROWS", 1)
         monkeypatch.setattr(off, "_BLOCK", 1 << 16)
     rng = np.random.default_rng(3)
     V, T = 100_000, 200_000
@@ -415,7 +415,7 @@ def test_any_layout_reads_as_a_line_by_line_reading(data):
         lines.insert(draw(st.integers(0, len(lines))), draw(st.sampled_from(["", "  ", "# note", " \t# x", "\r"])))
     text = "\n".join(lines) + draw(st.sampled_from(["", "\n"]))
     with tempfile.TemporaryDirectory() as folder, pytest.MonkeyPatch.context() as patch:
-        patch.setattr(obj, "_THREADED_ROWS", 1)
+        patch.setattr(numbers, "THREADED_ROWS", 1)
         patch.setattr(off, "_BLOCK", draw(st.sampled_from([7, 64, 1 << 22])))
         path = Path(folder) / "any.off"
         path.write_text(text)

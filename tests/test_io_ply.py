@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from kpd.errors import InputError
-from kpd.io import Mesh, obj, off, ply, read_mesh
+from kpd.io import Mesh, numbers, off, ply, read_mesh
 
 _RNG = np.random.default_rng(0)
 _SIZES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4", "float": "f4",
@@ -295,7 +295,7 @@ def _random_ascii(rng: random.Random, path) -> dict:
 @pytest.mark.parametrize("halves", [False, True])
 def test_ascii_is_open3d_to_the_bit(tmp_path, monkeypatch, halves):
     if halves:  # the compiled passes in two halves on two threads, at any size
-        monkeypatch.setattr(obj, "_THREADED_ROWS", 1)
+        monkeypatch.setattr(numbers, "THREADED_ROWS", 1)
     for seed in range(60):
         path = tmp_path / f"{seed}.ply"
         layout = _random_ascii(random.Random(seed), path)

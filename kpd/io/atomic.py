@@ -37,7 +37,7 @@ from kpd import _signals
 from kpd.errors import InputError, WriteError
 
 __all__ = ["TEMP_MARK", "Outputs", "user_path", "atomic_output", "atomic_files", "check_output", "remove_stale_temporaries",
-           "describe_os_error"]
+           "describe_os_error", "disk_full", "incomplete"]
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +68,12 @@ def disk_full(folder: str | os.PathLike) -> bool:
     except OSError:
         return False
     return st.f_bavail * st.f_frsize < 1 << 16
+
+
+def incomplete(p: Path, detail: str) -> WriteError:
+    """The error of a written file that a check found short (``detail`` says what it holds), with its likely cause."""
+    cause = "the disk is full" if disk_full(p.parent) else "the writer stopped early"
+    return WriteError(f"cannot write {p}: the written file is incomplete ({detail}; {cause})")
 
 
 def _nothing_written(p: Path) -> WriteError:

@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from kpd.errors import InputError, WriteError
-from kpd.io.atomic import disk_full
+from kpd.errors import InputError
+from kpd.io.atomic import incomplete
 
 __all__ = ["MESH_FORMATS", "POINT_FORMATS", "KEYPOINT_FORMATS", "input_path", "output_path", "incomplete",
            "verify_companion", "check_header_counts", "count_lines", "describe", "read_table"]
@@ -50,12 +50,9 @@ def output_path(path: str | os.PathLike, formats: tuple, kind: str) -> Path:
     return p
 
 
-def incomplete(p: Path, detail: str) -> WriteError:
-    cause = "the disk is full" if disk_full(p.parent) else "the writer stopped early"
-    return WriteError(f"cannot write {p}: the written file is incomplete ({detail}; {cause})")
-
-
 def verify_companion(p: Path, tmp: Path) -> None:
+    """Raise :class:`~kpd.errors.WriteError` for ``p`` unless its written companion ``tmp`` holds something (and, for a
+    PNG, ends with its end chunk)."""
     if tmp.stat().st_size == 0:
         raise incomplete(p, "empty")
     if tmp.suffix.lower() == ".png":

@@ -17,8 +17,7 @@ from typing import Any
 import numpy as np
 
 from kpd.errors import InputError
-from kpd.io.atomic import atomic_output
-from kpd.io.common import incomplete
+from kpd.io.atomic import atomic_output, incomplete
 
 __all__ = ["encode_png", "write_png", "read_png", "verify_png", "check_png", "read_image", "read_image_bytes"]
 

@@ -33,17 +33,16 @@ from kpd._compiled import compiled_on_first_call
 from kpd.io.atomic import atomic_files
 from kpd.io.common import incomplete, verify_companion
 from kpd.io.images import read_image
+from kpd.io.mtl import (DEFAULT_KD as _DEFAULT_KD, MAP_KEYS as _MAP_KEYS, Material, find_map as _find_map,  # noqa: F401
+                        library_files as _library_files, map_file as _map_file, map_statements as _map_statements,
+                        read_library, renamed_library as _renamed_library, strip_comment as _strip_comment)
+from kpd.io.numbers import BLANKS, in_halves, scan_numbers
 from kpd.mesh import Mesh, PointSet, count_phrase
 from kpd.triangles import turned_normals
 
 __all__ = ["read", "write", "companions", "ObjSource"]
 
 log = logging.getLogger("kpd.io.obj")
-
-# MTL statements that name a file (the file name is the last token, after any options)
-_MAP_KEYS = (b"map_kd", b"map_ka", b"map_ks", b"map_ns", b"map_d", b"map_bump", b"bump", b"disp", b"decal",
-             b"refl", b"norm", b"map_pr", b"map_pm", b"map_ps", b"map_ke", b"map_rma", b"map_orm")
-_DEFAULT_KD = (0.8, 0.8, 0.8)  # faces without a material (and materials without Kd), as the drawing code's grey
 
 
 # --- reading -------------------------------------------------------------------------------------------------------
@@ -81,24 +80,7 @@ _SPACE, _TAB, _HASH, _SLASH, _NEWLINE = 32, 9, 35, 47, 10
 _V, _F, _T, _N, _U, _M = ord("v"), ord("f"), ord("t"), ord("n"), ord("u"), ord("m")
 _USEMTL, _MTLLIB = np.frombuffer(b"usemtl", np.uint8).copy(), np.frombuffer(b"mtllib", np.uint8).copy()
 _KINDS = {"v": 1, "vt": 2, "vn": 3, "f": 4, "usemtl": 5, "mtllib": 6, "other": 0}
-
-
-_THREADED_ROWS = 65536  # lines below which a second thread costs more than it saves
-
-
-def _in_halves(kernel, n: int, *args) -> None:
-    """``kernel(lo, hi, *args)`` over the rows [0, n): in two halves on two threads for many rows (the kernels let go
-    of the interpreter's lock)."""
-    kernel(0, 0, *args)  # compiled (or loaded) here, once
-    if n < _THREADED_ROWS or (os.cpu_count() or 1) < 2:
-        kernel(0, n, *args)
-        return
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(1, thread_name_prefix="kpd-obj") as pool:
-        other = pool.submit(kernel, n // 2, n, *args)
-        kernel(0, n // 2, *args)
-        other.result()
+_in_halves, _numbers, _BLANKS = in_halves, scan_numbers, BLANKS  # the scanner's names in this module, still importable
 
 
 def _scan(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -111,7 +93,7 @@ def _scan(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     if count > 1 and breaks[-1] == len(buf) - 1:  # a last line break ends the last line; no empty line follows
         count -= 1
     table = (*(np.empty(count, np.int64) for _ in range(3)), np.empty(count, np.int8))
-    _in_halves(_line_table, count, buf, breaks, *table)
+    in_halves(_line_table, count, buf, breaks, *table)
     return table
 
 
@@ -152,101 +134,13 @@ def _line_table(lo, hi, buf, breaks, starts, ends, first, kind):  # pragma: no c
     return starts, ends, first, kind
 
 
-# powers of ten that float64 holds exactly: a decimal whose digits make an integer below 2**53, times or over one of
-# them, is one correctly rounded operation, the value Python's float() gives (Clinger's fast path); any other word is
-# read by Python
-_POW10 = np.array([10.0**k for k in range(23)])
-_EXACT_MANTISSA = 2**53
-_BLANKS = np.array([b in b" \t\n\r\x0b\x0c" for b in range(256)])  # what bytes.split() splits at
-
-
-@compiled_on_first_call
-def _numbers(lo, hi, buf, begin, stop, out, counts, exact):  # pragma: no cover - compiled
-    """Row r's numbers, the blank-separated words of ``buf[begin[r]:stop[r]]`` up to a ``#``: the first
-    ``out.shape[1]`` into ``out[r]``, how many into ``counts[r]``, and ``exact[r]`` False when some word is not a
-    plain decimal (sign, digits, point, exponent) within the fast path's reach (Python then reads the row)."""
-    width = out.shape[1]
-    for r in range(lo, hi):
-        i, end = begin[r], stop[r]
-        k = 0
-        good = True
-        while True:
-            while i < end and _BLANKS[buf[i]]:
-                i += 1
-            if i >= end or buf[i] == _HASH:
-                break
-            j = i
-            while j < end and not _BLANKS[buf[j]] and buf[j] != _HASH:
-                j += 1
-            # the word buf[i:j]
-            negative = False
-            if buf[i] == 43 or buf[i] == 45:  # + -
-                negative = buf[i] == 45
-                i += 1
-            mantissa = 0
-            digits = 0  # significant digits in the mantissa
-            exponent = 0
-            seen = False
-            cut = False  # a non-zero digit beyond the 18 the mantissa holds
-            point = False
-            while i < j:
-                if buf[i] == 46 and not point:  # .
-                    point = True
-                    i += 1
-                    continue
-                if not 48 <= buf[i] <= 57:
-                    break
-                seen = True
-                d = buf[i] - 48
-                if digits < 18:
-                    if mantissa or d:
-                        mantissa = mantissa * 10 + d
-                        digits += 1
-                    exponent -= point
-                else:
-                    exponent += not point
-                    cut |= d != 0
-                i += 1
-            if seen and i < j and (buf[i] == 101 or buf[i] == 69):  # e E
-                i += 1
-                down = False
-                if i < j and (buf[i] == 43 or buf[i] == 45):
-                    down = buf[i] == 45
-                    i += 1
-                seen = i < j
-                e = 0
-                while i < j and 48 <= buf[i] <= 57:
-                    if e < 100000:
-                        e = e * 10 + buf[i] - 48
-                    i += 1
-                exponent += -e if down else e
-            value = 0.0
-            ok = seen and i == j and not cut and mantissa <= _EXACT_MANTISSA
-            if ok and mantissa:
-                if 0 <= exponent <= 22:
-                    value = float(mantissa) * _POW10[exponent]
-                elif -22 <= exponent < 0:
-                    value = float(mantissa) / _POW10[-exponent]
-                elif 22 < exponent <= 37 and mantissa <= _EXACT_MANTISSA // 10 ** (exponent - 22):
-                    value = float(mantissa * 10 ** (exponent - 22)) * _POW10[22]  # still an exact integer
-                else:
-                    ok = False
-            if k < width:
-                out[r, k] = -value if negative else value
-            k += 1
-            good &= ok
-            i = j
-        counts[r] = k
-        exact[r] = good
-
-
 def _values(p: Path, data: bytes, lines, rows: np.ndarray, prefix: int, widths: tuple,
             kind: str) -> tuple[np.ndarray, bool]:
     """(n, w) float64 of the lines ``rows`` of one kind, and whether all lines hold w numbers (one of ``widths``);
     when they hold different counts, the first ``widths[0]`` numbers of each (the rest is their tail).
 
-    Compiled (:func:`_numbers`); a word beyond its fast path (more than 15 significant digits, ``nan``, a stray
-    character) is read by Python's ``float``, so every value is the correctly rounded one."""
+    Compiled (:func:`kpd.io.numbers.scan_numbers`); a word beyond its fast path (more than 15 significant digits,
+    ``nan``, a stray character) is read by Python's ``float``, so every value is the correctly rounded one."""
     starts, ends, first, _ = lines
     n = len(rows)
     if not n:
@@ -254,7 +148,7 @@ def _values(p: Path, data: bytes, lines, rows: np.ndarray, prefix: int, widths: 
     out = np.zeros((n, max(widths)))
     counts = np.empty(n, dtype=np.int64)
     exact = np.empty(n, dtype=np.bool_)
-    _in_halves(_numbers, n, np.frombuffer(data, dtype=np.uint8), first[rows] + prefix, ends[rows], out, counts, exact)
+    in_halves(scan_numbers, n, np.frombuffer(data, dtype=np.uint8), first[rows] + prefix, ends[rows], out, counts, exact)
     for j in np.flatnonzero(~exact).tolist():  # rare: words Python reads, or reports
         i = int(rows[j])
         try:
@@ -398,18 +292,18 @@ def _faces(p: Path, data: bytes, lines, rows: np.ndarray) -> tuple[list, np.ndar
         sides = len(words)
         status = np.zeros(n, dtype=np.int8)
         indices = [np.zeros((n * (sides - 2) if guess >= k else 0, 3), dtype=np.int64) for k in range(3)]
-        _in_halves(_face_corners, n, buf, begin, stop, unread, unread, guess, sides, *indices, status)
+        in_halves(_face_corners, n, buf, begin, stop, unread, unread, guess, sides, *indices, status)
         if not status.any():
             return [index if len(index) else None for index in indices], rows if sides == 3 else np.repeat(rows, 2)
     corners = np.empty(n, dtype=np.int64)
     forms = np.empty(n, dtype=np.int64)
     status = np.empty(n, dtype=np.int8)
-    _in_halves(_face_forms, n, buf, begin, stop, corners, forms, status)
+    in_halves(_face_forms, n, buf, begin, stop, corners, forms, status)
     first_triangle = np.concatenate([[0], np.cumsum(np.maximum(corners - 2, 0))]).astype(np.int64)
     T = int(first_triangle[-1])
     widest = int(forms.max()) if n else 0
     indices = [np.zeros((T if widest >= k else 0, 3), dtype=np.int64) for k in range(3)]
-    _in_halves(_face_corners, n, buf, begin, stop, forms, first_triangle, -1, 0, *indices, status)
+    in_halves(_face_corners, n, buf, begin, stop, forms, first_triangle, -1, 0, *indices, status)
     if status.any():
         _face_error(p, data, lines, rows, status, corners, forms)
     return [index if len(index) else None for index in indices], rows if T == n else np.repeat(rows, corners - 2)
@@ -536,8 +430,7 @@ def parse(p: Path, data: bytes, points: bool = False) -> tuple[dict, ObjSource |
         has_uv = (uv_index >= 0).all(axis=1)
     uvs = None
     if has_uv is not None and has_uv.any():
-        # np.take of rows: numpy's fancy index of a 2-d array by a (T, 3) one, with a mask before it, took 0.37 s
-        # for 2.5M textured triangles, the take 0.03 s
+        # np.take of rows: an order of magnitude faster than fancy indexing of a 2-d array by a (T, 3) one
         if has_uv.all():
             uvs = np.take(vt, uv_index.reshape(-1), axis=0)
         else:
@@ -591,78 +484,6 @@ def _colors(values: np.ndarray) -> np.ndarray | None:
     if values.max() > 1.0 + 1e-6:
         return values / 255.0 if values.max() <= 255.0 else None
     return np.ascontiguousarray(values)
-
-
-def _strip_comment(s: bytes) -> bytes:
-    i = s.find(b"#")
-    return s if i < 0 else s[:i]
-
-
-@dataclass
-class Material:
-    """One ``newmtl`` of a material library: its ``Kd`` colour and its ``map_Kd`` image file (resolved)."""
-
-    name: str
-    kd: tuple = _DEFAULT_KD
-    map_kd: Path | None = None
-    map_kd_name: str | None = None
-
-
-def _map_file(statement: bytes) -> bytes:
-    """The file name of a map statement's arguments (the last token, after options such as ``-s 1 1 1``)."""
-    parts = statement.split()
-    return parts[-1] if parts else b""
-
-
-def read_library(p: Path, mtl: Path) -> dict[str, Material]:
-    """The materials of one ``.mtl`` file, by name."""
-    materials: dict[str, Material] = {}
-    current = None
-    for raw in mtl.read_bytes().split(b"\n"):
-        s = _strip_comment(raw).strip()
-        if not s:
-            continue
-        parts = s.split(None, 1)
-        key, rest = parts[0].lower(), (parts[1].strip() if len(parts) > 1 else b"")
-        if key == b"newmtl":
-            current = Material(rest.decode("utf-8", "replace"))
-            materials[current.name] = current
-        elif current is None:
-            continue
-        elif key == b"kd":
-            try:
-                values = [float(x) for x in rest.split()[:3]]
-                if len(values) == 1:
-                    values *= 3
-                if len(values) == 3:
-                    current.kd = tuple(min(max(x, 0.0), 1.0) for x in values)
-            except ValueError:
-                log.warning("%s: material %s has an unreadable Kd %r; drawn grey", p, current.name,
-                            rest.decode("utf-8", "replace"))
-        elif key == b"map_kd":
-            name = _map_file(rest).decode("utf-8", "replace").replace("\\", "/")
-            current.map_kd_name = name
-            current.map_kd = _find_map(mtl.parent, name, rest.decode("utf-8", "replace").replace("\\", "/"))
-    return materials
-
-
-def _find_map(folder: Path, name: str, whole: str) -> Path | None:
-    for candidate in (folder / name, folder / whole, folder / Path(name).name):
-        if candidate.is_file():
-            return candidate
-    return None
-
-
-def _library_files(p: Path, names: str) -> list[tuple[str, Path | None]]:
-    """The files of one ``mtllib`` statement (several names may follow it; a name may hold spaces)."""
-    whole = p.parent / names
-    if whole.is_file():
-        return [(names, whole)]
-    out = []
-    for name in names.split():
-        f = p.parent / name
-        out.append((name, f if f.is_file() else None))
-    return out
 
 
 def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | PointSet":
@@ -807,17 +628,6 @@ def _unique(name: str, taken: set) -> str:
     return f"{base}_{k}{suffix}"
 
 
-def _map_statements(data: bytes) -> list[tuple[int, bytes]]:
-    """(line index, arguments) of each map statement of an ``.mtl``."""
-    out = []
-    for i, raw in enumerate(data.split(b"\n")):
-        parts = raw.strip().split(None, 1)
-        key, rest = (parts[0], parts[1]) if len(parts) == 2 else (b"", b"")
-        if key.lower() in _MAP_KEYS and rest.strip():
-            out.append((i, _strip_comment(rest).strip()))
-    return out
-
-
 def _write_from_source(target: Path, mesh: Mesh, source: ObjSource) -> None:
     """The source's bytes with its ``v`` lines (and referenced ``vn`` lines) rewritten when the positions changed and
     its ``mtllib`` statements naming the copied libraries, spliced by :func:`kpd.io.text.write_spliced`."""
@@ -852,19 +662,6 @@ def _write_from_source(target: Path, mesh: Mesh, source: ObjSource) -> None:
         target.parent.joinpath(new).write_bytes(_renamed_library(lib.read_bytes(), renames))
     for image, new in images.items():
         target.parent.joinpath(new).write_bytes(image.read_bytes())
-
-
-def _renamed_library(data: bytes, renames: dict) -> bytes:
-    lines = data.split(b"\n")
-    for i, arguments in _map_statements(data):
-        name = _map_file(arguments)
-        new = renames.get(name.decode("utf-8", "replace").replace("\\", "/"))
-        if new is None:
-            continue
-        line = lines[i]
-        cut = line.rfind(name)
-        lines[i] = line[:cut] + new.encode("utf-8") + line[cut + len(name):]
-    return b"\n".join(lines)
 
 
 def _write_arrays(target: Path, mesh: Mesh) -> None:

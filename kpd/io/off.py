@@ -49,7 +49,7 @@ import numpy as np
 from kpd._compiled import compiled_on_first_call
 from kpd.errors import InputError
 from kpd.io.common import count_lines
-from kpd.io.obj import _BLANKS, _in_halves, _numbers
+from kpd.io.numbers import BLANKS as _BLANKS, in_halves as _in_halves, scan_numbers as _numbers
 from kpd.mesh import Mesh, PointSet
 
 __all__ = ["check_complete", "read_mesh", "write_mesh"]

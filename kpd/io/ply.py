@@ -272,7 +272,7 @@ class _Rows:
         floating type), the integers :attr:`stored` into ``out`` (n, s) int64 (:func:`_words`); the rows that are
         left for :meth:`judge`, (m,) in order: those with other than w words, a word beyond the fast paths or out of
         its bounds, a byte the two passes read otherwise than rply (``#``, ``\\v``, ``\\f``)."""
-        from kpd.io.obj import _in_halves, _numbers
+        from kpd.io.numbers import in_halves as _in_halves, scan_numbers as _numbers
 
         n = len(begin)
         judge = np.empty(n, np.bool_)
