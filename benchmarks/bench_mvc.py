@@ -21,8 +21,8 @@ import time
 
 import numpy as np
 
+from kpd.benchmark import best_seconds
 from kpd.cage import fit_cage, icosphere, points_outside
-from kpd.commands.bench import best_seconds
 from kpd.mvc import mvc_weights
 
 

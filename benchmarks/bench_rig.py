@@ -25,8 +25,8 @@ import platform
 
 import numpy as np
 
-from kpd.commands.bench import best_seconds, median_ms
-from kpd.commands.demo import procedural_chair
+from kpd.benchmark import best_seconds, median_ms
+from kpd.procedural import procedural_chair
 from kpd.runtime import Model
 
 # grid spacing of the procedural chair's faces -> vertex count (0.52: 10,400; 0.16: about 100k)

@@ -10,7 +10,7 @@ EXAMPLE = "kpd align chair source_chair.obj target_chair.ply --out source_like_t
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from kpd.commands.keypoints import add_model_arguments
+    from kpd.commands._shared import add_model_arguments
 
     add_model_arguments(parser)
     parser.add_argument("source", metavar="SOURCE", help="the mesh to deform")
@@ -26,7 +26,7 @@ def run(args: argparse.Namespace) -> int:
 
     from concurrent.futures import ThreadPoolExecutor
 
-    from kpd.commands.keypoints import frame_lines, load_model, rig_checked
+    from kpd.commands._shared import frame_lines, load_model, rig_checked
     from kpd.io import MESH_FORMATS, Outputs, mesh_companions, read_mesh, read_shape, write_mesh
 
     with Outputs(force=args.force, inputs=(args.source, args.target)) as outputs:

@@ -19,7 +19,7 @@ _CHAIR_VERTICES_PER_INVERSE_SQUARE = 2812.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from kpd.commands.keypoints import add_model_arguments
+    from kpd.commands._shared import add_model_arguments
 
     add_model_arguments(parser)
     parser.add_argument("--mesh", default=None, help="time your own mesh instead of procedural chairs")

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import re
 
 import numpy as np
 
 from kpd.commands import integer, shipped_names
+from kpd.commands._shared import load_rig, parse_move, parse_moves  # noqa: F401  (importable from here as before)
 from kpd.errors import InputError
 
 HELP = "move keypoints of a shape and write the deformed mesh (same topology, UVs and colours)"
@@ -15,33 +15,9 @@ EXAMPLE = ("kpd deform chair my_chair.obj --move 8:0,0,5 --move 9:0,0,5 --out ta
            "(8 and 9: the top corners of the backrest; with --prior, moving one leg moves its partner: "
            "kpd deform chair my_chair.obj --move 1:-3,0,0 --prior --out wider.obj)")
 
-_MOVE = re.compile(r"^\s*(\d+)\s*:\s*([^,]+),([^,]+),([^,]+)\s*$")
-
-
-def parse_move(text: str) -> tuple[int, np.ndarray]:
-    """``"I:DX,DY,DZ"`` -> (I, (3,) offset)."""
-    match = _MOVE.match(text)
-    if match is None:
-        raise InputError(f"--move must look like I:DX,DY,DZ (for example 3:0,0.05,0); got {text!r}")
-    try:
-        delta = np.array([float(match.group(i)) for i in (2, 3, 4)])
-    except ValueError as exc:
-        raise InputError(f"--move offsets must be numbers; got {text!r}") from exc
-    if not np.isfinite(delta).all():
-        raise InputError(f"--move offsets must be finite; got {text!r}")
-    return int(match.group(1)), delta
-
-
-def parse_moves(texts: list[str]) -> dict[int, np.ndarray]:
-    moves: dict[int, np.ndarray] = {}
-    for text in texts:
-        index, delta = parse_move(text)
-        moves[index] = moves.get(index, 0.0) + delta
-    return moves
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from kpd.commands.keypoints import add_scan_arguments
+    from kpd.commands._shared import add_scan_arguments
 
     parser.add_argument("model", metavar="MODEL", nargs="?", default=None,
                         help=f"a bundle (.kpd folder or .zip) or a shipped name ({shipped_names()}); not with --rig")
@@ -59,14 +35,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=integer(1), default=None, help="onnxruntime intra-op threads (with MODEL)")
     add_scan_arguments(parser)
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
-
-
-def load_rig(path: str):
-    from pathlib import Path
-
-    from kpd.rig import Rig
-
-    return Rig.from_demo(path) if Path(path).is_dir() else Rig.load(path)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -97,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
 def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray], check=None):
     """The deformed mesh of ``kpd deform MODEL SHAPE``: rig the mesh, move keypoints (through the prior if asked).
     ``check(mesh)`` runs on the input mesh before the work (the output's companion files)."""
-    from kpd.commands.keypoints import load_model, model_beside_read, rig_checked, scan_frame
+    from kpd.commands._shared import load_model, model_beside_read, rig_checked, scan_frame
 
     def load():
         model = load_model(args)

@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from kpd.commands.sample import render_sheet
+    from kpd.commands._shared import render_sheet
     from kpd.io import Outputs, read_mesh, write_mesh
     from kpd.runtime import Model
 

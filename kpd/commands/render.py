@@ -12,7 +12,7 @@ EXAMPLE = ("kpd render chair my_chair.obj --move 0:0,0,-5 --prior --out view.png
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from kpd.commands.view import add_source_arguments, add_view_arguments
+    from kpd.commands._shared import add_source_arguments, add_view_arguments
 
     add_source_arguments(parser)
     add_view_arguments(parser)
@@ -35,8 +35,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from kpd.commands.deform import parse_moves
-    from kpd.commands.view import load_source, view_settings
+    from kpd.commands._shared import load_source, parse_moves, view_settings
     from kpd.io import Outputs
     from kpd.viewer.render import render_rig, write_png
     from kpd.viewer.session import propose

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
 
+from kpd.commands._shared import morph_rig  # noqa: F401  (importable from here as before)
 from kpd.errors import InputError
 
 HELP = ("rig a shape for editing anywhere: glTF morph targets (.glb, .gltf: Blender shape keys, three.js, game "
@@ -18,7 +18,7 @@ RIG_FORMATS = (".glb", ".gltf", ".npz")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from kpd.commands.keypoints import add_model_arguments, add_scan_arguments
+    from kpd.commands._shared import add_model_arguments, add_scan_arguments
 
     add_model_arguments(parser)
     parser.add_argument("shape", metavar="SHAPE", help="the mesh to rig (.obj .ply .off .stl .gltf .glb)")
@@ -34,18 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="replace --out (and a .gltf's .bin) if it exists")
 
 
-def morph_rig(rig: Any, prior: Any, meta: dict):
-    """The :class:`kpd.morph.MorphRig` of a rig, in the user's frame: a rig made on an aligned scan (``kpd view``'s
-    ``ScanRig``, which keeps the scan's own mesh and its alignment) gives its targets in the scan's frame."""
-    from kpd.morph import MorphRig
-
-    if hasattr(rig, "aligned"):
-        return MorphRig.from_rig(rig.aligned, prior, mesh=rig.mesh, frame=rig.scan.result.transform, meta=meta)
-    return MorphRig.from_rig(rig, prior, meta=meta)
-
-
 def run(args: argparse.Namespace) -> int:
-    from kpd.commands.keypoints import load_model, model_beside_read, rig_checked, scan_frame
+    from kpd.commands._shared import load_model, model_beside_read, rig_checked, scan_frame
     from kpd.io import Outputs
     from kpd.morph import MorphRig, up_rotation, write_gltf
 
@@ -97,44 +87,4 @@ def run(args: argparse.Namespace) -> int:
     companion = f" and {out.with_suffix('.bin').name}" if ext == ".gltf" else ""
     prior_note = "" if ext == ".npz" or model.prior is not None else " (the bundle has no prior: keypoint targets only)"
     print(f"wrote {out}{companion} ({len(mesh.vertices)} vertices, {what}{prior_note})")
-    return 0
-
-
-def browse(args: argparse.Namespace) -> int:
-    """``kpd view ... --browser``: the editor as a page served from this machine (:mod:`kpd.viewer.browser`)."""
-    from kpd.commands import check_output
-    from kpd.commands.view import load_source
-    from kpd.io import MESH_FORMATS
-    from kpd.morph import up_rotation
-    from kpd.viewer.browser import BrowserEditor
-
-    window_only = [option for option, value in (("--session", args.session), ("--load-session", args.load_session),
-                                                ("--events", args.events), ("--cage", args.cage or None),
-                                                ("--ghost", args.ghost or None), ("--size", args.size))
-                   if value is not None]
-    if window_only:
-        raise InputError(f"{window_only[0]} belongs to the window editor; the browser page has none (drop it or "
-                         "--browser)")
-    inputs = (args.rig, args.shape)
-    if args.out is not None:
-        check_output(args.out, force=args.force, inputs=inputs, formats=MESH_FORMATS, what="mesh")
-    if args.view_up is not None:
-        up_rotation(args.view_up)
-    editor = BrowserEditor(out=args.out, force=args.force, inputs=inputs, host=args.host, port=args.port)
-    try:
-        source = load_source(args, need_prior=args.prior)
-        model = args.model or args.prior_model
-        meta = {**({"model": str(model)} if model is not None else {}), "shape": source.name, "scan": bool(args.scan)}
-        up = args.view_up or getattr(source, "up", None) or "+z"
-        editor.show(morph_rig(source.rig, source.prior, meta), name=Path(source.name).stem, up=up, prior=args.prior,
-                    azimuth=args.azimuth, elevation=args.elevation)
-        port = editor.server.server_address[1]
-        print(f"kpd view: the editor is at {editor.url} (from another machine: ssh -L {port}:localhost:{port} "
-              f"THIS_HOST, then open http://localhost:{port}/); Ctrl+C stops it", flush=True)
-        editor.serve_forever()
-    except KeyboardInterrupt:
-        print("kpd view: stopped", flush=True)
-    finally:
-        editor.server.server_close()
-        editor.close()
     return 0

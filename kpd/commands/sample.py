@@ -10,13 +10,14 @@ from typing import Any
 import numpy as np
 
 from kpd.commands import integer, number
+from kpd.commands._shared import render_sheet  # noqa: F401  (importable from here as before)
 
 HELP = "write variants of a mesh deformed to keypoints sampled from the category prior, and a contact sheet"
 EXAMPLE = "kpd sample chair my_chair.obj --n 16 --out chair_variants"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from kpd.commands.keypoints import add_model_arguments
+    from kpd.commands._shared import add_model_arguments
 
     add_model_arguments(parser)
     parser.add_argument("mesh", metavar="MESH", help="the mesh to vary")
@@ -38,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from kpd.commands.keypoints import load_model, model_beside_read
+    from kpd.commands._shared import load_model, model_beside_read
     from kpd.errors import InputError
     from kpd.io import MESH_FORMATS, Outputs, file_up, write_mesh
 
@@ -112,10 +113,3 @@ class _Variants(Sequence):
             raise IndexError(i)
         i %= len(self)
         return self.mesh if i == 0 else self.rig.deformed_mesh(self.keypoint_sets[i - 1])
-
-
-def render_sheet(meshes: Sequence[Any], path: str | Path, **options: Any) -> None:
-    """A contact sheet of meshes (see :func:`kpd.viewer.pictures.render_sheet`: the editor's OpenGL drawing path)."""
-    from kpd.viewer.pictures import render_sheet as draw
-
-    draw(meshes, path, **options)
