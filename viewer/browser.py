@@ -26,6 +26,7 @@ bytes, at most :data:`MAX_CONNECTIONS` connections are served at once, and every
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hmac
 import http.server
@@ -176,8 +177,9 @@ class BrowserEditor:
 
     @property
     def url(self) -> str:
-        """The page's address, with this launch's secret."""
+        """The page's address, with this launch's secret (for a wildcard --host, at this machine's name)."""
         host, port = self.server.server_address[:2]
+        host = socket.gethostname() if self._any_address else host
         shown = f"[{host}]" if ":" in str(host) else host
         return f"http://{shown}:{port}/{self.secret}/"
 
@@ -336,6 +338,9 @@ class _Server(http.server.ThreadingHTTPServer):
         if not self.slots.acquire(blocking=False):
             body = json.dumps({"ok": False, "message": "the editor is busy; try again"}).encode()
             try:
+                request.setblocking(False)
+                with contextlib.suppress(BlockingIOError):  # what came already: unread, it would reset the answer
+                    request.recv(1 << 16)
                 request.settimeout(1.0)
                 request.sendall(b"HTTP/1.0 503 Service Unavailable\r\nContent-Type: application/json\r\n"
                                 b"Connection: close\r\nContent-Length: %d\r\n\r\n%s" % (len(body), body))
@@ -408,6 +413,7 @@ def _handler(editor: BrowserEditor):
         def _start(self, status: int, kind: str, size: int, extra: tuple = ()) -> None:
             self._answered = True
             self.connection.settimeout(editor.timeout)  # a send that does not progress in time fails
+            self.request_version = "HTTP/1.0"  # never HTTP/0.9's bare body: every answer has its status and type
             self.send_response(status)
             self.send_header("Content-Type", kind)
             self.send_header("Content-Length", str(size))
@@ -464,6 +470,15 @@ def _handler(editor: BrowserEditor):
                     return self._send(HTTPStatus.MOVED_PERMANENTLY, b"", "text/plain",
                                       (("Location", f"/{secret}/"),))
                 rest = "/" + rest
+                # a browser names the page that asks (Origin: on every POST and on a cross-origin fetch; and
+                # Sec-Fetch-Site): only the editor's own page, or the user's own typing, is served
+                origin = self.headers.get("Origin")
+                if (origin is None and self.command == "POST") or (
+                        origin is not None and origin.lower() != f"http://{self.headers['Host']}".lower()):
+                    raise _Refused(HTTPStatus.FORBIDDEN, f"only the editor's own page may ask this; got Origin "
+                                   f"{(origin or '')[:100]!r}")
+                if self.headers.get("Sec-Fetch-Site", "none") not in ("same-origin", "none"):
+                    raise _Refused(HTTPStatus.FORBIDDEN, "only the editor's own page may ask this")
                 if rest in _API:
                     kind, _, token = self.headers.get("Authorization", "").partition(" ")
                     if kind.lower() != "bearer" or not editor.has_secret(token.strip()):
@@ -520,13 +535,6 @@ def _handler(editor: BrowserEditor):
         def _post(self, path: str, query: str) -> None:
             if path != "/save":
                 raise _Refused(HTTPStatus.NOT_FOUND, "not found")
-            # a browser sends Origin with every POST: the editor's own page is the only one allowed to save
-            origin = self.headers.get("Origin", "")
-            if origin.lower() != f"http://{self.headers.get('Host', '')}".lower():
-                raise _Refused(HTTPStatus.FORBIDDEN, f"a save must come from the editor's own page; got Origin "
-                               f"{origin[:100]!r}")
-            if self.headers.get("Sec-Fetch-Site", "same-origin") not in ("same-origin", "none"):
-                raise _Refused(HTTPStatus.FORBIDDEN, "a save must come from the editor's own page")
             kind = self.headers.get("Content-Type", "").split(";")[0].strip().lower()
             if kind != "application/json":  # a form or a no-cors request cannot send this type
                 raise _Refused(HTTPStatus.UNSUPPORTED_MEDIA_TYPE, f"a save is application/json; got {kind[:60]!r}")

@@ -132,7 +132,7 @@ def browse(args: argparse.Namespace) -> int:
         port = editor.server.server_address[1]
         if editor.exposed:
             print(f"warning: --host {args.host} is not a loopback address: anyone who can reach port {port} and has "
-                  "the address printed next can edit the shape and save over --out", file=sys.stderr, flush=True)
+                  "the address printed next can use this editor and its save", file=sys.stderr, flush=True)
         print(f"kpd view: the editor is at {editor.url} (from another machine: ssh -L {port}:localhost:{port} "
               f"THIS_HOST, then open http://localhost:{port}/{editor.secret}/); Ctrl+C stops it", flush=True)
         editor.serve_forever()
