@@ -117,7 +117,7 @@ class BrowserEditor:
         self._files = {"/" + f.relative_to(WEB_ROOT).as_posix(): f for f in sorted(WEB_ROOT.rglob("*")) if f.is_file()}
         self._files["/"] = WEB_ROOT / "index.html"
         try:
-            self.server = _Server((host, port), _handler(self), connections=MAX_CONNECTIONS, timeout=self.timeout)
+            self.server = _Server((host, port), _handler(self), connections=MAX_CONNECTIONS)
         except OSError as exc:
             if exc.errno == errno.EADDRINUSE:
                 raise InputError(f"--port {port}: the port is in use on {host}; choose another --port (0 picks a "
@@ -323,15 +323,14 @@ class _Refused(Exception):
 class _Server(http.server.ThreadingHTTPServer):
     """http.server's threads, at most ``connections`` at once: a connection beyond them is answered 503 at once by
     the accepting thread, so no number of connections that never finish their request (slowloris) exhausts the
-    threads or memory; each of those is cut ``timeout`` seconds after it began (:class:`_Arrival`)."""
+    threads or memory; each of those is cut at the editor's timeout (:class:`_Arrival`)."""
 
     daemon_threads = True
     request_queue_size = 64
 
-    def __init__(self, address: tuple, handler: type, *, connections: int, timeout: float) -> None:
+    def __init__(self, address: tuple, handler: type, *, connections: int) -> None:
         self.address_family = socket.AF_INET6 if ":" in str(address[0]) else socket.AF_INET
         self.slots = threading.BoundedSemaphore(connections)
-        self.timeout_seconds = timeout
         super().__init__(address, handler)
 
     def process_request(self, request, client_address) -> None:
@@ -401,7 +400,8 @@ def _handler(editor: BrowserEditor):
             super().handle_one_request()
 
         def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 (the base class's name)
-            log.debug("%s " + format, self.address_string(), *args)
+            # the log (kpd -v) may be kept or shared: the secret is not written into it
+            log.debug("%s %s", self.address_string(), (format % args).replace(editor.secret, "SECRET"))
 
         def send_error(self, code: int, message: str | None = None, explain: str | None = None) -> None:
             # http.server's own refusals (a request line or headers too long or malformed, a method without a
