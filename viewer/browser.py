@@ -308,7 +308,10 @@ def save_weights(body: bytes, names: Sequence[str]) -> dict[str, float]:
             raise InputError(f"unknown morph target {name[:60]!r}; targets are keypoint_<i>_<axis>, "
                              f"prior_<i>_<axis>, pca_<c> (this rig has {len(names)})")
         if not isinstance(weight, float) or not math.isfinite(weight):
-            raise InputError(f"the weight of {name} must be a finite number; got {json.dumps(weight)[:40]}")
+            got = ("null" if weight is None else "true or false" if isinstance(weight, bool) else "a string" if
+                   isinstance(weight, str) else "a list" if isinstance(weight, list) else "an object" if
+                   isinstance(weight, dict) else "a number beyond float64's range")
+            raise InputError(f"the weight of {name} must be a finite number; got {got}")
     return value["weights"]
 
 
