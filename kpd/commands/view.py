@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -113,8 +114,11 @@ def browse(args: argparse.Namespace) -> int:
         editor.show(morph_rig(source.rig, source.prior, meta), name=Path(source.name).stem, up=up, prior=args.prior,
                     azimuth=args.azimuth, elevation=args.elevation)
         port = editor.server.server_address[1]
+        if editor.exposed:
+            print(f"warning: --host {args.host} is not a loopback address: anyone who can reach port {port} and has "
+                  "the address printed next can use this editor and its save", file=sys.stderr, flush=True)
         print(f"kpd view: the editor is at {editor.url} (from another machine: ssh -L {port}:localhost:{port} "
-              f"THIS_HOST, then open http://localhost:{port}/); Ctrl+C stops it", flush=True)
+              f"THIS_HOST, then open http://localhost:{port}/{editor.secret}/); Ctrl+C stops it", flush=True)
         editor.serve_forever()
     except KeyboardInterrupt:
         print("kpd view: stopped", flush=True)

@@ -17,6 +17,11 @@ import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 
 const params = new URLSearchParams(location.search);
+// this launch's secret is the first segment of the page's address (/<secret>/, as kpd view printed it): the page's
+// relative URLs carry it, and its requests of the server's API carry it again in a header, which no other site's
+// form or no-cors request can set (viewer/browser.py)
+const secret = location.pathname.split('/')[1];
+const api = { Authorization: `Bearer ${secret}` };
 const timing = params.has('timing'); // finish each frame on the GPU and record its time (benchmarks, tests)
 let threeMorphs = params.get('morph') === 'three'; // also when the packed basis needs more attributes than WebGL has
 const noMorphs = params.get('morph') === 'none'; // the rest mesh only, the same draw without deformation (benchmarks)
@@ -279,7 +284,7 @@ async function save() {
   names.forEach((name, t) => { if (w[t] !== 0) weights[name] = w[t]; });
   status('saving...');
   try {
-    const response = await fetch('/save', { method: 'POST', headers: { 'Content-Type': 'application/json' },
+    const response = await fetch('save', { method: 'POST', headers: { ...api, 'Content-Type': 'application/json' },
       body: JSON.stringify({ weights }) });
     const answer = await response.json();
     status(answer.message, !answer.ok);
@@ -407,9 +412,11 @@ function frameCamera(info) {
 }
 
 async function start() {
-  const info = await (await fetch('/info.json')).json();
+  const answer = await fetch('info.json', { headers: api });
+  const info = await answer.json();
+  if (!answer.ok) throw new Error(info.message);
   threeMorphs ||= Math.ceil(info.keypoints / 4) + 4 > renderer.capabilities.maxAttributes;
-  const gltf = await new GLTFLoader().loadAsync(threeMorphs ? '/rig.glb?morph=three' : '/rig.glb');
+  const gltf = await new GLTFLoader().setRequestHeader(api).loadAsync(threeMorphs ? 'rig.glb?morph=three' : 'rig.glb');
   kpd.stats.loaded = performance.now();
   const extras = gltf.parser.json.asset.extras.kpd;
   names = extras.targets;
