@@ -262,10 +262,14 @@ def ambiguity_advice(up_given: bool, orientation: Any = None, model_up: str | No
         if ups:
             parts.append(f"another up axis fits almost as well ({' or '.join(ups)} instead of {chosen}); if one of "
                          f"them is the shape's up, pass --up with it")
-        if turns:
-            parts.append(f"a turn of {' or '.join(f'{t:.0f}' for t in turns)} degrees about the up axis ({chosen}) "
-                         "fits almost as well (the shape's two ends alike: a shoe's toe and heel, a symmetric table), "
-                         "which no --up settles: look at which end the keypoints mark")
+        half = [t for t in turns if t >= 135]
+        if half:
+            parts.append(f"a half turn about the up axis ({chosen}) fits almost as well, the shape's two ends swapped "
+                         "(a shoe's toe and heel, a table's sides), which no --up settles: look at which end the "
+                         "keypoints mark")
+        if len(half) < len(turns):
+            parts.append(f"a turn of {' or '.join(f'{t:.0f}' for t in turns if t < 135)} degrees about the up axis "
+                         f"({chosen}) fits almost as well, which no --up settles: look at the result")
         if parts:
             return f"the orientation is ambiguous: {'; '.join(parts)} ({check})"
     if up_given:

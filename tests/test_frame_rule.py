@@ -60,7 +60,7 @@ def _warnings(capsys) -> dict[str, list[str]]:
              *check._replace(foreign=True).warnings("chair")]
     for up_given in (False, True):
         frame.append(ambiguity_advice(up_given))
-        for alternatives in ([("z", 180)], [("x", 90)], [("x", 90), ("z", 180)]):
+        for alternatives in ([("z", 180)], [("z", 90)], [("x", 90)], [("x", 90), ("z", 180)]):
             frame.append(ambiguity_advice(up_given, _orientation(alternatives), "+z"))
     warn_moves({3: np.array([0.0, 0.0, 5.0])}, np.random.default_rng(0).uniform(0, 0.6, (50, 3)))
     moves = capsys.readouterr().err.splitlines()
@@ -85,7 +85,9 @@ def test_every_flag_a_warning_suggests_is_an_option_of_its_command(capsys):
 
 def test_ambiguity_advice_names_the_alternatives():
     turn = ambiguity_advice(True, _orientation([("z", 180)]), "+z")
-    assert "180 degrees about the up axis (z)" in turn and "no --up settles" in turn
+    assert "a half turn about the up axis (z)" in turn and "no --up settles" in turn and "toe and heel" in turn
+    quarter = ambiguity_advice(True, _orientation([("z", 90)]), "+z")
+    assert "a turn of 90 degrees about the up axis (z)" in quarter and "toe" not in quarter
     other = ambiguity_advice(False, _orientation([("x", 90)]), "+z")
     assert "(y instead of z)" in other or "(-y instead of z)" in other
     assert "pass --up" in other and "no --up settles" not in other
