@@ -241,14 +241,43 @@ def frame_warnings(model: Any, shape: Any, *, seed: int = 0, name: str = "the sh
 # --- scans in the model's frame (--scan) ----------------------------------------------------------------------
 
 
-def ambiguity_advice(up_given: bool) -> str:
-    """The warning for an ambiguous orientation: what it means and what to do."""
+def ambiguity_advice(up_given: bool, orientation: Any = None, model_up: str | None = None) -> str:
+    """The warning for an ambiguous orientation: what it means, the alternatives and what to do.
+
+    ``orientation`` (a :class:`kpd.scan.Orientation`) and ``model_up``: the alternatives are named, the input's axis
+    each turns up (``--up`` picks one of them) or, for a turn about the chosen up axis (a shoe's toe and heel
+    swapped, a table turned about its legs), that no ``--up`` settles it.
+    """
+    check = "kpd scan --picture draws the candidates"
+    if orientation is not None and model_up is not None:
+        from kpd.scan import candidate_rotations, parse_axis, rotation_angle
+
+        up = parse_axis(model_up)
+        candidates = candidate_rotations(orientation)
+        chosen = _axis_name(candidates[0][0].T @ up)
+        ups = sorted({_axis_name(r.T @ up) for r, _ in candidates[1:]} - {chosen})
+        turns = sorted({round(rotation_angle(r, candidates[0][0]) / 5) * 5 for r, _ in candidates[1:]
+                        if _axis_name(r.T @ up) == chosen})
+        parts = []
+        if ups:
+            parts.append(f"another up axis fits almost as well ({' or '.join(ups)} instead of {chosen}); if one of "
+                         f"them is the shape's up, pass --up with it")
+        half = [t for t in turns if t >= 135]
+        if half:
+            parts.append(f"a half turn about the up axis ({chosen}) fits almost as well, the shape's two ends swapped "
+                         "(a shoe's toe and heel, a table's sides), which no --up settles: look at which end the "
+                         "keypoints mark")
+        if len(half) < len(turns):
+            parts.append(f"a turn of {' or '.join(f'{t:.0f}' for t in turns if t < 135)} degrees about the up axis "
+                         f"({chosen}) fits almost as well, which no --up settles: look at the result")
+        if parts:
+            return f"the orientation is ambiguous: {'; '.join(parts)} ({check})"
     if up_given:
         return ("the orientation is ambiguous: a turn about the up axis far from the chosen one fits almost as well "
-                "(a symmetric object, such as a table turned 180 degrees, gives the same shape either way); check "
-                "the result (kpd scan --picture draws both)")
+                f"(a symmetric object, such as a table turned 180 degrees, gives the same shape either way); check "
+                f"the result ({check})")
     return ("the orientation is ambiguous: a rotation far from the chosen one fits almost as well (symmetric or "
-            "round object?); check the result (kpd scan --picture draws both), or pass --up")
+            f"round object?); check the result ({check}), or pass --up with the shape's up axis (x, y, z, -x...)")
 
 
 SETTLE_POINTS = 2048  # surface points of the deformed scan compared with the template
@@ -334,6 +363,7 @@ class ScanFrame:
             params["up"] = up
         if model.up is not None:  # as kpd scan --model: the model's up axis turns on the support prior
             params["reference_up"] = model.up
+        self._model, self._shape = model, shape
         self.result = preprocess(shape, reference, outer=model.outer_surface, **params)
         self.rigid = self.result  # the best rigid fit, before any settling
         self.settled = None
@@ -344,7 +374,7 @@ class ScanFrame:
         orientation = self.result.orientation
         if orientation is not None and orientation.ambiguous:
             if self.settled is None:
-                self.warnings.append(ambiguity_advice(up is not None))
+                self.warnings.append(ambiguity_advice(up is not None, orientation, model.up))
             else:
                 s = self.settled
                 self.notes.append(
@@ -352,6 +382,15 @@ class ScanFrame:
                     f"rotations); settled by the model (the scan deformed onto the template fits it best, "
                     f"{s['margin']:.0%} better than the next; the candidate "
                     f"{s['candidates'][s['chosen']]['angle_deg']:.0f} degrees from the best rigid fit)")
+
+    def category_warnings(self, *, seed: int = 0, name: str = "the shape") -> list[str]:
+        """The category check that runs without ``--scan`` (:func:`check_frame`'s ``foreign``, on the shape as given:
+        the check searches its poses itself), kept with it: one line when the shape is probably not of the model's
+        category, else none."""
+        result = check_frame(self._model, self._shape, seed=seed)
+        if result is None or not result.foreign:
+            return []
+        return result._replace(turned=False).warnings(self._model.category, name)
 
     def to_aligned(self, points):
         return self.result.to_aligned(points)

@@ -115,8 +115,9 @@ def test_gltf_draws_y_up_unless_view_up_says_otherwise(tmp_path, capsys):
                tmp_path / "a.png") == 0
     height, width = _silhouette(read_png(tmp_path / "a.png"))
     assert height > 1.5 * width, (height, width)
+    # seen from the side (azimuth 90: from +x for z up), so that the box's length along y lies across the picture
     assert kpd("render", "chair", tmp_path / "tall.glb", "--size", "240x240", "--no-labels", "--view-up", "+z",
-               "--out", tmp_path / "b.png") == 0
+               "--azimuth", "90", "--out", tmp_path / "b.png") == 0
     height, width = _silhouette(read_png(tmp_path / "b.png"))
     assert width > 1.5 * height, (height, width)  # an explicit --view-up wins: the box lies on its side
 

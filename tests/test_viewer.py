@@ -481,7 +481,7 @@ def test_render_draws_textures_the_right_way_up():
     from kpd.rig import Rig
     from kpd.viewer.render import render_rig
 
-    vertices = np.array([[0.0, -1, -1], [0, 1, -1], [0, 1, 1], [0, -1, 1]])  # facing the front view (-x)
+    vertices = np.array([[-1.0, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1]])  # facing the front view (-y for z up)
     uv = {0: (0.0, 0.0), 1: (1.0, 0.0), 2: (1.0, 1.0), 3: (0.0, 1.0)}
     triangles = np.array([[0, 1, 2], [0, 2, 3], [0, 2, 1], [0, 3, 2]])  # both windings: seen from either side
     texture = np.zeros((64, 64, 3), np.uint8)

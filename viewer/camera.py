@@ -10,7 +10,7 @@ from typing import Any, Callable, Iterable, Iterator
 import numpy as np
 
 from kpd._compiled import njit
-from kpd.viewer.settings import ViewSettings, up_axis
+from kpd.viewer.settings import ViewSettings, front_axis, up_axis
 
 __all__ = ["Camera", "camera_pose", "box", "look_at_matrix", "perspective_matrix", "project", "pixel_ray", "plane_hit"]
 
@@ -39,9 +39,9 @@ def camera_pose(vertices: Any, settings: ViewSettings, *, margin: float = 0.9, c
     ``vertices`` may be a list of (N, 3) arrays (a shape and its keypoints, several frames), framed together without
     joining them. Each array is read twice by a compiled pass (5 and 25 ms for 1.4M vertices).
 
-    The front view (azimuth 0) looks along the horizontal axis that follows the up axis (x -> y -> z -> x) in the
-    positive direction, i.e. from ``-that axis``: for ModelNet (z up, chair backs towards +y) that is the view from
-    the front of a chair.
+    The front view (azimuth 0) looks from ``settings.front``, by default the axis that a glTF file with the same up
+    axis turns to glTF's front (:func:`kpd.viewer.settings.front_axis`: -y for z up, a ModelNet chair's front; +z
+    for y up), as the browser page does; positive azimuths turn the camera towards ``up x front``.
     """
     parts = [np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
              for p in (vertices if isinstance(vertices, (list, tuple)) else [vertices])]
@@ -64,9 +64,7 @@ def camera_pose_over(parts: Callable[[], Iterable[np.ndarray]], settings: ViewSe
     center = (lo + hi) / 2
     radius = max(float(np.linalg.norm(hi - lo)) / 2, 1e-9)
     up = up_axis(settings.up)
-    a = int(np.flatnonzero(up)[0])
-    front = np.zeros(3)
-    front[(a + 1) % 3] = -1.0  # from the front: the camera sits on the negative side of the next axis
+    front = front_axis(settings.up) if settings.front is None else up_axis(settings.front)
     side = np.cross(up, front)
     az, el = math.radians(settings.azimuth), math.radians(settings.elevation)
     direction = math.cos(el) * (math.cos(az) * front + math.sin(az) * side) + math.sin(el) * up

@@ -142,7 +142,7 @@ def _draw_cells(shots: Iterable[Any], settings: Any, radius: float | None) -> li
 def render_sheet(meshes: Sequence[Any], path: Any, *, titles: Sequence[str] | None = None,
                  keypoints: Sequence[Any] | None = None, columns: int | None = None, up: str = "z",
                  cell: float = 3.0, arrows: Sequence[Any] | None = None, max_triangles: int | None = None,
-                 title: str | None = None) -> None:
+                 title: str | None = None, front: str | None = None, azimuth: float = 30.0) -> None:
     """Draw meshes side by side from one camera and on one scale (a contact sheet) into a PNG.
 
     Parameters
@@ -158,6 +158,8 @@ def render_sheet(meshes: Sequence[Any], path: Any, *, titles: Sequence[str] | No
     arrows : per mesh, None or (starts (E, 3), ends (E, 3)) drawn as dark arrows (keypoint moves).
     max_triangles : unused (kept for callers of the former matplotlib sheet; the OpenGL path draws every triangle).
     title : a line across the top.
+    front, azimuth : where the camera looks from (:class:`kpd.viewer.settings.ViewSettings`'s ``front`` and
+        ``azimuth``).
     """
     from kpd.viewer.camera import box, camera_pose_over
     from kpd.viewer.gl import Layer, Shot
@@ -167,8 +169,8 @@ def render_sheet(meshes: Sequence[Any], path: Any, *, titles: Sequence[str] | No
         raise InputError("a contact sheet needs at least one mesh")
     pixels = int(round(cell * 100))
     axis = str(up or "z").strip().lower()
-    settings = ViewSettings(width=pixels, height=pixels, up=axis if axis[0] in "+-" else f"+{axis}", azimuth=30.0,
-                            elevation=18.0)
+    settings = ViewSettings(width=pixels, height=pixels, up=axis if axis[0] in "+-" else f"+{axis}", front=front,
+                            azimuth=float(azimuth), elevation=18.0)
     # framed on everything, each mesh taken as it comes: ``meshes`` may make them as they are asked for (a shape's
     # variants, never all held at once: 16 variants of a 1.37M-vertex mesh are 0.5 GB of vertices)
     def everything() -> Iterator[np.ndarray]:

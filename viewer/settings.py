@@ -11,7 +11,7 @@ import numpy as np
 
 from kpd.errors import InputError
 
-__all__ = ["ViewSettings", "Frame", "up_axis", "keypoint_palette", "cage_edges"]
+__all__ = ["ViewSettings", "Frame", "up_axis", "front_axis", "keypoint_palette", "cage_edges"]
 
 # The first twelve keypoint colours are picked by hand to be saturated and far apart (and far from the grey of an
 # uncoloured mesh and from a white or black background); more keypoints get golden-angle hues.
@@ -23,7 +23,6 @@ _PALETTE = np.array([
 
 
 _AXES = {"x": 0, "y": 1, "z": 2}
-
 
 
 @dataclass
@@ -42,6 +41,8 @@ class ViewSettings:
     xray: bool = False  # the mesh see-through, so keypoints inside it stay visible
     keypoint_size: float = 0.018  # marker radius / diagonal
     up: str = "+z"  # the shape's up axis: +x, -x, +y, -y, +z or -z
+    # the axis the camera looks from at azimuth 0 (perpendicular to ``up``); None: :func:`front_axis` of ``up``
+    front: str | None = None
     azimuth: float = 30.0  # degrees around the up axis, from the front view
     elevation: float = 20.0  # degrees above the horizontal
     fov: float = 35.0  # vertical field of view, degrees
@@ -58,7 +59,9 @@ class ViewSettings:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 16 <= value <= 8192:
                 raise InputError(f"{name} must be an integer in [16, 8192]; got {value!r}")
-        up_axis(self.up)
+        up = up_axis(self.up)
+        if self.front is not None and abs(float(up_axis(self.front) @ up)) > 1e-9:
+            raise InputError(f"front must be an axis across up ({self.up}); got {self.front!r}")
         for name in ("keypoint_size", "fov", "zoom", "nudge_step"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -89,6 +92,20 @@ def up_axis(up: str) -> np.ndarray:
     axis = np.zeros(3)
     axis[_AXES[name]] = sign
     return axis
+
+
+def front_axis(up: str) -> np.ndarray:
+    """(3,) unit vector: where the camera stands at azimuth 0 for a shape with ``up``, the axis that a glTF file
+    written with that up axis (:func:`kpd.morph.up_rotation`) turns to glTF's +Z, the front of a glTF asset. So the
+    pictures, the window editor and the browser page (which shows the glTF file) see the same side at the same
+    azimuth: -y for z up (a ModelNet chair's front, its back toward +y), +z for y up."""
+    u = up_axis(up)
+    if u[1] != 0:
+        return np.array([0.0, 0.0, u[1]])  # no turn (+y) or half a turn about x (-y)
+    # a quarter turn about k = u x Y takes u to +Y; the axis it takes to +Z is Z turned back: R^T Z = k x Z + k (k.Z)
+    k = np.cross(u, [0.0, 1.0, 0.0])
+    z = np.array([0.0, 0.0, 1.0])
+    return -np.cross(k, z) + k * (k @ z)
 
 
 def keypoint_palette(k: int) -> np.ndarray:

@@ -25,10 +25,16 @@ _MOVE = re.compile(r"^\s*(\d+)\s*:\s*([^,]+),([^,]+),([^,]+)\s*$")
 # --- a model and a shape -------------------------------------------------------------------------------------
 
 
-def add_model_arguments(parser: argparse.ArgumentParser) -> None:
-    """MODEL, the seed and the onnxruntime threads (shared by the commands that run a model)."""
-    parser.add_argument("model", metavar="MODEL",
-                        help=f"a bundle (.kpd folder or .zip) or a shipped name: {shipped_names()}")
+def add_model_arguments(parser: argparse.ArgumentParser, default: str | None = None) -> None:
+    """MODEL, the seed and the onnxruntime threads (shared by the commands that run a model); ``default``: MODEL
+    may be left out for this shipped one."""
+    if default is None:
+        parser.add_argument("model", metavar="MODEL",
+                            help=f"a bundle (.kpd folder or .zip) or a shipped name: {shipped_names()}")
+    else:
+        parser.add_argument("model", metavar="MODEL", nargs="?", default=default,
+                            help=f"a bundle (.kpd folder or .zip) or a shipped name: {shipped_names()} (default "
+                                 f"{default})")
     parser.add_argument("--seed", type=integer(0), default=0,
                         help="surface-sampling seed (default 0: same result every run)")
     parser.add_argument("--threads", type=integer(1), default=None, help="onnxruntime intra-op threads (default: its own)")
@@ -133,14 +139,16 @@ class _Sampled:
         return getattr(self._model, name)
 
 
-def scan_frame(args: argparse.Namespace, model, shape, **kwargs):
+def scan_frame(args: argparse.Namespace, model, shape, path: str | None = None, **kwargs):
     """``--scan``: the shape oriented into the model's frame (:class:`kpd.frame.ScanFrame`), searched with ``--up``
-    or, for glTF, the file's y up; what it decided is printed (stderr)."""
+    or, for glTF, the file's y up; what it decided is printed (stderr), with the category check of the oriented shape
+    (:meth:`kpd.frame.ScanFrame.category_warnings`). ``path``: the shape's file (default ``args.shape``)."""
     from kpd.frame import ScanFrame
     from kpd.io import file_up
 
-    scan = ScanFrame(model, shape, args.up or file_up(args.shape), **kwargs)
-    for line in scan.warnings:
+    path = args.shape if path is None else path
+    scan = ScanFrame(model, shape, args.up or file_up(path), **kwargs)
+    for line in scan.warnings + scan.category_warnings(seed=getattr(args, "seed", 0), name=str(path)):
         print(f"warning: {line}", file=sys.stderr)
     for line in scan.notes:
         print(f"note: {line}", file=sys.stderr)
@@ -177,6 +185,19 @@ def parse_moves(texts: list[str]) -> dict[int, np.ndarray]:
     return moves
 
 
+def warn_moves(moves: dict[int, np.ndarray], vertices: np.ndarray) -> None:
+    """One warning line per ``--move`` longer than the shape (its largest extent, from ``vertices`` (V, 3)): the
+    offsets are in the shape's own units, and an offset meant for a ModelNet chair (``--move 8:0,0,5``) stretches a
+    ShapeNet chair of size 0.6 to many times its height."""
+    vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    size = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
+    for index, delta in sorted(moves.items()):
+        length = float(np.linalg.norm(delta))
+        if length > size:
+            print(f"warning: --move {index} moves it by {length:.3g}, more than the shape's size ({size:.3g}, its "
+                  "largest extent): offsets are in the shape's own units", file=sys.stderr)
+
+
 def load_rig(path: str):
     from kpd.rig import Rig
 
@@ -206,7 +227,9 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--view-up", default=None, metavar="AXIS",
                         help="the shape's up axis for the camera (default: the axis --scan decided or --up gave, "
                              "+y for .gltf/.glb files as glTF defines, else the model's: +z for chair, +y for shoe)")
-    parser.add_argument("--azimuth", type=float, default=30.0, help="camera degrees around the up axis (default 30)")
+    parser.add_argument("--azimuth", type=float, default=None,
+                        help="camera degrees around the up axis, from the front (default: 30, or 60 for a category "
+                             "long front to back such as shoes, so that its side shows)")
     parser.add_argument("--elevation", type=float, default=20.0, help="camera degrees above the horizon (default 20)")
     parser.add_argument("--zoom", type=float, default=1.0, help="> 1 moves the camera closer")
     parser.add_argument("--cage", action="store_true", help="show the cage as a wireframe")
@@ -227,23 +250,35 @@ def parse_size(text: str | None) -> tuple[int, int]:
     return width, height
 
 
-def view_settings(args: argparse.Namespace, up: str | None = None, **extra: Any):
+def view_settings(args: argparse.Namespace, up: str | None = None, front: str | None = None,
+                  azimuth: float | None = None, **extra: Any):
     """The view options; the camera's up axis is ``--view-up`` when given, else ``up`` (the source's, see
-    :attr:`Source.up`), else +z."""
+    :attr:`Source.up`), else +z; its front is ``front`` (the source's) unless ``--view-up`` is given; its azimuth
+    ``--azimuth`` when given, else ``azimuth`` (the category's, see :func:`category_azimuth`), else 30."""
     from kpd.viewer.render import ViewSettings
 
     width, height = parse_size(args.size)
-    return ViewSettings(width=width, height=height, up=args.view_up or up or "+z", azimuth=args.azimuth, elevation=args.elevation,
-                        zoom=args.zoom, show_cage=args.cage, show_ghost=args.ghost, show_labels=not args.no_labels,
-                        **extra)
+    return ViewSettings(width=width, height=height, up=args.view_up or up or "+z",
+                        front=None if args.view_up else front,
+                        azimuth=args.azimuth if args.azimuth is not None else azimuth if azimuth is not None else 30.0,
+                        elevation=args.elevation, zoom=args.zoom, show_cage=args.cage, show_ghost=args.ghost,
+                        show_labels=not args.no_labels, **extra)
 
 
 class Source:
-    """The rig to show and, when a model is known, its category prior; ``up`` is the shape's up axis when known
-    (the one ``--scan`` decided or ``--up`` gave, +y for glTF, else the model's own), else None."""
+    """The rig to show and, when a model is known, its category prior; ``up`` and ``front`` are the shape's up axis
+    and the axis it is seen from at azimuth 0 when known (:func:`shape_view`), else None; ``azimuth`` the category's
+    default azimuth (:func:`category_azimuth`), None without a model."""
 
-    def __init__(self, rig: Any, prior: Any, name: str, up: str | None = None) -> None:
+    def __init__(self, rig: Any, prior: Any, name: str, up: str | None = None, front: str | None = None,
+                 azimuth: float | None = None) -> None:
         self.rig, self.prior, self.name, self.up = rig, prior, name, up
+        self.front, self.azimuth = front, azimuth
+
+
+def _axis_text(vector: np.ndarray) -> str:
+    i = int(np.argmax(np.abs(vector)))
+    return ("-" if vector[i] < 0 else "+") + "xyz"[i]
 
 
 def scan_up(scan: Any, model_up: str | None) -> str | None:
@@ -252,9 +287,39 @@ def scan_up(scan: Any, model_up: str | None) -> str | None:
 
     if model_up is None:
         return None
-    vector = scan.vector_to_original(parse_axis(model_up)[None, :])[0]  # (3,) in the input's frame
-    i = int(np.argmax(np.abs(vector)))
-    return ("-" if vector[i] < 0 else "+") + "xyz"[i]
+    return _axis_text(scan.vector_to_original(parse_axis(model_up)[None, :])[0])  # (3,) in the input's frame
+
+
+def shape_view(model: Any, path: str | None = None, scan: Any = None) -> tuple[str | None, str | None]:
+    """``(up, front)``: the shape's up axis and the axis its pictures, rigs and editors see it from at azimuth 0.
+
+    With ``scan`` (a ScanFrame): the input's axes nearest to the ones the scan's recovered frame turns to the model's
+    up axis and to the model's front (:func:`kpd.viewer.settings.front_axis` of its up), so that a y-up chair is seen
+    from the side a z-up one is. Without: the file's own up axis (glTF: +y) or the model's, front by the same rule
+    (None)."""
+    from kpd.io import file_up
+
+    if scan is None or model.up is None:
+        return (file_up(path) if path is not None else None) or model.up, None
+    from kpd.viewer.settings import front_axis, up_axis
+
+    up = scan_up(scan, model.up)
+    front = scan.vector_to_original(front_axis(model.up)[None, :])[0]  # (3,) in the input's frame
+    front[up_axis(up) != 0] = 0.0  # across the up axis
+    return up, _axis_text(front)
+
+
+def category_azimuth(model: Any) -> float:
+    """The default azimuth for ``model``'s category: 30 degrees from the front, or 60 (mostly from the side) when
+    the category's template is long front to back (a shoe, whose heel or toe would face the camera end-on)."""
+    template = getattr(model, "template_points", None)
+    if template is None or model.up is None:
+        return 30.0
+    from kpd.viewer.settings import front_axis, up_axis
+
+    front = front_axis(model.up)
+    side = np.cross(up_axis(model.up), front)
+    return 60.0 if np.ptp(template @ front) > 1.3 * np.ptp(template @ side) else 30.0
 
 
 def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bool = False) -> Source:
@@ -282,16 +347,16 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bo
         if not Path(args.rig).exists():
             raise InputError(f"{args.rig}: no such rig file or folder")
         rig = load_rig(args.rig)
-        prior = None
+        prior, azimuth = None, None
         if args.prior_model is not None:
             model = Model.load(args.prior_model, threads=args.threads)
             if model.num_keypoints != rig.num_keypoints:
                 raise InputError(f"the model {args.prior_model} has {model.num_keypoints} keypoints; the rig "
                                  f"{args.rig} has {rig.num_keypoints}")
-            prior = model.prior
+            prior, azimuth = model.prior, category_azimuth(model)
         if need_prior and prior is None:
             raise InputError("--prior needs a category prior: pass --model MODEL with --rig")
-        return Source(rig, prior, Path(args.rig).name)
+        return Source(rig, prior, Path(args.rig).name, azimuth=azimuth)
     if Path(args.shape).is_dir():
         raise InputError(f"{args.shape}: is a folder, not a mesh file (give one of the mesh files in it)")
     if not Path(args.shape).is_file():
@@ -304,8 +369,6 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bo
         return model
 
     model, mesh = model_beside_read(load, args.shape)
-    from kpd.io import file_up
-
     if later:
         from kpd.rig import check_bind_memory
 
@@ -317,16 +380,18 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bo
             aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
             return ScanRig(aligned, mesh, scan)
 
+        up, front = shape_view(model, args.shape, scan)
         return Source(_later(mesh, model, bind) if later else bind(), model.prior, Path(args.shape).name,
-                      scan_up(scan, model.up) or args.up)
+                      up or args.up, front, category_azimuth(model))
 
     def bind():
         return rig_checked(model, mesh, args.seed, args.shape)
 
     # without --scan the mesh is taken in the model's frame, so the model's up axis is the shape's (unless the
     # file's format defines one)
-    return Source(_later(mesh, model, bind) if later else bind(), model.prior, Path(args.shape).name,
-                  file_up(args.shape) or model.up)
+    up, front = shape_view(model, args.shape)
+    return Source(_later(mesh, model, bind) if later else bind(), model.prior, Path(args.shape).name, up, front,
+                  category_azimuth(model))
 
 
 def _later(mesh: Any, model: Any, bind: Any) -> Any:

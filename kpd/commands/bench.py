@@ -21,7 +21,7 @@ _CHAIR_VERTICES_PER_INVERSE_SQUARE = 2812.0
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from kpd.commands._shared import add_model_arguments
 
-    add_model_arguments(parser)
+    add_model_arguments(parser, default="chair")
     parser.add_argument("--mesh", default=None, help="time your own mesh instead of procedural chairs")
     parser.add_argument("--vertices", type=integer(1_000, 2_000_000), nargs="+", default=[10_000, 100_000], metavar="V",
                         help="procedural chair sizes to time, in mesh vertices (default: 10000 100000)")

@@ -7,7 +7,7 @@ import argparse
 import numpy as np
 
 from kpd.commands import integer, shipped_names
-from kpd.commands._shared import load_rig, parse_move, parse_moves  # noqa: F401  (importable from here as before)
+from kpd.commands._shared import load_rig, parse_move, parse_moves, warn_moves  # noqa: F401  (importable as before)
 from kpd.errors import InputError
 
 HELP = "move keypoints of a shape and write the deformed mesh (same topology, UVs and colours)"
@@ -52,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
         out = outputs.file(args.out, "--out", formats=MESH_FORMATS, what="mesh")
         if args.rig is not None:
             rig = load_rig(args.rig)
+            warn_moves(moves, rig.mesh.vertices)
             mesh = rig.deformed_mesh(rig.moved(moves))
         else:
             mesh = deform_with_model(args, moves, check=lambda m: outputs.companions(out, mesh_companions(out, m)))
@@ -81,6 +82,7 @@ def deform_with_model(args: argparse.Namespace, moves: dict[int, np.ndarray], ch
     model, mesh = model_beside_read(load, args.shape)
     if check is not None:
         check(mesh)
+    warn_moves(moves, mesh.vertices)
     scan = None
     if args.scan:
         # orient with the scan pipeline, but rig the whole input mesh (topology kept) in the model's orientation

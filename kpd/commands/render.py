@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from kpd.commands._shared import load_source, parse_moves, view_settings
+    from kpd.commands._shared import load_source, parse_moves, view_settings, warn_moves
     from kpd.io import Outputs
     from kpd.viewer.render import render_rig, write_png
     from kpd.viewer.session import propose
@@ -53,11 +53,12 @@ def _run(args: argparse.Namespace) -> int:
             raise InputError(f"--select must be keypoint numbers like 0,3; got {args.select!r}") from exc
     view_settings(args)  # bad --size or --view-up ends here, before any work
     source = load_source(args, need_prior=args.prior, later=True)
-    settings = view_settings(args, source.up)
+    settings = view_settings(args, source.up, source.front, source.azimuth)
     k = source.rig.num_keypoints
     for index in list(moves) + selection:  # before the binding
         if not 0 <= index < k:
             raise InputError(f"keypoint index must lie in [0, {k}) for this {k}-keypoint rig; got {index}")
+    warn_moves(moves, source.rig.mesh.vertices)
     rig, shaded = bind_beside_drawing(source.rig, settings)
     keypoints = rig.moved(moves)
     if args.prior and moves:

@@ -24,9 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("shape", metavar="SHAPE", help="the mesh to rig (.obj .ply .off .stl .gltf .glb)")
     parser.add_argument("--out", required=True, help="the rig to write: .glb (one file), .gltf (with a .bin beside "
                                                      "it) or .npz (kpd's rig, for kpd deform/view/render --rig)")
-    parser.add_argument("--view-up", default="+z", metavar="AXIS",
-                        help="the shape's up axis (default +z, as ModelNet); glTF files turn it to glTF's +Y with "
-                             "a root node, so that Blender and web viewers show the shape upright")
+    parser.add_argument("--view-up", default=None, metavar="AXIS",
+                        help="the shape's up axis (default: the one --scan recovered, else +y for .gltf/.glb input, "
+                             "else the model's: +z for chair and table, +y for shoe); glTF files turn it to glTF's +Y "
+                             "with a root node, so that Blender and web viewers show the shape upright")
     parser.add_argument("--targets", default="keypoint,prior,pca", metavar="KINDS",
                         help="glTF files: the kinds of morph targets to write, of keypoint, prior, pca (default all; "
                              "'keypoint' alone is 45%% of the size and spans every edit as sums)")
@@ -35,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from kpd.commands._shared import load_model, model_beside_read, rig_checked, scan_frame
+    from kpd.commands._shared import load_model, model_beside_read, rig_checked, scan_frame, shape_view
     from kpd.io import Outputs
     from kpd.morph import MorphRig, up_rotation, write_gltf
 
@@ -47,13 +48,14 @@ def run(args: argparse.Namespace) -> int:
                              "(in the scan's own frame)")
         if ext == ".gltf":
             outputs.companions(out, [out.stem + ".bin"])
-        up_rotation(args.view_up)  # a bad axis ends here, before any work
+        if args.view_up is not None:
+            up_rotation(args.view_up)  # a bad axis ends here, before any work
         kinds = [k.strip() for k in args.targets.split(",") if k.strip()]
         unknown = sorted(set(kinds) - {"keypoint", "prior", "pca"})
         if unknown or not kinds:
             raise InputError(f"--targets must name some of keypoint, prior, pca; got {args.targets!r}")
         model, mesh = model_beside_read(lambda: load_model(args), args.shape)
-        frame = None
+        frame, scan = None, None
         if args.scan:
             # orient with the scan pipeline, rig the whole mesh there, write the targets in the scan's own frame
             scan = scan_frame(args, model, mesh)
@@ -81,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
                     bar.total = total
                     bar.update(written - bar.n)
 
-                write_gltf(outputs.stage(out), morph, name=Path(args.shape).stem, up=args.view_up, targets=chosen,
+                up = args.view_up or shape_view(model, args.shape, scan)[0] or "+z"
+                write_gltf(outputs.stage(out), morph, name=Path(args.shape).stem, up=up, targets=chosen,
                            progress=progress)
             what = f"{len(chosen)} morph targets"
     companion = f" and {out.with_suffix('.bin').name}" if ext == ".gltf" else ""

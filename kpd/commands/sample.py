@@ -17,10 +17,11 @@ EXAMPLE = "kpd sample chair my_chair.obj --n 16 --out chair_variants"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from kpd.commands._shared import add_model_arguments
+    from kpd.commands._shared import add_model_arguments, add_scan_arguments
 
     add_model_arguments(parser)
     parser.add_argument("mesh", metavar="MESH", help="the mesh to vary")
+    add_scan_arguments(parser)
     parser.add_argument("--n", type=integer(1, 1000), default=16, help="number of variants (default 16)")
     parser.add_argument("--scale", type=number(0), default=0.5,
                         help="standard deviations of the prior's components (default 0.5; 1 is as varied as the "
@@ -39,9 +40,11 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from kpd.commands._shared import load_model, model_beside_read
+    from kpd.commands._shared import (category_azimuth, load_model, model_beside_read, rig_checked, scan_frame,
+                                      shape_view)
     from kpd.errors import InputError
-    from kpd.io import MESH_FORMATS, Outputs, file_up, write_mesh
+    from kpd.frame import ScanRig
+    from kpd.io import MESH_FORMATS, Outputs, write_mesh
 
     suffix = args.format or Path(args.mesh).suffix.lower()
     suffix = suffix if suffix.startswith(".") else "." + suffix
@@ -59,7 +62,14 @@ def run(args: argparse.Namespace) -> int:
             return model
 
         model, mesh = model_beside_read(load, args.mesh)
-        rig = model.rig(mesh, seed=args.seed)
+        scan = None
+        if args.scan:
+            # the prior's variants are drawn in the model's frame and written in the scan's own (ScanRig)
+            scan = scan_frame(args, model, mesh, path=args.mesh)
+            rig = ScanRig(model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed), mesh, scan)
+        else:
+            rig = rig_checked(model, mesh, args.seed, args.mesh)
+        up, front = shape_view(model, args.mesh, scan)
         keypoint_sets = model.sample_keypoints(rig, args.n, seed=args.sample_seed, scale=args.scale)
         # each variant is deformed when it is written or drawn and let go after (an edit: milliseconds), so that the
         # command's memory does not grow with --n (16 variants of a 1.37M-vertex mesh held were 0.5 GB)
@@ -82,14 +92,16 @@ def run(args: argparse.Namespace) -> int:
             try:
                 render_sheet(meshes, staging / "contact_sheet.png",
                              titles=["input", *[f"{i:03d}" for i in range(len(keypoint_sets))]],
-                             keypoints=[rig.keypoints, *keypoint_sets], up=file_up(args.mesh) or model.up or "z")
+                             keypoints=[rig.keypoints, *keypoint_sets], up=up or "z", front=front,
+                             azimuth=category_azimuth(model))
             finally:
                 try:
                     writing.result()  # its error first (a full disk), else the sheet's
                 finally:
                     bar.close()
         record = {"model": str(args.model), "mesh": str(args.mesh), "seed": args.seed, "sample_seed": args.sample_seed,
-                  "scale": args.scale, "frame": "input", "source_keypoints": rig.keypoints.tolist(),
+                  "scale": args.scale, "frame": "input", **({"scan": scan.report()} if scan is not None else {}),
+                  "source_keypoints": rig.keypoints.tolist(),
                   "variants": [{"file": name, "keypoints": kp.tolist()} for name, kp in zip(names, keypoint_sets)]}
         (staging / "keypoints.json").write_text(json.dumps(record, indent=1) + "\n")
     print(f"wrote {len(keypoint_sets)} variants, keypoints.json and contact_sheet.png to {out}")

@@ -164,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
         runner = "none" if o.runner_up_rotation is None else f"{o.runner_up_score:.4f} at {o.runner_up_angle:.0f} deg"
         print(f"oriented: score {o.score:.4f}, runner-up {runner}, margin {o.margin:.3f}")
         if o.ambiguous:
-            print(f"warning: {ambiguity_advice(args.up is not None)}", file=sys.stderr)
+            print(f"warning: {ambiguity_advice(args.up is not None, o, reference_up)}", file=sys.stderr)
     print(f"wrote {out} and {report_path}" + (f" and {picture}" if picture is not None else ""))
     return 0
 

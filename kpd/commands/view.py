@@ -74,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
 
         Outputs(force=args.force, inputs=(args.rig, args.shape)).companions(
             Path(args.out), mesh_companions(args.out, source.rig.mesh))
-    settings = view_settings(args, source.up, prior=bool(args.prior), nudge_step=float(args.step))
+    settings = view_settings(args, source.up, source.front, source.azimuth, prior=bool(args.prior),
+                             nudge_step=float(args.step))
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise InputError("kpd view needs a display ($DISPLAY is not set); for images without one use kpd render, "
                          "or run it under xvfb-run")
@@ -110,9 +111,9 @@ def browse(args: argparse.Namespace) -> int:
         source = load_source(args, need_prior=args.prior)
         model = args.model or args.prior_model
         meta = {**({"model": str(model)} if model is not None else {}), "shape": source.name, "scan": bool(args.scan)}
-        up = args.view_up or getattr(source, "up", None) or "+z"
-        editor.show(morph_rig(source.rig, source.prior, meta), name=Path(source.name).stem, up=up, prior=args.prior,
-                    azimuth=args.azimuth, elevation=args.elevation)
+        settings = view_settings(args, source.up, source.front, source.azimuth)
+        editor.show(morph_rig(source.rig, source.prior, meta), name=Path(source.name).stem, up=settings.up,
+                    prior=args.prior, azimuth=page_azimuth(settings), elevation=settings.elevation)
         port = editor.server.server_address[1]
         if editor.exposed:
             print(f"warning: --host {args.host} is not a loopback address: anyone who can reach port {port} and has "
@@ -126,6 +127,19 @@ def browse(args: argparse.Namespace) -> int:
         editor.server.server_close()
         editor.close()
     return 0
+
+
+def page_azimuth(settings) -> float:
+    """The browser page's azimuth for the view of ``settings``: the page looks from the axis that the glTF file's up
+    rotation turns to +Z (:func:`kpd.viewer.settings.front_axis`), so a front turned from it (a scan's recovered
+    frame) adds its turn about the up axis; the page then sees the side the pictures and the window see."""
+    from kpd.viewer.settings import front_axis, up_axis
+
+    if settings.front is None:
+        return float(settings.azimuth)
+    up, default, front = up_axis(settings.up), front_axis(settings.up), up_axis(settings.front)
+    turn = np.degrees(np.arctan2(np.cross(default, front) @ up, default @ front))
+    return float((settings.azimuth + turn + 180.0) % 360.0 - 180.0)
 
 
 def __getattr__(name: str):  # ScanRig moved to kpd.frame; importable from here as before, without importing it early
