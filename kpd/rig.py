@@ -181,6 +181,7 @@ class Rig:
         seed: int = 0,
         straighten: bool = True,
         model_vertices: Any = None,
+        check_memory: bool = True,
     ) -> "Rig":
         """Bind a mesh to keypoints predicted (or picked) in the model's [-1, 1] frame.
 
@@ -201,6 +202,8 @@ class Rig:
             (:func:`~kpd.straighten.straighten_basis`).
         model_vertices : (V, 3) float64 ``normalizer.apply(mesh.vertices)``, when the caller has it already (with
             ``normalizer`` given): not computed again.
+        check_memory : refuse a mesh too large for the memory available (:func:`kpd.memory.check_bind_memory`)
+            before the basis is computed; ``False`` when the caller has checked it already.
         """
         if not isinstance(mesh, Mesh):
             raise InputError(f"mesh must be a kpd.io.Mesh; got {type(mesh).__name__}")
@@ -226,7 +229,8 @@ class Rig:
             raise InputError(f"influence must have shape (K, C) = ({k}, {c}); got {influence.shape}")
         m = default_m(c, k) if m is None else int(m)
         masked = influence * influence_mask(keypoints, cage.vertices, m)
-        check_bind_memory(len(vertices), len(mesh.triangles), k)
+        if check_memory:
+            check_bind_memory(len(vertices), len(mesh.triangles), k)
         # the basis is computed once per distinct position, the positions in the mesh's order: its neighbours are
         # near each other in memory (sorted order halves the speed of the straightening's passes over the mesh).
         # Grouped in the mesh's own units, by the mesh (a command drawing it at once uses the same groups)

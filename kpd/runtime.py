@@ -28,7 +28,8 @@ from kpd.errors import BundleError, InputError
 from kpd.geometry import Normalizer, as_points, as_rng, sample_surface
 from kpd.io import Mesh, PointSet
 from kpd.prior import KeypointPrior
-from kpd.rig import TRANSFER_RIDGE, TRANSFER_SIGMA, TRANSFER_SUPPORT, Rig, check_bind_memory, transfer_influence
+from kpd.memory import check_bind_memory
+from kpd.rig import TRANSFER_RIDGE, TRANSFER_SIGMA, TRANSFER_SUPPORT, Rig, transfer_influence
 
 __all__ = ["Model", "Prediction", "Shape"]
 
@@ -292,7 +293,7 @@ class Model:
     # --- rigs, alignment and the prior -------------------------------------------------------------------------
 
     def rig(self, mesh: Mesh | str | os.PathLike, *, seed: int = 0, enclose: bool = True,
-            prediction: Prediction | None = None, straighten: bool = True) -> Rig:
+            prediction: Prediction | None = None, straighten: bool = True, check_memory: bool = True) -> Rig:
         """Bind a mesh for editing: predicted keypoints, the cage fitted to the sampled points, the influence W.
 
         Parameters
@@ -302,11 +303,14 @@ class Model:
         enclose : grow the cage until every mesh vertex is inside (MVC misplaces vertices outside the cage).
         prediction : reuse a :meth:`predict` result of this mesh.
         straighten : keep the mesh's sliver triangles from turning over in edits (:func:`kpd.rig.straighten_basis`).
+        check_memory : refuse a mesh too large for the memory available (:func:`kpd.memory.check_bind_memory`)
+            before any work; ``False`` when the caller has checked it already.
         """
         mesh = _as_shape(mesh)
         if not isinstance(mesh, Mesh) or not len(mesh.triangles):
             raise InputError(f"a rig needs a triangle mesh; got {_describe(mesh)}")
-        check_bind_memory(len(mesh.vertices), len(mesh.triangles), self.num_keypoints)  # before any work
+        if check_memory:  # before any work; the binding below trusts it
+            check_bind_memory(len(mesh.vertices), len(mesh.triangles), self.num_keypoints)
         prediction = prediction if prediction is not None else self.predict(mesh, seed=seed)
         # the authors' rule on the sampled points, as in training; then, beyond it, push faces out until every mesh
         # vertex is inside (only the vertices are deformed through MVC; a position stored several times is enclosed
@@ -321,9 +325,10 @@ class Model:
                                            self.m, sigma=self._transfer.get("sigma", TRANSFER_SIGMA),
                                            ridge=self._transfer.get("ridge", TRANSFER_RIDGE), support=support)
             return Rig.bind(mesh, prediction.keypoints, influence, normalizer=prediction.normalizer,
-                            cage=rig_cage, m=support, straighten=straighten, model_vertices=vertices)
+                            cage=rig_cage, m=support, straighten=straighten, model_vertices=vertices,
+                            check_memory=False)
         return Rig.bind(mesh, prediction.keypoints, influence, normalizer=prediction.normalizer,
-                        cage=cage, m=self.m, straighten=straighten, model_vertices=vertices)
+                        cage=cage, m=self.m, straighten=straighten, model_vertices=vertices, check_memory=False)
 
     def _fitted_cage(self, points: np.ndarray, vertices: np.ndarray | None, fit: dict) -> Cage:
         """The template shrunk onto the sampled points (N, 3), then grown to enclose the vertices (V, 3) if given."""

@@ -62,3 +62,23 @@ def test_a_limit_on_the_address_space_caps_the_memory_available():
     assert message.startswith("a mesh of 2,000,000 vertices and 4,000,000 triangles needs about 1.4 GiB to bind; ")
     assert message.endswith("MiB of address space is left under this process's limit (simplify the mesh, or raise "
                             "the limit: ulimit -v)")
+
+
+def test_the_memory_is_checked_once_per_binding(tmp_path, monkeypatch):
+    """Checked at the door and trusted inside: ``Rig.bind``, ``Model.rig`` and ``kpd deform`` each ask for the
+    memory available once."""
+    import kpd.memory
+    from kpd.cli import main
+    from kpd.runtime import Model
+
+    asked = []
+    monkeypatch.setattr(kpd.memory, "available_memory", lambda: asked.append(1) or 1 << 40)
+    mesh = box_mesh()
+    fps_rig(mesh, k=8)
+    assert len(asked) == 1
+    Model.load("chair", threads=1).rig(mesh)
+    assert len(asked) == 2
+    write_mesh(tmp_path / "box.ply", mesh)
+    assert main(["deform", "chair", str(tmp_path / "box.ply"), "--move", "0:0,0,0.1", "--out",
+                 str(tmp_path / "out.ply")]) == 0
+    assert len(asked) == 3

@@ -119,7 +119,7 @@ def rig_checked(model, mesh, seed: int, name: str):
     prediction = model.predict(mesh, seed=seed)
     with ThreadPoolExecutor(1, thread_name_prefix="kpd-frame-check") as pool:
         lines = pool.submit(frame_lines, model, mesh, seed, name, prediction=prediction)
-        rig = model.rig(mesh, seed=seed, prediction=prediction)
+        rig = model.rig(mesh, seed=seed, prediction=prediction, check_memory=False)  # checked above
         for line in lines.result():
             print(f"warning: {line}", file=sys.stderr)
     return rig

@@ -9,7 +9,9 @@ textures, a ``.gltf``'s images):
 - **Written under a temporary name** in the output's folder (``.<name>.kpd-tmp-<pid>-<hex>...``), flushed and
   fsynced, checked by the writer (size, re-read header) and only then renamed to its final name. Companion files
   are written with their final names into a temporary folder, so they reference each other by the names they end
-  up with, and are placed together (companions first, the named output last).
+  up with, and are placed together (companions first, the named output last). A writer given a path inside such a
+  staging folder (:meth:`Outputs.stage`) writes there directly: the folder's placement is the atomic write, so each
+  output is written and fsynced once.
 - **Exclusive placement**: without ``force`` the rename refuses to replace anything (``renameat2(RENAME_NOREPLACE)``,
   or a hard link where that is missing), so of two commands writing the same output one wins and the other fails
   with one line, and a file that appears at the output path while a command runs is never clobbered.
@@ -347,6 +349,35 @@ def _check_target(path: str | os.PathLike) -> Path:
     return p
 
 
+def _staged(p: Path) -> bool:
+    """Whether ``p`` lies in a staging folder (:class:`Outputs`, :func:`atomic_files`), whose placement is the atomic
+    write: a writer inside one writes there directly, so that each output is written and fsynced once."""
+    return _TEMP_NAME.match(p.parent.name) is not None
+
+
+@contextlib.contextmanager
+def _staged_output(p: Path, force: bool, verify: Callable[[Path], None] | None = None, *,
+                   companions: bool = False) -> Iterator[Path]:
+    """Write ``p`` straight into its staging folder (with ``companions``, what else the block adds beside it); on a
+    failure that is removed, so that the staging folder's owner places nothing of it."""
+    with _as_write_error(p):
+        if not force and os.path.lexists(p):
+            raise WriteError(_clash(p, True))
+        before = set(os.listdir(p.parent)) if companions else set()
+        try:
+            yield p
+            if not p.is_file() or p.stat().st_size == 0:
+                raise _nothing_written(p)
+            if verify is not None:
+                verify(p)
+        except BaseException:
+            added = set(os.listdir(p.parent)) - before if companions else {p.name}
+            for name in added:
+                q = p.parent / name
+                shutil.rmtree(q, ignore_errors=True) if q.is_dir() and not q.is_symlink() else q.unlink(missing_ok=True)
+            raise
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike, *, force: bool = True,
                   verify: Callable[[Path], None] | None = None) -> Iterator[Path]:
@@ -372,6 +403,10 @@ def atomic_output(path: str | os.PathLike, *, force: bool = True,
         incomplete file, or (without ``force``) a file appeared at ``path`` meanwhile.
     """
     p = _check_target(path)
+    if _staged(p):
+        with _staged_output(p, force, verify) as target:
+            yield target
+        return
     tmp = _temp_name(p, p.suffix)
     try:
         with _as_write_error(p):
@@ -405,6 +440,10 @@ def atomic_files(path: str | os.PathLike, *, force: bool = True) -> Iterator[Pat
     replaced (see :func:`atomic_output`).
     """
     p = _check_target(path)
+    if _staged(p):
+        with _staged_output(p, force, companions=True) as target:
+            yield target
+        return
     staging = None
     try:
         with _as_write_error(p):
