@@ -20,7 +20,7 @@ from kpd.viewer.app import read_events, wait_for
 from kpd.viewer.render import ViewSettings, keypoint_palette, read_png
 from kpd.viewer.session import EditSession, component_offsets, propose
 
-pytest_plugins = ["viewer_helpers"]  # the shared fixtures
+pytest_plugins = ["viewer_fixtures"]  # the shared fixtures
 
 
 # --- edit sessions ------------------------------------------------------------------------------------------------

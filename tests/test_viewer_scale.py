@@ -8,7 +8,7 @@ from viewer_helpers import HAS_XVFB, clear_keypoint, drags_with_nudges, editor_w
 
 from kpd.viewer.app import read_events, wait_for
 
-pytest_plugins = ["viewer_helpers"]  # the shared fixtures
+pytest_plugins = ["viewer_fixtures"]  # the shared fixtures
 
 
 @pytest.mark.slow
