@@ -16,7 +16,7 @@ import pytest
 from viewer_helpers import HAS_XVFB, clear_keypoint, drags_with_nudges, editor_window, kpd, last_event, screen_pixels
 
 from kpd.errors import InputError
-from kpd.viewer.app import read_events, wait_for
+from kpd.viewer.events import read_events, wait_for
 from kpd.viewer.render import ViewSettings, keypoint_palette, read_png
 from kpd.viewer.session import EditSession, component_offsets, propose
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from viewer_helpers import HAS_XVFB, clear_keypoint, drags_with_nudges, editor_window, kpd, last_event
 
-from kpd.viewer.app import read_events, wait_for
+from kpd.viewer.events import read_events, wait_for
 
 pytest_plugins = ["viewer_fixtures"]  # the shared fixtures
 

@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from kpd.viewer.app import read_events, wait_for
+from kpd.viewer.events import read_events, wait_for
 from kpd.viewer.render import project
 
 REPO = Path(__file__).resolve().parents[1]

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import collections
 import gc
-import json
 import logging
 import math
 import os
@@ -52,6 +51,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from kpd.errors import InputError, KpdError
+from kpd.viewer.events import EventLog, read_events, wait_for
 from kpd.viewer.render import Camera, Frame, ViewSettings, camera_pose, pixel_ray, plane_hit, project, write_png
 from kpd.viewer.session import EditSession, component_offsets, propose
 
@@ -146,8 +146,7 @@ class EditorApp:
         elif initial_session is not None:  # a bad file ends here, before any window
             EditSession(np.zeros((self.num_keypoints, 3))).load(initial_session)
         self.selection: list[int] = []
-        self._events = None if events is None else Path(events)
-        self._event_file: Any = None
+        self._log = None if events is None else EventLog(events)
         self._drag: dict | None = None
         self._orbit: dict | None = None
         self._pending_move: tuple[float, float] | None = None
@@ -501,8 +500,8 @@ class EditorApp:
         except Exception:  # noqa: BLE001 - the panel may be gone already
             pass
         self.view.close()
-        if self._event_file is not None:
-            self._event_file.close()
+        if self._log is not None:
+            self._log.close()
 
     def _on_panel_close(self) -> None:
         self._running = False
@@ -888,7 +887,7 @@ class EditorApp:
         self._update_status()
 
     def _emit(self, event: str, **data: Any) -> None:
-        if self._events is None:
+        if self._log is None:
             return
         record: dict[str, Any] = {"event": event, "time": time.time(), **data}
         if event not in ("input", "frame") and self.session is not None:
@@ -902,10 +901,7 @@ class EditorApp:
                           title=self.title, started=self._started,
                           sliders=[[s.winfo_rootx(), s.winfo_rooty(), s.winfo_width(), s.winfo_height()]
                                    for s in self.sliders])
-        if self._event_file is None:
-            self._event_file = open(self._events, "a", encoding="utf-8")  # noqa: SIM115 - closed in _close
-        self._event_file.write(json.dumps(record) + "\n")
-        self._event_file.flush()
+        self._log.write(record)
 
 
 def _rotate(vector: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
@@ -913,23 +909,3 @@ def _rotate(vector: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
     axis = axis / max(np.linalg.norm(axis), 1e-12)
     return (vector * math.cos(angle) + np.cross(axis, vector) * math.sin(angle)
             + axis * (axis @ vector) * (1 - math.cos(angle)))
-
-
-def read_events(path: str | os.PathLike) -> list[dict]:
-    """The events an editor started with ``events=path`` has written so far (whole lines only; [] before it opens)."""
-    path = Path(path)
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.endswith("}")]
-
-
-def wait_for(condition: Any, timeout: float, what: str, *, poll: float = 0.02) -> Any:
-    """Call ``condition()`` until it returns something true and return that; :class:`KpdError` after ``timeout`` s
-    (scripts driving an editor wait for its events with it)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(poll)
-    raise KpdError(f"timed out after {timeout:g} s waiting for {what}")
