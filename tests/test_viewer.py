@@ -216,19 +216,6 @@ def test_render_is_cleanly_shaded_and_frames_the_deformed_shape(data_dir, tmp_pa
     assert brightness.std() > 8  # shaded, not flat
 
 
-def test_the_editor_draws_a_fine_stand_in_while_the_whole_mesh_draws_slowly():
-    from kpd.viewer.app import GESTURE_BUDGET_MS, draws_stand_in
-    from kpd.viewer.gl import PROXY_TRIANGLES
-
-    assert draws_stand_in(PROXY_TRIANGLES + 1, [])  # a large mesh: always
-    assert draws_stand_in(PROXY_TRIANGLES + 1, [1.0])
-    assert not draws_stand_in(20_000, [])  # nothing drawn whole yet
-    assert not draws_stand_in(20_000, [GESTURE_BUDGET_MS / 2] * 3)  # a machine that keeps up keeps it whole
-    assert draws_stand_in(20_000, [GESTURE_BUDGET_MS * 1.5] * 3)
-    assert draws_stand_in(20_000, [GESTURE_BUDGET_MS / 2, GESTURE_BUDGET_MS * 2, GESTURE_BUDGET_MS * 3])  # median
-    assert not draws_stand_in(20_000, [GESTURE_BUDGET_MS / 2, GESTURE_BUDGET_MS / 2, GESTURE_BUDGET_MS * 9])
-
-
 def test_a_scan_rig_deforms_the_rows_of_a_stand_in_alone(data_dir):
     """kpd view --scan: a drag drawn by the stand-in deforms its vertices only (ScanRig.deform(rows=)), the same
     rows as the whole deformation, the other rows of the buffer left as they were."""
