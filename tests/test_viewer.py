@@ -262,7 +262,8 @@ def test_eval_chamfer_gallery_draws_the_pairs_as_meshes(data_dir, tmp_path):
     rows, columns = 2, 3
     assert image.shape[1] == columns * 280 and image.shape[0] > rows * 280
     r, g, b = image[..., 0], image[..., 1], image[..., 2]
-    tints = {"blue": (b > r + 30) & (b > g + 10), "green": (g > r + 25) & (g > b + 10), "red": (r > g + 40) & (r > b + 40)}
+    tints = {"blue": (b > r + 30) & (b > g + 10), "green": (g > r + 25) & (g > b + 10),
+             "red": (r > g + 40) & (r > b + 40)}
     for column, name in enumerate(("blue", "green", "red")):
         part = tints[name][:, column * 280:(column + 1) * 280]
         assert part.mean() > 0.02, f"the {name} meshes are missing from column {column}"

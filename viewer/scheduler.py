@@ -35,13 +35,11 @@ _WHOLE_FRAMES = 5
 
 def draws_stand_in(drawn: int, whole_ms: Any) -> bool:
     """Whether the editor draws a mesh of ``drawn`` triangles that has a stand-in by it while input flows (the whole
-    mesh again once input pauses): always above :data:`kpd.viewer.gl.PROXY_TRIANGLES`; below, when the median of
-    the whole mesh's last frames ``whole_ms`` (milliseconds on the main thread) is over :data:`GESTURE_BUDGET_MS`,
-    so that a machine which draws the whole mesh fast enough keeps it whole. On 2 cores without a GPU, an unseen
-    ShapeNet chair (19,900 distinct triangles) drawn whole took 30 ms a drag step in the median quiet and 32-39 ms
-    beside a busy process, with the slowest step of a session at 37 ms and 39-53 ms; its fine stand-in
-    (:func:`kpd.viewer.gl.fine_stand_in`, 10,468 triangles) is the same picture but for 0.4% of its pixels, and
-    took 20-25 ms in the median and 26-38 ms at most quiet, 21-36 ms and 29-47 ms beside a busy process."""
+    mesh again once input pauses): always above :data:`kpd.viewer.standins.COARSE_STAND_IN_TRIANGLES`; below, when
+    the median of the whole mesh's last frames ``whole_ms`` (milliseconds on the main thread) is over
+    :data:`GESTURE_BUDGET_MS`, so that a machine which draws the whole mesh fast enough keeps it whole, and one
+    without a GPU draws a CAD chair's fine stand-in (:func:`kpd.viewer.standins.fine_stand_in`, the same picture)
+    faster (docs/results.md)."""
     from kpd.viewer.standins import COARSE_STAND_IN_TRIANGLES
 
     if drawn > COARSE_STAND_IN_TRIANGLES:
@@ -172,7 +170,7 @@ class FrameScheduler:
         rig, mesh, drawing, camera = self.rig, self.mesh, self.drawing, self.camera
         keypoints = None if self.session is None else self.session.keypoints
         self._stop = stop = np.zeros(1, np.uint8)  # set by the next input (_count_input): the frame is not wanted
-        # a buffer the main thread hands out and takes back: fresh memory for 1.3M vertices costs tens of ms to touch
+        # a buffer the main thread hands out and takes back: fresh memory for a large mesh is slow to touch
         out = None if rig is None else (self._spares.pop() if self._spares else np.empty_like(mesh.vertices))
 
         def work() -> None:
