@@ -21,7 +21,7 @@ def test_binding_and_drawing_a_mesh_at_once_group_its_positions_once(monkeypatch
     from kpd.grouping import first_occurrence_groups
     from kpd.io import Mesh
     from kpd.rig import Rig
-    from kpd.viewer.app import Binding
+    from kpd.viewer.app import PendingRig
     from kpd.viewer.render import ViewSettings
 
     calls = []
@@ -37,7 +37,7 @@ def test_binding_and_drawing_a_mesh_at_once_group_its_positions_once(monkeypatch
     vertices[2000:] = vertices[:1000]  # copies of a position
     mesh = Mesh(vertices, rng.integers(0, 3000, size=(6000, 3)))
     keypoints = vertices[:4]
-    rig, shaded = bind_beside_drawing(Binding(mesh, 4, lambda: Rig.bind(mesh, keypoints)), ViewSettings())
+    rig, shaded = bind_beside_drawing(PendingRig(mesh, 4, lambda: Rig.bind(mesh, keypoints)), ViewSettings())
     assert calls == [3000]  # the binding's and the drawing's groups, found once
     assert shaded.welding.groups == 2000
     alone = Rig.bind(Mesh(vertices.copy(), mesh.triangles), keypoints)  # its own positions grouped again
@@ -49,7 +49,7 @@ _HELD_BINDING = """
 import sys, time
 from pathlib import Path
 from kpd.rig import Rig
-from kpd.viewer.app import Binding, EditorApp
+from kpd.viewer.app import EditorApp, PendingRig
 from kpd.viewer.render import ViewSettings
 
 rig = Rig.load(sys.argv[1])
@@ -60,7 +60,7 @@ def bind():  # held until the test lets it go
         time.sleep(0.05)
     return rig
 
-app = EditorApp(Binding(rig.mesh, rig.num_keypoints, bind), settings=ViewSettings(width=480, height=400),
+app = EditorApp(PendingRig(rig.mesh, rig.num_keypoints, bind), settings=ViewSettings(width=480, height=400),
                 events=sys.argv[2], title="kpd binding test")
 sys.exit(app.run())
 """
@@ -69,7 +69,7 @@ sys.exit(app.run())
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
 def test_editor_shows_the_mesh_at_once_and_answers_input_while_it_binds(chair_rig, tmp_path):
-    """A rig still to be made (viewer.app.Binding): the mesh is on the screen before the rig is ready, a drag and
+    """A rig still to be made (viewer.app.PendingRig): the mesh is on the screen before the rig is ready, a drag and
     keys meanwhile are taken (the view turns; edits wait, the panel says why), and the keypoints appear when the
     binding returns."""
     import os

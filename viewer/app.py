@@ -1,23 +1,17 @@
 """The keypoint editor: a 3D view in which keypoints are picked and dragged and the mesh deforms live, and a panel.
 
 :class:`EditorApp` owns its windows (docs/architecture.md, "The editor is an app class"): the 3D view is an Open3D
-legacy OpenGL window (:class:`kpd.viewer.gl.GLView`, fast with software rendering), the panel a Tk window beside it
-(checkboxes, buttons, the PCA sliders). Callbacks are ``_on_<event>`` methods, the UI state is one
+legacy OpenGL window (:class:`kpd.viewer.glview.GLView`, fast with software rendering), the panel a Tk window beside
+it (:class:`kpd.viewer.panel.EditorPanel`: checkboxes, buttons, the PCA sliders), and its frames are scheduled so
+that input is never blocked behind drawing (:class:`kpd.viewer.scheduler.FrameScheduler`); panel and scheduler are
+parts of the app class. Callbacks are ``_on_<event>`` methods, the UI state is one
 :class:`~kpd.viewer.render.ViewSettings` applied in :meth:`EditorApp._apply_settings`. Deformation stays in
 :class:`kpd.rig.Rig` and the edit history in :class:`~kpd.viewer.session.EditSession`.
 
-The mesh is shown as soon as it is read: a rig still to be made (:class:`Binding`) is bound on a worker thread while
-the window shows the mesh (it can be turned, nothing edited) and says so in the panel; the keypoints appear when the
-rig is ready. The coarse stand-in of a large mesh is made on that thread too. Work that leaves the main thread comes
-back through :meth:`EditorApp.post_to_main_thread`.
-
-Input is never blocked behind drawing. The loop takes every pending input first (window system events of both
-windows), then draws at most one frame of the newest state: mouse moves of a drag are coalesced to the latest
-position, keys are applied as they arrive, and nothing is drawn while nothing changed. A mesh of more than
-:data:`kpd.viewer.gl.PROXY_TRIANGLES` triangles is drawn by a coarse stand-in while input flows, and whole again
-0.3 s after it pauses (the triangles that show in a pixel: :func:`kpd.viewer.gl.visible_triangles`); one of more
-than :data:`kpd.viewer.gl.STAND_IN_TRIANGLES` by a fine stand-in that looks like it, when its whole frames take
-longer than :data:`GESTURE_BUDGET_MS` (:func:`draws_stand_in`: without a GPU, not with one).
+The mesh is shown as soon as it is read: a rig still to be made (:class:`PendingRig`) is bound on a worker thread
+while the window shows the mesh (it can be turned, nothing edited) and says so in the panel; the keypoints appear
+when the rig is ready. The stand-in of a large mesh (:mod:`kpd.viewer.standins`) is made on that thread too. Work
+that leaves the main thread comes back through :meth:`EditorApp.post_to_main_thread`.
 
 Mouse and keys (also listed in the panel):
 
@@ -28,11 +22,11 @@ Mouse and keys (also listed in the panel):
 * U (or Ctrl+Z): undo; Y (or Ctrl+Y): redo; R: reset; S: save the deformed mesh; J: save the session (JSON);
   L: load the session; P: screenshot (PNG); T: the prior on/off; Esc: clear the selection.
 
-With ``events=PATH`` the app appends one JSON object per line for each thing it does (``shown`` when the mesh is
-first on the screen, ``ready`` when its rig is too, with the camera matrices, the 3D view's place on the screen and
-the sliders', ``input`` for each mouse or key event received,
-``frame`` for each frame drawn with the newest input it shows, ``select``, ``drag``, ``release``, ``nudge``, ``undo``,
-``redo``, ``reset``, ``save``...), so scripts, tests and the benchmark can follow the window without reading pixels.
+With ``events=PATH`` the app appends one JSON object per line for each thing it does (:mod:`kpd.viewer.events`:
+``shown`` when the mesh is first on the screen, ``ready`` when its rig is too, with the camera matrices, the 3D view's
+place on the screen and the sliders', ``input`` for each mouse or key event received, ``frame`` for each frame drawn
+with the newest input it shows, ``select``, ``drag``, ``release``, ``nudge``, ``undo``, ``redo``, ``reset``,
+``save``...), so scripts, tests and the benchmark can follow the window without reading pixels.
 """
 
 from __future__ import annotations
@@ -55,7 +49,8 @@ from kpd.viewer.scheduler import GESTURE_BUDGET_MS, FrameScheduler, draws_stand_
 from kpd.viewer.render import Camera, Frame, ViewSettings, camera_pose, pixel_ray, plane_hit, project, write_png
 from kpd.viewer.session import EditSession, propose
 
-__all__ = ["EditorApp", "Binding", "PANEL_WIDTH", "read_events", "wait_for", "draws_stand_in", "GESTURE_BUDGET_MS"]
+__all__ = ["EditorApp", "PendingRig", "Binding", "PANEL_WIDTH", "read_events", "wait_for", "draws_stand_in",
+           "GESTURE_BUDGET_MS"]
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +62,7 @@ _SHIFT, _CTRL = 0x0001, 0x0002
 _PRESS, _RELEASE, _REPEAT = 1, 0, 2
 
 
-class Binding(NamedTuple):
+class PendingRig(NamedTuple):
     """A rig still to be made: the editor shows ``mesh`` at once and calls ``bind()`` on a worker thread; it returns
     the rig of that mesh (:class:`kpd.rig.Rig` or :class:`kpd.frame.ScanRig`) with ``num_keypoints`` keypoints, or
     raises (a :class:`~kpd.errors.KpdError` ends the editor with its message)."""
@@ -77,12 +72,15 @@ class Binding(NamedTuple):
     bind: Callable[[], Any]
 
 
+Binding = PendingRig  # its name before, still imported by the commands
+
+
 class EditorApp(EditorPanel, FrameScheduler):
     """The editor windows for one rig.
 
     Parameters
     ----------
-    rig : kpd.rig.Rig (or kpd.frame.ScanRig), the shape to edit (mesh in its own units); or a :class:`Binding`,
+    rig : kpd.rig.Rig (or kpd.frame.ScanRig), the shape to edit (mesh in its own units); or a :class:`PendingRig`,
         bound on a worker thread while the window shows its mesh.
     prior : kpd.prior.KeypointPrior or None: enables the "prior" toggle and the PCA sliders.
     settings : ViewSettings (size of the 3D view, what to show, the prior toggle, the nudge step).
@@ -99,8 +97,8 @@ class EditorApp(EditorPanel, FrameScheduler):
                  screenshot_path: str | os.PathLike | None = None, events: str | os.PathLike | None = None,
                  title: str = "kpd view", initial_session: str | os.PathLike | None = None,
                  force: bool = False) -> None:
-        self._binding = rig if isinstance(rig, Binding) else None
-        self.rig = None if self._binding is not None else rig  # None until a Binding's rig is ready
+        self._pending_rig = rig if isinstance(rig, PendingRig) else None
+        self.rig = None if self._pending_rig is not None else rig  # None until a PendingRig's rig is ready
         self.mesh = rig.mesh
         self.num_keypoints = int(rig.num_keypoints)
         if prior is not None and prior.num_keypoints != self.num_keypoints:
@@ -140,9 +138,9 @@ class EditorApp(EditorPanel, FrameScheduler):
         """Open the windows and run until the 3D view or the panel is closed; returns 0.
 
         BLAS runs on one thread meanwhile: the editor's products are small ((V, K) by (K, 3)), and a multi-threaded
-        BLAS waiting for a core that another process holds makes each of them up to 100 times slower. The objects
-        made before the first frame (the libraries', the windows') are left out of Python's garbage collection: a
-        full collection of them takes 15-40 ms, and would land in a frame.
+        BLAS waiting for a core that another process holds makes each of them many times slower. The objects made
+        before the first frame (the libraries', the windows') are left out of Python's garbage collection: a full
+        collection of them would land in a frame.
         """
         from threadpoolctl import threadpool_limits
 
@@ -169,9 +167,9 @@ class EditorApp(EditorPanel, FrameScheduler):
         return stand_in(self.mesh.vertices, self.drawing.shaded.drawn, fine=not image_maps(self.mesh))
 
     def _start_worker(self) -> None:
-        """The rig of a :class:`Binding`, after the stand-in of a large mesh, on a worker thread."""
-        binding = self._binding
-        if binding is None:
+        """The rig of a :class:`PendingRig`, after the stand-in of a large mesh, on a worker thread."""
+        pending = self._pending_rig
+        if pending is None:
             return
 
         def work() -> None:
@@ -180,7 +178,7 @@ class EditorApp(EditorPanel, FrameScheduler):
                 if stand_in is not None:
                     self.post_to_main_thread(lambda: self.drawing.set_stand_in(*stand_in))
                 started = time.perf_counter()
-                rig = binding.bind()
+                rig = pending.bind()
                 log.info("bound the mesh in %.1f s", time.perf_counter() - started)
                 self.post_to_main_thread(lambda: self._on_bound(rig))
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which ends with it
@@ -189,12 +187,12 @@ class EditorApp(EditorPanel, FrameScheduler):
         threading.Thread(target=work, name="kpd-editor-worker", daemon=True).start()
 
     def _on_bound(self, rig: Any) -> None:
-        """The rig of the :class:`Binding` is ready: keypoints, cage and editing."""
+        """The rig of the :class:`PendingRig` is ready: keypoints, cage and editing."""
         if len(rig.mesh.vertices) != len(self.mesh.vertices) or rig.num_keypoints != self.num_keypoints:
             raise KpdError(f"the rig has {len(rig.mesh.vertices)} vertices and {rig.num_keypoints} keypoints; the "
                            f"mesh shown has {len(self.mesh.vertices)} and {self.num_keypoints} were expected")
         self.rig = rig
-        self._binding = None
+        self._pending_rig = None
         gc.freeze()  # the rig's objects live as long as the editor (see run)
         self._start_session()
         self.drawing.set_keypoints(rig.num_keypoints, rig.cage.faces)
