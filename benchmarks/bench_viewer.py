@@ -126,7 +126,7 @@ def bench_render(case: Case, runs: int, folder: Path) -> dict:
 
 
 def bench_editor(case: Case, drags: int, folder: Path, pauses: int = 0) -> dict:
-    from kpd.viewer.app import read_events, wait_for
+    from kpd.viewer.events import read_events, wait_for
     from kpd.viewer.render import private_display, project
 
     events = folder / "events.jsonl"

@@ -1,7 +1,7 @@
 """kpd.viewer.culling: the triangles that show in a pixel, their neighbours across edges and their layout."""
 
 import numpy as np
-pytest_plugins = ["viewer_helpers"]  # the shared fixtures
+pytest_plugins = ["viewer_fixtures"]  # the shared fixtures
 
 
 def test_edge_neighbours_name_the_third_corner_across_each_edge():

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from viewer_helpers import HAS_XVFB
 
-pytest_plugins = ["viewer_helpers"]  # the shared fixtures
+pytest_plugins = ["viewer_fixtures"]  # the shared fixtures
 
 
 def test_software_rasteriser_gets_eight_threads_a_processor_unless_the_user_says(monkeypatch):

@@ -8,7 +8,7 @@ def test_shading_normals_turn_double_sided_triangles_towards_the_camera():
 
     vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
     both = np.array([[0, 1, 2], [0, 2, 1]])  # the same triangle in both windings
-    assert np.allclose(shading_normals(vertices, both, None), 0)  # by winding they cancel: the old blotches
+    assert np.allclose(shading_normals(vertices, both, None), 0)  # by winding they cancel (black and white blotches)
     np.testing.assert_allclose(shading_normals(vertices, both, np.array([0.2, 0.2, 5.0])), np.tile([0, 0, 1.0], (3, 1)))
     np.testing.assert_allclose(shading_normals(vertices, both, np.array([0.2, 0.2, -5.0])),
                                np.tile([0, 0, -1.0], (3, 1)))

@@ -3,7 +3,7 @@ frames of the triangles that show."""
 
 import numpy as np
 import pytest
-pytest_plugins = ["viewer_helpers"]  # the shared fixtures
+pytest_plugins = ["viewer_fixtures"]  # the shared fixtures
 
 
 def test_distinct_triangles_drop_a_triangle_stored_again_either_way_round():

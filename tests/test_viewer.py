@@ -16,11 +16,11 @@ import pytest
 from viewer_helpers import HAS_XVFB, clear_keypoint, drags_with_nudges, editor_window, kpd, last_event, screen_pixels
 
 from kpd.errors import InputError
-from kpd.viewer.app import read_events, wait_for
+from kpd.viewer.events import read_events, wait_for
 from kpd.viewer.render import ViewSettings, keypoint_palette, read_png
 from kpd.viewer.session import EditSession, component_offsets, propose
 
-pytest_plugins = ["viewer_helpers"]  # the shared fixtures
+pytest_plugins = ["viewer_fixtures"]  # the shared fixtures
 
 
 # --- edit sessions ------------------------------------------------------------------------------------------------
@@ -216,19 +216,6 @@ def test_render_is_cleanly_shaded_and_frames_the_deformed_shape(data_dir, tmp_pa
     assert brightness.std() > 8  # shaded, not flat
 
 
-def test_the_editor_draws_a_fine_stand_in_while_the_whole_mesh_draws_slowly():
-    from kpd.viewer.app import GESTURE_BUDGET_MS, draws_stand_in
-    from kpd.viewer.gl import PROXY_TRIANGLES
-
-    assert draws_stand_in(PROXY_TRIANGLES + 1, [])  # a large mesh: always
-    assert draws_stand_in(PROXY_TRIANGLES + 1, [1.0])
-    assert not draws_stand_in(20_000, [])  # nothing drawn whole yet
-    assert not draws_stand_in(20_000, [GESTURE_BUDGET_MS / 2] * 3)  # a machine that keeps up keeps it whole
-    assert draws_stand_in(20_000, [GESTURE_BUDGET_MS * 1.5] * 3)
-    assert draws_stand_in(20_000, [GESTURE_BUDGET_MS / 2, GESTURE_BUDGET_MS * 2, GESTURE_BUDGET_MS * 3])  # median
-    assert not draws_stand_in(20_000, [GESTURE_BUDGET_MS / 2, GESTURE_BUDGET_MS / 2, GESTURE_BUDGET_MS * 9])
-
-
 def test_a_scan_rig_deforms_the_rows_of_a_stand_in_alone(data_dir):
     """kpd view --scan: a drag drawn by the stand-in deforms its vertices only (ScanRig.deform(rows=)), the same
     rows as the whole deformation, the other rows of the buffer left as they were."""
@@ -275,7 +262,8 @@ def test_eval_chamfer_gallery_draws_the_pairs_as_meshes(data_dir, tmp_path):
     rows, columns = 2, 3
     assert image.shape[1] == columns * 280 and image.shape[0] > rows * 280
     r, g, b = image[..., 0], image[..., 1], image[..., 2]
-    tints = {"blue": (b > r + 30) & (b > g + 10), "green": (g > r + 25) & (g > b + 10), "red": (r > g + 40) & (r > b + 40)}
+    tints = {"blue": (b > r + 30) & (b > g + 10), "green": (g > r + 25) & (g > b + 10),
+             "red": (r > g + 40) & (r > b + 40)}
     for column, name in enumerate(("blue", "green", "red")):
         part = tints[name][:, column * 280:(column + 1) * 280]
         assert part.mean() > 0.02, f"the {name} meshes are missing from column {column}"
@@ -438,38 +426,6 @@ def test_editor_scripted_session_of_many_drags_and_keys(chair_rig, tmp_path):
     path_mid = (screen_pixels(win, rig.keypoints)[index] + screen_pixels(win, final)[index]) / 2
     others = np.linalg.norm(screen_pixels(win, rig.keypoints) - path_mid, axis=1)
     assert np.linalg.norm(centroid - path_mid) < np.sort(others)[len(others) // 2]  # near the dragged keypoint
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
-def test_editor_window_pca_slider_explores_the_category(chair_rig, tmp_path):
-    """Drag the first PCA slider in the real window: the keypoints become the rig's plus that many standard
-    deviations of the chair prior's first component."""
-    from kpd.rig import Rig
-    from kpd.runtime import Model
-
-    rig = Rig.load(chair_rig)
-    prior = Model.load("chair").prior
-    with editor_window(tmp_path, "--rig", chair_rig, "--model", "chair") as win:
-        assert len(win.ready["sliders"]) == min(len(prior.components_), 8)
-        sx, sy, sw, sh = win.ready["sliders"][0]  # on the screen (the panel is a window of its own)
-        assert sw > 150  # drawn across the panel, not a thumb's width
-        x, y = sx + sw // 2, sy + sh // 2  # the thumb: value 0
-        win.xdo("mousemove", x, y)
-        time.sleep(0.3)
-        win.xdo("mousedown", 1)
-        for step in range(1, 7):
-            time.sleep(0.2)
-            win.xdo("mousemove", x + step * sw // 20, y)  # to 0.3 of the width right of the middle
-        win.xdo("mouseup", 1)
-        moved = wait_for(lambda: [e for e in read_events(win.events) if e["event"] == "component" and e["value"] > 1.0],
-                      120, "the slider at more than one standard deviation")[-1]
-    assert moved["component"] == 0
-    sigmas = np.zeros(len(prior.components_))
-    sigmas[0] = moved["value"]
-    expected = rig.keypoints + component_offsets(prior, rig.normalizer, sigmas)
-    np.testing.assert_allclose(moved["keypoints"], expected, atol=1e-6 * np.abs(expected).max())
-    assert np.abs(expected - rig.keypoints).max() > 1e-3 * np.abs(rig.keypoints).max()  # a visible change
 
 
 @pytest.mark.slow

@@ -24,7 +24,8 @@ def test_backends_and_refusals(monkeypatch):
         resolve_backend("xvfb")
 
 
-@pytest.mark.skipif(not (shutil.which("Xvfb") and shutil.which("xdotool")), reason="Xvfb or xdotool not installed (make system)")
+@pytest.mark.skipif(not (shutil.which("Xvfb") and shutil.which("xdotool")),
+                    reason="Xvfb or xdotool not installed (make system)")
 def test_private_display_runs_and_its_screen_can_be_grabbed(tmp_path):
     with private_display(320, 200, fbdir=tmp_path) as display:
         assert display.startswith(":")

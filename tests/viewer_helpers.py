@@ -1,5 +1,5 @@
-"""What the viewer's tests share: the kpd command, meshes to draw and an editor window to drive, on a private Xvfb
-with xdotool. Test modules take the fixtures with ``pytest_plugins = ["viewer_helpers"]``."""
+"""What the viewer's tests share: the kpd command and an editor window to drive, on a private Xvfb with xdotool (the
+shared fixtures are in ``viewer_fixtures``)."""
 
 import contextlib
 import os
@@ -11,25 +11,9 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-import pytest
 
-from kpd.viewer.app import read_events, wait_for
+from kpd.viewer.events import read_events, wait_for
 from kpd.viewer.render import project
-
-
-@pytest.fixture(scope="module")
-def dense_chair(data_dir):
-    """The unseen ShapeNet chair subdivided twice (86k vertices, 344k triangles, half of them stored twice)."""
-    import open3d as o3d
-
-    from kpd.io import Mesh, read_mesh
-
-    mesh = read_mesh(data_dir / "keypointnet" / "models" / "03001627" / "fe6b3c001a86d844d5767a0de8dd037e" /
-                     "model.obj")
-    fine = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
-                                     o3d.utility.Vector3iVector(mesh.triangles.astype(np.int32))).subdivide_midpoint(2)
-    return Mesh(np.asarray(fine.vertices), np.asarray(fine.triangles, dtype=np.int64))
-
 
 REPO = Path(__file__).resolve().parents[1]
 HAS_XVFB = shutil.which("Xvfb") is not None and shutil.which("xdotool") is not None
@@ -39,18 +23,6 @@ def kpd(*argv: str, env: dict | None = None, timeout: float = 600) -> subprocess
     """``kpd ARGV`` run in a fresh interpreter from the repository's root."""
     return subprocess.run([sys.executable, "-m", "kpd.cli", *map(str, argv)], capture_output=True, text=True,
                           env=env, timeout=timeout, cwd=REPO)
-
-
-@pytest.fixture(scope="module")
-def chair_rig(data_dir, tmp_path_factory):
-    """A rig of the first ModelNet10 test chair by the shipped chair model, saved (its path)."""
-    from kpd.runtime import Model
-
-    mesh = sorted((data_dir / "modelnet10" / "chair" / "test").glob("chair_*"))[0]
-    rig = Model.load("chair").rig(mesh)
-    path = tmp_path_factory.mktemp("rig") / "chair_rig.npz"
-    rig.save(path)
-    return path
 
 
 def last_event(path: Path, name: str, after: int = 0):

@@ -1,23 +1,17 @@
 """The keypoint editor: a 3D view in which keypoints are picked and dragged and the mesh deforms live, and a panel.
 
 :class:`EditorApp` owns its windows (docs/architecture.md, "The editor is an app class"): the 3D view is an Open3D
-legacy OpenGL window (:class:`kpd.viewer.gl.GLView`, fast with software rendering), the panel a Tk window beside it
-(checkboxes, buttons, the PCA sliders). Callbacks are ``_on_<event>`` methods, the UI state is one
+legacy OpenGL window (:class:`kpd.viewer.glview.GLView`, fast with software rendering), the panel a Tk window beside
+it (:class:`kpd.viewer.panel.EditorPanel`: checkboxes, buttons, the PCA sliders), and its frames are scheduled so
+that input is never blocked behind drawing (:class:`kpd.viewer.scheduler.FrameScheduler`); panel and scheduler are
+parts of the app class. Callbacks are ``_on_<event>`` methods, the UI state is one
 :class:`~kpd.viewer.render.ViewSettings` applied in :meth:`EditorApp._apply_settings`. Deformation stays in
 :class:`kpd.rig.Rig` and the edit history in :class:`~kpd.viewer.session.EditSession`.
 
-The mesh is shown as soon as it is read: a rig still to be made (:class:`Binding`) is bound on a worker thread while
-the window shows the mesh (it can be turned, nothing edited) and says so in the panel; the keypoints appear when the
-rig is ready. The coarse stand-in of a large mesh is made on that thread too. Work that leaves the main thread comes
-back through :meth:`EditorApp.post_to_main_thread`.
-
-Input is never blocked behind drawing. The loop takes every pending input first (window system events of both
-windows), then draws at most one frame of the newest state: mouse moves of a drag are coalesced to the latest
-position, keys are applied as they arrive, and nothing is drawn while nothing changed. A mesh of more than
-:data:`kpd.viewer.gl.PROXY_TRIANGLES` triangles is drawn by a coarse stand-in while input flows, and whole again
-0.3 s after it pauses (the triangles that show in a pixel: :func:`kpd.viewer.gl.visible_triangles`); one of more
-than :data:`kpd.viewer.gl.STAND_IN_TRIANGLES` by a fine stand-in that looks like it, when its whole frames take
-longer than :data:`GESTURE_BUDGET_MS` (:func:`draws_stand_in`: without a GPU, not with one).
+The mesh is shown as soon as it is read: a rig still to be made (:class:`PendingRig`) is bound on a worker thread
+while the window shows the mesh (it can be turned, nothing edited) and says so in the panel; the keypoints appear
+when the rig is ready. The stand-in of a large mesh (:mod:`kpd.viewer.standins`) is made on that thread too. Work
+that leaves the main thread comes back through :meth:`EditorApp.post_to_main_thread`.
 
 Mouse and keys (also listed in the panel):
 
@@ -28,22 +22,19 @@ Mouse and keys (also listed in the panel):
 * U (or Ctrl+Z): undo; Y (or Ctrl+Y): redo; R: reset; S: save the deformed mesh; J: save the session (JSON);
   L: load the session; P: screenshot (PNG); T: the prior on/off; Esc: clear the selection.
 
-With ``events=PATH`` the app appends one JSON object per line for each thing it does (``shown`` when the mesh is
-first on the screen, ``ready`` when its rig is too, with the camera matrices, the 3D view's place on the screen and
-the sliders', ``input`` for each mouse or key event received,
-``frame`` for each frame drawn with the newest input it shows, ``select``, ``drag``, ``release``, ``nudge``, ``undo``,
-``redo``, ``reset``, ``save``...), so scripts, tests and the benchmark can follow the window without reading pixels.
+With ``events=PATH`` the app appends one JSON object per line for each thing it does (:mod:`kpd.viewer.events`:
+``shown`` when the mesh is first on the screen, ``ready`` when its rig is too, with the camera matrices, the 3D view's
+place on the screen and the sliders', ``input`` for each mouse or key event received, ``frame`` for each frame drawn
+with the newest input it shows, ``select``, ``drag``, ``release``, ``nudge``, ``undo``, ``redo``, ``reset``,
+``save``...), so scripts, tests and the benchmark can follow the window without reading pixels.
 """
 
 from __future__ import annotations
 
-import collections
 import gc
-import json
 import logging
 import math
 import os
-import queue
 import threading
 import time
 from pathlib import Path
@@ -52,24 +43,18 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from kpd.errors import InputError, KpdError
+from kpd.viewer.events import EventLog, read_events, wait_for
+from kpd.viewer.panel import PANEL_WIDTH, VIEW_LEFT, VIEW_TOP, EditorPanel
+from kpd.viewer.scheduler import GESTURE_BUDGET_MS, FrameScheduler, draws_stand_in
 from kpd.viewer.render import Camera, Frame, ViewSettings, camera_pose, pixel_ray, plane_hit, project, write_png
-from kpd.viewer.session import EditSession, component_offsets, propose
+from kpd.viewer.session import EditSession, propose
 
-__all__ = ["EditorApp", "Binding", "PANEL_WIDTH", "read_events", "wait_for"]
+__all__ = ["EditorApp", "PendingRig", "Binding", "PANEL_WIDTH", "read_events", "wait_for", "draws_stand_in",
+           "GESTURE_BUDGET_MS"]
 
 log = logging.getLogger(__name__)
 
-PANEL_WIDTH = 300  # pixels
 _PICK_PIXELS = 14.0  # a click this close to a marker's centre picks it
-_MAX_SLIDERS = 8
-_PREPARE_AFTER = 0.05  # s without input before a large mesh's whole frame is prepared on the frame thread (an input
-# stops the preparation within a few milliseconds, see kpd.viewer.gl.visible_triangles)
-_REFINE_AFTER = 0.3  # s without input before a large mesh's stand-in is replaced by the whole mesh
-# a mesh with a fine stand-in (kpd.viewer.gl.fine_stand_in) is drawn by it while input flows when the median of its
-# last _WHOLE_FRAMES whole frames took longer than this on the main thread (draws_stand_in)
-GESTURE_BUDGET_MS = 25.0
-_WHOLE_FRAMES = 5
-_LEFT, _TOP = 0, 0  # where the 3D view opens on the screen; the panel opens to its right
 
 # GLFW key codes and modifiers (https://www.glfw.org/docs/latest/group__keys.html)
 _KEYS = {"right": 262, "left": 263, "down": 264, "up": 265, "page_up": 266, "page_down": 267, "escape": 256}
@@ -77,7 +62,7 @@ _SHIFT, _CTRL = 0x0001, 0x0002
 _PRESS, _RELEASE, _REPEAT = 1, 0, 2
 
 
-class Binding(NamedTuple):
+class PendingRig(NamedTuple):
     """A rig still to be made: the editor shows ``mesh`` at once and calls ``bind()`` on a worker thread; it returns
     the rig of that mesh (:class:`kpd.rig.Rig` or :class:`kpd.frame.ScanRig`) with ``num_keypoints`` keypoints, or
     raises (a :class:`~kpd.errors.KpdError` ends the editor with its message)."""
@@ -87,28 +72,15 @@ class Binding(NamedTuple):
     bind: Callable[[], Any]
 
 
-def draws_stand_in(drawn: int, whole_ms: Any) -> bool:
-    """Whether the editor draws a mesh of ``drawn`` triangles that has a stand-in by it while input flows (the whole
-    mesh again once input pauses): always above :data:`kpd.viewer.gl.PROXY_TRIANGLES`; below, when the median of
-    the whole mesh's last frames ``whole_ms`` (milliseconds on the main thread) is over :data:`GESTURE_BUDGET_MS`,
-    so that a machine which draws the whole mesh fast enough keeps it whole. On 2 cores without a GPU, an unseen
-    ShapeNet chair (19,900 distinct triangles) drawn whole took 30 ms a drag step in the median quiet and 32-39 ms
-    beside a busy process, with the slowest step of a session at 37 ms and 39-53 ms; its fine stand-in
-    (:func:`kpd.viewer.gl.fine_stand_in`, 10,468 triangles) is the same picture but for 0.4% of its pixels, and
-    took 20-25 ms in the median and 26-38 ms at most quiet, 21-36 ms and 29-47 ms beside a busy process."""
-    from kpd.viewer.gl import PROXY_TRIANGLES
-
-    if drawn > PROXY_TRIANGLES:
-        return True
-    return len(whole_ms) > 0 and float(np.median(np.asarray(whole_ms, dtype=np.float64))) > GESTURE_BUDGET_MS
+Binding = PendingRig  # its name before, still imported by the commands
 
 
-class EditorApp:
+class EditorApp(EditorPanel, FrameScheduler):
     """The editor windows for one rig.
 
     Parameters
     ----------
-    rig : kpd.rig.Rig (or kpd.frame.ScanRig), the shape to edit (mesh in its own units); or a :class:`Binding`,
+    rig : kpd.rig.Rig (or kpd.frame.ScanRig), the shape to edit (mesh in its own units); or a :class:`PendingRig`,
         bound on a worker thread while the window shows its mesh.
     prior : kpd.prior.KeypointPrior or None: enables the "prior" toggle and the PCA sliders.
     settings : ViewSettings (size of the 3D view, what to show, the prior toggle, the nudge step).
@@ -125,8 +97,8 @@ class EditorApp:
                  screenshot_path: str | os.PathLike | None = None, events: str | os.PathLike | None = None,
                  title: str = "kpd view", initial_session: str | os.PathLike | None = None,
                  force: bool = False) -> None:
-        self._binding = rig if isinstance(rig, Binding) else None
-        self.rig = None if self._binding is not None else rig  # None until a Binding's rig is ready
+        self._pending_rig = rig if isinstance(rig, PendingRig) else None
+        self.rig = None if self._pending_rig is not None else rig  # None until a PendingRig's rig is ready
         self.mesh = rig.mesh
         self.num_keypoints = int(rig.num_keypoints)
         if prior is not None and prior.num_keypoints != self.num_keypoints:
@@ -146,34 +118,19 @@ class EditorApp:
         elif initial_session is not None:  # a bad file ends here, before any window
             EditSession(np.zeros((self.num_keypoints, 3))).load(initial_session)
         self.selection: list[int] = []
-        self._events = None if events is None else Path(events)
-        self._event_file: Any = None
+        self._log = None if events is None else EventLog(events)
         self._drag: dict | None = None
         self._orbit: dict | None = None
         self._pending_move: tuple[float, float] | None = None
         self._gesture = 0
         self._shots = 0
-        self._sigmas = np.zeros(0)
+        self._init_panel()
         self._slider_base = None if self.session is None else self.session.keypoints
-        self._quiet_sliders = False
         self._buffer = np.empty_like(self.mesh.vertices)
-        self._posted: queue.SimpleQueue = queue.SimpleQueue()  # callables from the worker threads
         self._failure: BaseException | None = None
-        self._frames_thread: Any = None  # prepares a large mesh's whole frame (ShadedMesh.prepare)
-        self._preparing: tuple | None = None  # the state being prepared there
-        self._stop = np.zeros(1, np.uint8)  # (1,) set to abandon the preparation on the frame thread
-        self._whole: tuple | None = None  # (state, vertices, uploads, milliseconds) of a prepared whole frame
-        self._spares: list[np.ndarray] = []  # (V, 3) buffers for the frame thread's deformations, none in use
-        self._inputs = 0  # input events received
-        self._last_input = -math.inf  # time.monotonic() of the newest one
-        self._dirty_mesh = True
-        self._dirty = True
-        self._frames = 0
-        self._whole_ms: collections.deque = collections.deque(maxlen=_WHOLE_FRAMES)  # the last whole frames' draws
-        self._running = False
+        self._init_scheduler()
         self._mouse = (0.0, 0.0)
         self._mods = 0
-        self._message_text = ""
 
     # --- windows ---------------------------------------------------------------------------------------------
 
@@ -181,9 +138,9 @@ class EditorApp:
         """Open the windows and run until the 3D view or the panel is closed; returns 0.
 
         BLAS runs on one thread meanwhile: the editor's products are small ((V, K) by (K, 3)), and a multi-threaded
-        BLAS waiting for a core that another process holds makes each of them up to 100 times slower. The objects
-        made before the first frame (the libraries', the windows') are left out of Python's garbage collection: a
-        full collection of them takes 15-40 ms, and would land in a frame.
+        BLAS waiting for a core that another process holds makes each of them many times slower. The objects made
+        before the first frame (the libraries', the windows') are left out of Python's garbage collection: a full
+        collection of them would land in a frame.
         """
         from threadpoolctl import threadpool_limits
 
@@ -198,10 +155,6 @@ class EditorApp:
             raise self._failure
         return 0
 
-    def post_to_main_thread(self, action: Callable[[], Any]) -> None:
-        """Run ``action()`` on the main thread, between two frames (how the worker hands its results back)."""
-        self._posted.put(action)
-
     def _start_session(self) -> None:
         self.session = EditSession(self.rig.keypoints)
         if self._initial_session is not None:
@@ -214,9 +167,9 @@ class EditorApp:
         return stand_in(self.mesh.vertices, self.drawing.shaded.drawn, fine=not image_maps(self.mesh))
 
     def _start_worker(self) -> None:
-        """The rig of a :class:`Binding`, after the stand-in of a large mesh, on a worker thread."""
-        binding = self._binding
-        if binding is None:
+        """The rig of a :class:`PendingRig`, after the stand-in of a large mesh, on a worker thread."""
+        pending = self._pending_rig
+        if pending is None:
             return
 
         def work() -> None:
@@ -225,7 +178,7 @@ class EditorApp:
                 if stand_in is not None:
                     self.post_to_main_thread(lambda: self.drawing.set_stand_in(*stand_in))
                 started = time.perf_counter()
-                rig = binding.bind()
+                rig = pending.bind()
                 log.info("bound the mesh in %.1f s", time.perf_counter() - started)
                 self.post_to_main_thread(lambda: self._on_bound(rig))
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which ends with it
@@ -234,12 +187,12 @@ class EditorApp:
         threading.Thread(target=work, name="kpd-editor-worker", daemon=True).start()
 
     def _on_bound(self, rig: Any) -> None:
-        """The rig of the :class:`Binding` is ready: keypoints, cage and editing."""
+        """The rig of the :class:`PendingRig` is ready: keypoints, cage and editing."""
         if len(rig.mesh.vertices) != len(self.mesh.vertices) or rig.num_keypoints != self.num_keypoints:
             raise KpdError(f"the rig has {len(rig.mesh.vertices)} vertices and {rig.num_keypoints} keypoints; the "
                            f"mesh shown has {len(self.mesh.vertices)} and {self.num_keypoints} were expected")
         self.rig = rig
-        self._binding = None
+        self._pending_rig = None
         gc.freeze()  # the rig's objects live as long as the editor (see run)
         self._start_session()
         self.drawing.set_keypoints(rig.num_keypoints, rig.cage.faces)
@@ -250,20 +203,12 @@ class EditorApp:
         self._failure = exc
         self._running = False
 
-    def _run_posted(self) -> None:
-        while True:
-            try:
-                action = self._posted.get_nowait()
-            except queue.Empty:
-                return
-            action()
-
     def _build(self) -> None:
         from kpd.viewer.gl import GLView, RigDrawing
 
         s = self.settings
         self._started = time.time()
-        self.view = GLView(s.width, s.height, title=self.title, visible=True, left=_LEFT, top=_TOP,
+        self.view = GLView(s.width, s.height, title=self.title, visible=True, left=VIEW_LEFT, top=VIEW_TOP,
                            background=s.background)
         rig = self.rig
         self.drawing = RigDrawing(self.view, self.mesh, 0 if rig is None else rig.num_keypoints,
@@ -295,203 +240,6 @@ class EditorApp:
         return [*range(ord("A"), ord("Z") + 1), *range(ord("0"), ord("9") + 1), *_KEYS.values(),
                 ord("-"), ord("="), ord("["), ord("]"), ord("."), ord(","), ord("/")]
 
-    def _build_panel(self) -> None:
-        import tkinter as tk
-
-        from kpd.viewer.gl import NoWindowError
-
-        s = self.settings
-        try:
-            root = tk.Tk()
-        except tk.TclError as exc:
-            raise NoWindowError(f"could not open the editor's panel window: {exc}") from exc
-        self.root = root
-        root.title(f"{self.title} - panel")
-        root.geometry(f"+{_LEFT + s.width + 8}+{_TOP}")  # beside the 3D view, as tall as its widgets need
-        root.protocol("WM_DELETE_WINDOW", self._on_panel_close)
-        pad = {"padx": 6, "pady": 1, "anchor": "w"}
-        tk.Label(root, text=f"{self.title}\n{self.num_keypoints} keypoints, {len(self.mesh.vertices):,} vertices",
-                 justify="left").pack(**pad)
-        tk.Label(root, text="Show", font=("TkDefaultFont", 10, "bold")).pack(**pad)
-        self._checks: dict[str, Any] = {}
-        for name, text in (("show_keypoints", "keypoints"), ("show_labels", "numbers"),
-                           ("show_cage", "cage (wireframe)"), ("show_ghost", "original shape (ghost)"),
-                           ("xray", "see-through mesh (wireframe)")):
-            var = tk.BooleanVar(value=getattr(s, name))
-            tk.Checkbutton(root, text=text, variable=var,
-                           command=lambda name=name, var=var: self._on_setting(name, bool(var.get()))).pack(**pad)
-            self._checks[name] = var
-        tk.Label(root, text="Edit", font=("TkDefaultFont", 10, "bold")).pack(**pad)
-        var = tk.BooleanVar(value=bool(s.prior and self.prior is not None))
-        self.prior_box = tk.Checkbutton(root, text="prior (others follow the category)", variable=var,
-                                        command=lambda: self._on_setting("prior", bool(self._checks["prior"].get())),
-                                        state="normal" if self.prior is not None else "disabled")
-        self.prior_box.pack(**pad)
-        self._checks["prior"] = var
-        row = tk.Frame(root)
-        tk.Label(row, text="nudge step").pack(side="left")
-        self.step = tk.Spinbox(row, from_=0.001, to=0.5, increment=0.005, width=7,
-                               command=lambda: self._on_step(self.step.get()))
-        self.step.delete(0, "end")
-        self.step.insert(0, f"{s.nudge_step:g}")
-        self.step.bind("<Return>", lambda _e: self._on_step(self.step.get()))
-        self.step.pack(side="left")
-        row.pack(**pad)
-        buttons = [("Undo (U)", self._on_undo), ("Redo (Y)", self._on_redo), ("Reset (R)", self._on_reset),
-                   ("Save mesh (S)", self._on_save), ("Save session (J)", self._on_save_session),
-                   ("Load session (L)", self._on_load_session), ("Screenshot (P)", self._on_screenshot)]
-        for i in range(0, len(buttons), 2):
-            row = tk.Frame(root)
-            for text, callback in buttons[i:i + 2]:
-                tk.Button(row, text=text, width=14, command=lambda c=callback: self._input_then(c)).pack(side="left")
-            row.pack(**pad)
-        self.sliders: list[Any] = []
-        if self.prior is not None:
-            count = min(len(self.prior.components_), _MAX_SLIDERS)
-            self._sigmas = np.zeros(len(self.prior.components_))
-            tk.Label(root, text="Category (PCA, std. dev.)", font=("TkDefaultFont", 10, "bold")).pack(**pad)
-            for m in range(count):
-                row = tk.Frame(root)
-                tk.Label(row, text=f"{m + 1}", width=2).pack(side="left")
-                slider = tk.Scale(row, from_=-3.0, to=3.0, resolution=0.01, orient="horizontal", length=230,
-                                  showvalue=False, sliderlength=18,
-                                  command=lambda value, m=m: self._on_slider(m, float(value)))
-                slider.pack(side="left")
-                row.pack(**pad)
-                self.sliders.append(slider)
-        tk.Label(root, justify="left", text="click: select   shift+click: add\n"
-                                            "drag a keypoint: move it\n"
-                                            "drag elsewhere: orbit   right drag: pan\n"
-                                            "wheel: zoom   arrows, PgUp/PgDn: nudge\n"
-                                            "U undo  Y redo  R reset  T prior\n"
-                                            "S save mesh  J/L session  P shot").pack(**pad)
-        self.status = tk.Label(root, text="", justify="left", anchor="w")
-        self.status.pack(**pad)
-        keys = {"u": self._on_undo, "y": self._on_redo, "r": self._on_reset, "s": self._on_save,
-                "j": self._on_save_session, "l": self._on_load_session, "p": self._on_screenshot,
-                "t": lambda: self._on_setting("prior", not self.settings.prior), "Escape": self._on_clear}
-        for key, action in keys.items():
-            root.bind(f"<KeyPress-{key}>", lambda _e, a=action: self._input_then(a))
-        root.update()
-        self._update_status()
-
-    def _input_then(self, action: Any) -> None:
-        self._inputs += 1
-        self._last_input = time.monotonic()
-        self._stop[0] = 1
-        self._emit("input", kind="panel")
-        action()
-
-    def _loop(self) -> None:
-        self._running = True
-        vis = self.view.vis
-        while self._running:
-            if not vis.poll_events():  # window-system events of the 3D view: the callbacks only record them
-                break
-            self.root.update()  # the panel's events
-            self._run_posted()  # results of the worker threads
-            if not self._running:
-                break
-            self._apply_pending()
-            if self._dirty:
-                self._draw()
-            elif not self._refine():
-                time.sleep(0.004)
-
-    def _draw(self) -> None:
-        """Draw the newest state: one frame, whatever number of inputs it answers. A mesh with a stand-in is drawn by
-        it; its whole frame comes from :meth:`_refine`."""
-        started = time.perf_counter()
-        serial = self._inputs
-        fast = self.drawing.stand_in is not None and draws_stand_in(len(self.drawing.shaded.drawn), self._whole_ms)
-        self._show(mesh=self._dirty_mesh, fast=fast)
-        self._dirty = self._dirty_mesh = False
-        self.view.draw()
-        self._frames += 1
-        milliseconds = 1000 * (time.perf_counter() - started)
-        if not self.drawing.stand_in_shown and self._frames > 1:  # the first frame's draw compiles llvmpipe's shaders
-            self._whole_ms.append(milliseconds)
-        self._emit("frame", serial=serial, draw_ms=round(milliseconds, 3), frame=self._frames,
-                   stand_in=self.drawing.stand_in_shown)
-
-    def _refine(self) -> bool:
-        """Once input pauses, a large mesh's whole frame in place of its stand-in: prepared on the frame thread
-        after :data:`_PREPARE_AFTER` s (the deformation, normals, the triangles that show, colours), drawn from
-        :data:`_REFINE_AFTER` s when it is ready and still the state on the screen. Returns whether it drew."""
-        if not self.drawing.stand_in_shown:
-            return False
-        idle = time.monotonic() - self._last_input
-        if idle < _PREPARE_AFTER:
-            return False
-        state = self._state()
-        if self._whole is None or self._whole[0] != state:
-            if self._preparing != state:
-                self._prepare_whole(state)
-            return False
-        if idle < _REFINE_AFTER:
-            return False
-        _, vertices, uploads, prepare_ms = self._whole
-        self._whole = None
-        started = time.perf_counter()
-        serial = self._inputs
-        keypoints = np.zeros((0, 3)) if self.session is None else self.session.keypoints
-        cage = None if self.rig is None else self.rig.deform_cage(keypoints)
-        self.drawing.show(Frame(vertices, keypoints, cage, tuple(self.selection)), self.camera, prepared=uploads)
-        self._spare(vertices)  # the geometries hold their own copies now
-        self.view.draw()
-        self._frames += 1
-        milliseconds = 1000 * (time.perf_counter() - started)
-        self._whole_ms.append(milliseconds)
-        self._emit("frame", serial=serial, draw_ms=round(milliseconds, 3), prepare_ms=prepare_ms, frame=self._frames,
-                   stand_in=False)
-        return True
-
-    def _state(self) -> tuple:
-        """What a whole frame depends on: the keypoints and the camera."""
-        c = self.camera
-        keypoints = None if self.session is None else self.session.keypoints.tobytes()
-        return keypoints, tuple(c.eye), tuple(c.center), tuple(c.up), c.fov
-
-    def _prepare_whole(self, state: tuple) -> None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        if self._frames_thread is None:
-            self._frames_thread = ThreadPoolExecutor(1, thread_name_prefix="kpd-editor-frames")
-        self._preparing = state
-        rig, mesh, drawing, camera = self.rig, self.mesh, self.drawing, self.camera
-        keypoints = None if self.session is None else self.session.keypoints
-        self._stop = stop = np.zeros(1, np.uint8)  # set by the next input (_count_input): the frame is not wanted
-        # a buffer the main thread hands out and takes back: fresh memory for 1.3M vertices costs tens of ms to touch
-        out = None if rig is None else (self._spares.pop() if self._spares else np.empty_like(mesh.vertices))
-
-        def work() -> None:
-            try:
-                started = time.perf_counter()
-                vertices = mesh.vertices if rig is None else rig.deform(keypoints, out=out)
-                uploads = None if stop[0] else drawing.shaded.prepare(vertices, camera, drawing.view.viewport(camera),
-                                                                      stop=stop)
-                milliseconds = round(1000 * (time.perf_counter() - started), 3)
-                self.post_to_main_thread(lambda: self._on_prepared(state, vertices, uploads, milliseconds))
-            except BaseException as exc:  # noqa: BLE001 - handed to the main thread, which ends with it
-                self.post_to_main_thread(lambda failure=exc: self._on_worker_failed(failure))
-
-        self._frames_thread.submit(work)
-
-    def _on_prepared(self, state: tuple, vertices: np.ndarray, uploads: list | None, milliseconds: float) -> None:
-        if self._preparing == state:
-            self._preparing = None
-        if uploads is None:
-            self._spare(vertices)
-            return
-        if self._whole is not None:
-            self._spare(self._whole[1])
-        self._whole = (state, vertices, uploads, milliseconds)
-
-    def _spare(self, vertices: np.ndarray) -> None:
-        """Take back a deformation buffer of the frame thread (not the rest mesh's vertices)."""
-        if vertices is not self.mesh.vertices:
-            self._spares.append(vertices)
-
     def _close(self) -> None:
         self._emit("close")
         if self._frames_thread is not None:
@@ -501,11 +249,8 @@ class EditorApp:
         except Exception:  # noqa: BLE001 - the panel may be gone already
             pass
         self.view.close()
-        if self._event_file is not None:
-            self._event_file.close()
-
-    def _on_panel_close(self) -> None:
-        self._running = False
+        if self._log is not None:
+            self._log.close()
 
     # --- the scene --------------------------------------------------------------------------------------------
 
@@ -529,51 +274,6 @@ class EditorApp:
         if self.rig is None:
             self._message("binding the mesh to the model: keypoints appear when it is done")
         return self.rig is not None
-
-    def _changed(self, *, mesh: bool = True) -> None:
-        self._dirty = True
-        self._dirty_mesh = self._dirty_mesh or mesh
-        self._update_status()
-
-    def _apply_settings(self) -> None:
-        """The one place where the settings reach the widgets and the scene."""
-        s = self.settings
-        self.drawing.settings = s
-        for name, var in self._checks.items():
-            value = bool(s.prior and self.prior is not None) if name == "prior" else bool(getattr(s, name))
-            if bool(var.get()) != value:
-                var.set(value)
-        self._changed(mesh=True)
-
-    def _on_setting(self, name: str, value: Any) -> None:
-        if name == "prior" and self.prior is None:
-            value = False
-        self.settings = self.settings.replace(**{name: value})
-        self._apply_settings()
-        self._emit("settings", name=name, value=value)
-
-    def _on_step(self, text: str) -> None:
-        try:
-            value = float(text)
-        except ValueError:
-            self._message(f"nudge step must be a number; got {text!r}")
-            return
-        if not (math.isfinite(value) and value > 0):
-            self._message(f"nudge step must be positive; got {text!r}")
-            return
-        self._on_setting("nudge_step", value)
-
-    def _update_status(self) -> None:
-        prior = "on" if self.settings.prior and self.prior is not None else "off"
-        if self.session is None:
-            text = "binding the mesh to the model...\n(keypoints appear when it is done)"
-        else:
-            text = (f"selected: {', '.join(map(str, self.selection)) or '-'}\n"
-                    f"moved: {len(self.session.moved)}   undo: {self.session.depth}   prior: {prior}")
-        if self._message_text:
-            text += "\n" + self._message_text
-        if hasattr(self, "status"):
-            self.status.configure(text=text)
 
     # --- camera -----------------------------------------------------------------------------------------------
 
@@ -618,12 +318,6 @@ class EditorApp:
         return False
 
     # --- gestures ---------------------------------------------------------------------------------------------
-
-    def _count_input(self, kind: str, **data: Any) -> None:
-        self._inputs += 1
-        self._last_input = time.monotonic()
-        self._stop[0] = 1  # a whole frame being prepared may no longer be the one wanted (a newer one will be)
-        self._emit("input", kind=kind, **data)
 
     def pick(self, x: float, y: float) -> int | None:
         """The keypoint under view pixel (x, y), or None (the nearest marker centre within the pick radius)."""
@@ -794,28 +488,6 @@ class EditorApp:
         self._reset_sliders()
         self._changed()
 
-    def _reset_sliders(self) -> None:
-        self._sigmas[:] = 0.0
-        self._quiet_sliders = True
-        try:
-            for slider in self.sliders:
-                if float(slider.get()) != 0.0:
-                    slider.set(0.0)
-            if self.sliders:
-                self.root.update_idletasks()
-        finally:
-            self._quiet_sliders = False
-
-    def _on_slider(self, m: int, value: float) -> None:
-        if self._quiet_sliders or self.prior is None or value == self._sigmas[m] or not self._bound():
-            return
-        self._count_input("slider", component=m, value=value)
-        self._sigmas[m] = float(value)
-        keypoints = self._slider_base + component_offsets(self.prior, self.rig.normalizer, self._sigmas)
-        if self.session.apply(keypoints, label="component", merge=("component", m)):
-            self._changed()
-        self._emit("component", component=m, value=float(value))
-
     # --- files -----------------------------------------------------------------------------------------------
 
     def _on_save(self) -> None:
@@ -882,13 +554,8 @@ class EditorApp:
         self._message(f"saved {path}")
         self._emit("screenshot", path=str(path))
 
-    def _message(self, text: str) -> None:
-        log.info("%s", text)
-        self._message_text = text
-        self._update_status()
-
     def _emit(self, event: str, **data: Any) -> None:
-        if self._events is None:
+        if self._log is None:
             return
         record: dict[str, Any] = {"event": event, "time": time.time(), **data}
         if event not in ("input", "frame") and self.session is not None:
@@ -902,10 +569,7 @@ class EditorApp:
                           title=self.title, started=self._started,
                           sliders=[[s.winfo_rootx(), s.winfo_rooty(), s.winfo_width(), s.winfo_height()]
                                    for s in self.sliders])
-        if self._event_file is None:
-            self._event_file = open(self._events, "a", encoding="utf-8")  # noqa: SIM115 - closed in _close
-        self._event_file.write(json.dumps(record) + "\n")
-        self._event_file.flush()
+        self._log.write(record)
 
 
 def _rotate(vector: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
@@ -913,23 +577,3 @@ def _rotate(vector: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
     axis = axis / max(np.linalg.norm(axis), 1e-12)
     return (vector * math.cos(angle) + np.cross(axis, vector) * math.sin(angle)
             + axis * (axis @ vector) * (1 - math.cos(angle)))
-
-
-def read_events(path: str | os.PathLike) -> list[dict]:
-    """The events an editor started with ``events=path`` has written so far (whole lines only; [] before it opens)."""
-    path = Path(path)
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.endswith("}")]
-
-
-def wait_for(condition: Any, timeout: float, what: str, *, poll: float = 0.02) -> Any:
-    """Call ``condition()`` until it returns something true and return that; :class:`KpdError` after ``timeout`` s
-    (scripts driving an editor wait for its events with it)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(poll)
-    raise KpdError(f"timed out after {timeout:g} s waiting for {what}")

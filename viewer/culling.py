@@ -59,26 +59,23 @@ def visible_triangles(vertices: np.ndarray, triangles: np.ndarray, viewport: Vie
 
     A rasteriser makes a triangle's fragments at the sample points it covers (the pixel centres, or several points a
     pixel with multisampling), and keeps at each the nearest. A scan-sized mesh in a window has many triangles per
-    pixel: of the 2.75M distinct triangles of a 1.37M-vertex chair seen whole at 960 x 720, one in eight covers a
-    pixel centre in front; drawing only those (which is what a rasteriser spends its time finding out) makes a frame
-    several times cheaper. Each vertex is projected as the view projects it; a corner may land up to ``delta``
-    pixels away along each axis in the rasteriser (sub-pixel snapping and float32 rounding, :func:`_margin`), which
-    moves a point's edge functions by at most ``delta (2 D + L)`` (D the triangle's extent on the screen, L the
-    edge's length), and the drawn triangle lies within ``delta √2`` of the projected one (each of its corners does,
-    and so does their convex hull). Two passes:
+    pixel, most of them hidden or between the sample points; drawing only the others (which is what a rasteriser
+    spends its time finding out) makes a frame several times cheaper. Each vertex is projected as the view projects
+    it; a corner may land up to ``delta`` pixels away along each axis in the rasteriser (sub-pixel snapping and
+    float32 rounding, :func:`_margin`), which moves a point's edge functions by at most ``delta (2 D + L)`` (D the
+    triangle's extent on the screen, L the edge's length), and the drawn triangle lies within ``delta √2`` of the
+    projected one (each of its corners does, and so does their convex hull). Two passes:
 
     1. at each sample point, the depth behind which nothing of the triangles that surely cover it (inside by that
        bound) lies: the smallest of their farthest corners' depths. A point too near a triangle's edge to be sure
        is surely covered by the triangle or its neighbour across that edge (``neighbours``) when the two surely
        lie either side of the edge and the point is surely inside their four other edges: a rasteriser fills the
-       edge two triangles share once, with no gap (12% fewer triangles kept of a 1.37M-vertex chair, 23% of a
-       scan); a triangle works only on the pixels where its farthest corner would bring a sample point nearer.
-       The triangles with a sample point in reach are listed for pass 2;
+       edge two triangles share once, with no gap; a triangle works only on the pixels where its farthest corner
+       would bring a sample point nearer. The triangles with a sample point in reach are listed for pass 2;
     2. a listed triangle is kept if it may cover a sample point (one within ``delta √2`` of it, either winding)
        where its nearest corner is not behind that depth by more than :data:`DEPTH_SLACK` of it. Slivers, whose
-       short edges turn far when their corners stray, are kept in a narrow band so, where the bound on the edge
-       functions kept them over pixels beside them: 15% fewer triangles kept of a 1.37M-vertex chair, 11% of a
-       scan, seen whole at 960 x 720.
+       short edges turn far when their corners stray, are so kept in a narrow band, where the bound on the edge
+       functions would keep them over the pixels beside them too.
 
     A triangle with a corner behind the camera or over more than 25 pixels is kept untested.
 
@@ -166,9 +163,7 @@ _BANDS = 8
 def _culling_threads() -> int:
     """Threads of a culling pass: two a processor (at most :data:`MAX_PASS_THREADS`), so that beside another
     busy process the pass keeps a larger share of the cores (the system shares them among threads), and a thread held
-    back holds back less. On 2 cores, the CAD chair at 1.37M (2.75M distinct triangles, 960 x 720, 4 samples, three
-    views): 598 ms on 4 threads against 638 ms on 3 beside a busy process, 444 against 435 ms quiet (medians of 24;
-    585 and 469 ms on 6)."""
+    back holds back less (docs/results.md)."""
     cores = os.cpu_count() or 1
     return 1 if cores < 2 else min(2 * cores, MAX_PASS_THREADS)
 
@@ -197,8 +192,7 @@ def _in_pieces(pieces: int, threads: int, stop: np.ndarray, work: Callable[[int,
 def _margin(vertices: np.ndarray, viewport: Viewport) -> float:
     """Pixels by which a drawn vertex may stray from its float64 projection: 1/256 (twice llvmpipe's rounding to its
     8-bit sub-pixel grid, at most 1/512) plus a few float32 roundings of the coordinates and the camera transform,
-    seen at the nearest point of the vertices' bounding box. (Four times the rounding kept a third more triangles of
-    a scan-sized mesh, all of them hidden.)"""
+    seen at the nearest point of the vertices' bounding box (a larger margin keeps more hidden triangles)."""
     if not len(vertices):
         return 1.0 / 256
     lo, hi = box([vertices])
@@ -525,9 +519,8 @@ class CullingLayout:
     """The triangles of a mesh part in the order :func:`visible_triangles` goes through them fastest: near each other
     in space (by the Morton order of their centroids at rest, over 64 cells a side of the part's bounding cube), and
     their vertices numbered in order of first use, so that the culling's passes read the projected vertices and
-    write the sample points' depths near where they read and wrote last. On a ShapeNet chair subdivided to 1.37M
-    vertices (2.75M distinct triangles) seen whole at 960 x 720, the two passes took 0.30 s and 0.22 s in the
-    mesh's order and 0.23 s and 0.07 s in this one (two threads).
+    write the sample points' depths near where they read and wrote last: the two passes take about 40% less time
+    than in the mesh's own order.
 
     ``order`` (T,) the part's triangles in that order, ``used`` (V',) the vertices they use in order of first use,
     ``triangles`` (T, 3) int32 the ordered triangles indexing ``used``, ``neighbours`` their :func:`edge_neighbours`,

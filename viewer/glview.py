@@ -45,13 +45,9 @@ def _raster_threads() -> None:
     otherwise; kpd asks for :data:`_RASTER_THREADS_PER_PROCESSOR` a processor (at most :data:`_MAX_RASTER_THREADS`),
     unless the user has set it. The frame is cut into tiles that its threads take in turn: beside another busy
     process, the system shares the cores among the threads, so more threads keep a larger share of them, and a thread
-    that the system holds back for a time slice holds back a smaller share of the frame. On 2 cores beside a busy
-    process, the editor's drag steps on a ShapeNet chair of 40,504 triangles (``bench_viewer.py --runs 1 --drags 8
-    --pauses 0 --sizes shapenet --loads loaded``, three alternations): at most 36-42 ms a session on 16 threads
-    against 47-54 ms on 6 (medians 33-37 ms against 37-39 ms); drawing the 489k triangles that show of a 1.37M-vertex
-    chair at 960 x 720 (4 samples a pixel): 310 ms on 3 threads against 350 ms on 2, and 299-355 ms on 6 against
-    329-396 ms on 3. Quiet, the thread count made no difference. The pictures do not change (each tile is drawn alike
-    whatever thread takes it). A GPU driver ignores it."""
+    that the system holds back for a time slice holds back a smaller share of the frame (docs/results.md); quiet, the
+    count makes no difference. The pictures do not change (each tile is drawn alike whatever thread takes it). A GPU
+    driver ignores it."""
     os.environ.setdefault("LP_NUM_THREADS", str(min(_RASTER_THREADS_PER_PROCESSOR * (os.cpu_count() or 1),
                                                     _MAX_RASTER_THREADS)))
 

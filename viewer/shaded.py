@@ -54,9 +54,8 @@ class ShadedMesh:
     mesh : kpd.io.Mesh (its colours, UVs and textures are drawn).
     color : (3,) RGB in [0, 1] for a mesh with neither colours nor a texture (or to override them).
     once : a mesh drawn once (a picture) is culled in its own order with each triangle judged alone: a
-        :class:`CullingLayout` costs more to make than it saves in one frame (of a 1.37M-vertex chair, 0.17 s to
-        make and no faster a frame; 1.0 s and 0.2 s faster with its triangles shuffled), and the neighbours it
-        pairs across edges (0.2-0.3 s) make fewer triangles to draw, not a faster picture.
+        :class:`CullingLayout` costs more to make than it saves in one frame, and the neighbours it pairs across
+        edges make fewer triangles to draw, not a faster picture.
     """
 
     def __init__(self, mesh: Any, color: Sequence[float] = (0.80, 0.80, 0.82), *, override: bool = False,
@@ -288,8 +287,8 @@ def mean_rgb(texture: np.ndarray) -> np.ndarray:
 def _texture_coordinates(uvs, chosen, edge_u, edge_v, out):  # pragma: no cover - compiled
     """``out[r]``, (3, 2): the UVs of triangle ``chosen[r]`` (rows 3t, 3t + 1, 3t + 2 of ``uvs``) moved by whole tiles
     into the first one (minus the floor of their smallest), kept within the outer texel centres (``edge_u``,
-    ``edge_v`` to 1 minus them) and v turned (1 - v): the numpy steps' values, NaN kept (one pass instead of six over
-    (T, 3, 2) arrays; numpy's reduction over the three corners alone took 0.33 s for 2.5M triangles)."""
+    ``edge_v`` to 1 minus them) and v turned (1 - v): the numpy steps' values, NaN kept, in one pass instead of six
+    over (T, 3, 2) arrays (numpy reduces along a short middle axis slowly)."""
     for r in range(chosen.shape[0]):
         t = chosen[r]
         for k in range(2):

@@ -57,12 +57,12 @@ def _shaded_layer(shaded: dict, slot: int, mesh: Any, color: Sequence[float], *,
     """A :class:`ShadedMesh` of ``mesh`` for layer ``slot`` of a shot, kept in ``shaded``: the slot's previous one when
     ``mesh`` differs from its mesh only in where the vertices are, with the same vertices at the same positions as
     each other (a shape and its variants, which a rig deforms alike at coincident vertices), so that the work on the
-    triangles (distinct triangles, welding, normals' layout) is done once: 0.6 s a shot for a contact sheet of a
-    1.37M-vertex chair's variants. The same picture as a new one (what it keeps depends on those alone).
+    triangles (distinct triangles, welding, normals' layout) is done once a sheet. The same picture as a new one
+    (what it keeps depends on those alone).
 
     A mesh drawn in several parts (one per texture) gets a new one each shot: the legacy renderer draws its
-    geometries in an order that follows their addresses, which decides a sample where two parts meet at one depth (a
-    pixel of a 3-material ShapeNet bench's variant differed when its parts were kept)."""
+    geometries in an order that follows their addresses, which decides a sample where two parts meet at one
+    depth."""
     previous = shaded.get(slot)
     if previous is not None and len(previous.parts) == 1 and previous.override == override and \
             previous.color == tuple(map(float, color)):
@@ -70,7 +70,7 @@ def _shaded_layer(shaded: dict, slot: int, mesh: Any, color: Sequence[float], *,
         same = len(old.vertices) == len(mesh.vertices) and all(
             getattr(old, name) is getattr(mesh, name)
             for name in ("triangles", "triangle_uvs", "triangle_material_ids", "textures", "vertex_colors"))
-        # grouped here, not kept on the mesh (22 MB a variant of 1.37M vertices, held by the caller)
+        # grouped here, not kept on the mesh (a variant's groups would live as long as the caller holds it)
         if same and (old is mesh or np.array_equal(previous.welding.inverse,
                                                    first_occurrence_groups(mesh.vertices)[1])):
             previous.mesh = mesh

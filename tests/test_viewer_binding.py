@@ -1,57 +1,16 @@
-"""The editor on a mesh of over a million vertices, in a real window under Xvfb driven by xdotool."""
+"""The editor with a rig still to be made: the mesh shown at once and bound on a worker thread (its positions grouped
+once), input answered meanwhile, its errors and a saved session applied once it is bound; in real windows under Xvfb
+driven by xdotool."""
 
 import subprocess
 
 import numpy as np
 import pytest
-from viewer_helpers import HAS_XVFB, clear_keypoint, drags_with_nudges, editor_window, kpd, last_event
+from viewer_helpers import HAS_XVFB, editor_window, kpd, last_event
 
-from kpd.viewer.app import read_events, wait_for
+from kpd.viewer.events import read_events, wait_for
 
-pytest_plugins = ["viewer_helpers"]  # the shared fixtures
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
-def test_editor_session_of_many_drags_on_a_million_vertex_mesh_loses_nothing(tmp_path):
-    """Five drags with nudges between them, an undo and a redo on a 1.05M-vertex chair: the drags are drawn by the
-    coarse stand-in, the last frame is the whole mesh in the final state, and the saved mesh is the edited one."""
-    from kpd.commands.demo import procedural_chair
-    from kpd.io import read_mesh, write_mesh
-
-    mesh = procedural_chair(edge=0.048)
-    assert len(mesh.vertices) > 1_000_000
-    write_mesh(tmp_path / "chair.ply", mesh)
-    out = tmp_path / "edited.ply"
-    with editor_window(tmp_path, "chair", tmp_path / "chair.ply", "--out", out, size="640x480") as win:
-        events, xdo = win.events, win.xdo
-        keypoints = np.array(win.ready["keypoints"])
-        rest = keypoints.copy()
-        index = clear_keypoint(win, keypoints)
-        keypoints = drags_with_nudges(win, keypoints, index, 5, timeout=120)
-        xdo("key", "u")
-        wait_for(lambda: last_event(events, "undo"), 120, "undo")
-        xdo("key", "y")
-        redone = wait_for(lambda: last_event(events, "redo"), 120, "redo")
-        np.testing.assert_allclose(redone["keypoints"], keypoints)
-        last = wait_for(lambda: [f for f in read_events(events) if f["event"] == "frame"
-                                 and f["time"] > redone["time"] and not f["stand_in"]], 120, "the whole mesh")[-1]
-        np.testing.assert_allclose(last["keypoints"], keypoints)  # nothing lost: the final state, whole
-        xdo("key", "s")
-        saved = wait_for(lambda: last_event(events, "save"), 120, "the saved mesh")
-        np.testing.assert_allclose(saved["keypoints"], keypoints)
-        frames = [e for e in read_events(events) if e["event"] == "frame"]
-        inputs = [e for e in read_events(events) if e["event"] == "input"]
-    assert len(inputs) >= 40
-    assert any(f["stand_in"] for f in frames)  # the drags were drawn by the stand-in
-    moved = np.flatnonzero(np.abs(keypoints - rest).max(axis=1) > 0)
-    assert moved.tolist() == [index]
-    edited = read_mesh(out)
-    assert len(edited.vertices) == len(mesh.vertices) and len(edited.triangles) == len(mesh.triangles)
-    shift = np.linalg.norm(edited.vertices - mesh.vertices, axis=1)
-    assert shift.max() > 1e-3 * np.ptp(mesh.vertices)
-    near = np.linalg.norm(mesh.vertices - rest[index], axis=1).argsort()[:100]
-    assert shift[near].mean() > np.median(shift)  # what moved is around the dragged keypoint
+pytest_plugins = ["viewer_fixtures"]  # the shared fixtures
 
 
 def test_binding_and_drawing_a_mesh_at_once_group_its_positions_once(monkeypatch):
@@ -62,7 +21,7 @@ def test_binding_and_drawing_a_mesh_at_once_group_its_positions_once(monkeypatch
     from kpd.grouping import first_occurrence_groups
     from kpd.io import Mesh
     from kpd.rig import Rig
-    from kpd.viewer.app import Binding
+    from kpd.viewer.app import PendingRig
     from kpd.viewer.render import ViewSettings
 
     calls = []
@@ -78,7 +37,7 @@ def test_binding_and_drawing_a_mesh_at_once_group_its_positions_once(monkeypatch
     vertices[2000:] = vertices[:1000]  # copies of a position
     mesh = Mesh(vertices, rng.integers(0, 3000, size=(6000, 3)))
     keypoints = vertices[:4]
-    rig, shaded = bind_beside_drawing(Binding(mesh, 4, lambda: Rig.bind(mesh, keypoints)), ViewSettings())
+    rig, shaded = bind_beside_drawing(PendingRig(mesh, 4, lambda: Rig.bind(mesh, keypoints)), ViewSettings())
     assert calls == [3000]  # the binding's and the drawing's groups, found once
     assert shaded.welding.groups == 2000
     alone = Rig.bind(Mesh(vertices.copy(), mesh.triangles), keypoints)  # its own positions grouped again
@@ -90,7 +49,7 @@ _HELD_BINDING = """
 import sys, time
 from pathlib import Path
 from kpd.rig import Rig
-from kpd.viewer.app import Binding, EditorApp
+from kpd.viewer.app import EditorApp, PendingRig
 from kpd.viewer.render import ViewSettings
 
 rig = Rig.load(sys.argv[1])
@@ -101,7 +60,7 @@ def bind():  # held until the test lets it go
         time.sleep(0.05)
     return rig
 
-app = EditorApp(Binding(rig.mesh, rig.num_keypoints, bind), settings=ViewSettings(width=480, height=400),
+app = EditorApp(PendingRig(rig.mesh, rig.num_keypoints, bind), settings=ViewSettings(width=480, height=400),
                 events=sys.argv[2], title="kpd binding test")
 sys.exit(app.run())
 """
@@ -110,7 +69,7 @@ sys.exit(app.run())
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_XVFB, reason="Xvfb/xdotool not installed (make system)")
 def test_editor_shows_the_mesh_at_once_and_answers_input_while_it_binds(chair_rig, tmp_path):
-    """A rig still to be made (viewer.app.Binding): the mesh is on the screen before the rig is ready, a drag and
+    """A rig still to be made (viewer.app.PendingRig): the mesh is on the screen before the rig is ready, a drag and
     keys meanwhile are taken (the view turns; edits wait, the panel says why), and the keypoints appear when the
     binding returns."""
     import os
