@@ -103,9 +103,10 @@ def parse_numbers(lines: list[str], key: str) -> np.ndarray:
     return np.array([[float(x) for x in s.split()[1:4]] for s in lines if s.split()[:1] == [key]])
 
 
-def assert_obj_kept(src: Path, out: Path, vertices: np.ndarray) -> None:
+def assert_obj_kept(src: Path, out: Path, vertices: np.ndarray, *, outside: bool = False) -> None:
     """``out`` is ``src`` with only its v (and vn) lines and the names of its companions changed; the v lines hold
-    ``vertices``; the .mtl and every map are there, maps byte for byte."""
+    ``vertices``; the .mtl and every map are there, maps byte for byte. A map outside the input's folder (``../``)
+    is commented out and not copied, unless ``outside`` (it was read from a wider ``files_root``)."""
     a, b = obj_lines(src), obj_lines(out)
     assert len(a) == len(b)
     for x, y in zip(a, b):
@@ -128,7 +129,7 @@ def assert_obj_kept(src: Path, out: Path, vertices: np.ndarray) -> None:
     assert len(mtl_in) == len(mtl_out)
     for x, y in zip(mtl_in, mtl_out):
         if x.split()[:1] and x.split()[0].lower() in ("map_kd", "bump", "map_bump", "map_ks", "map_d", "norm") and \
-                x.split()[-1].startswith("../"):  # outside the input's folder: not read, not copied, not named
+                x.split()[-1].startswith("../") and not outside:  # not read, not copied, not named
             assert y == f"# {x} (not read by kpd)"
             assert not (out.parent / f"{out.stem}_{Path(x.split()[-1]).name}").exists()
         elif x.split()[:1] and x.split()[0].lower() in ("map_kd", "bump", "map_bump", "map_ks", "map_d", "norm"):
@@ -449,12 +450,24 @@ def shapenet_files(data_dir: Path) -> list[Path]:
     return files
 
 
-def test_every_shapenet_model_keeps_its_materials_and_uvs_through_a_deformation(data_dir, tmp_path, caplog):
-    """All 38 models: the deformed output is the input's own file with new v and vn lines and its .mtl beside it,
-    and reads back with the same materials, UVs and UV mask. ShapeNet keeps its maps in ``../images``, outside the
-    model's folder, which kpd does not read: each map statement is one warning, and no map is copied."""
+def test_every_shapenet_model_keeps_its_materials_maps_and_uvs_through_a_deformation(data_dir, tmp_path, caplog):
+    """All 38 models: the deformed output is the input's own file with new v and vn lines, its .mtl and every map
+    beside it, and reads back with the same materials, textures, UVs and UV mask. ShapeNet keeps its maps in
+    ``../images``, outside the model's folder: read only when the model's own folder is named as ``files_root``; read
+    by default, each map statement is one warning, and no map is read or copied."""
     files = shapenet_files(data_dir)
     mixed = textured = 0
+    for i, path in enumerate(files):
+        mesh = read_mesh(path, files_root=path.parents[1])
+        moved = mesh.with_vertices(affine(mesh.vertices))
+        out = tmp_path / f"trusted{i}" / "out.obj"
+        out.parent.mkdir()
+        write_mesh(out, moved)
+        assert_obj_kept(path, out, moved.vertices, outside=True)
+        assert_same_features(mesh, read_mesh(out))
+        textured += any(t.shape[0] > 1 for t in mesh.textures)
+    assert textured == 20
+    textured = 0
     for i, path in enumerate(files):
         caplog.clear()
         mesh = read_mesh(path)

@@ -256,3 +256,23 @@ def test_declared_sizes_are_checked_against_the_data(tmp_path, change, message):
     path.write_text(json.dumps(doc))
     with pytest.raises(InputError, match=message):
         read_mesh(path)
+
+
+def test_a_wider_files_root_is_the_callers_choice(tmp_path, caplog):
+    """``files_root`` names the tree a dataset's maps may come from (ShapeNet's ``../images``); nothing outside it,
+    and never a system file, is read even then."""
+    folder = tmp_path / "model" / "models"
+    folder.mkdir(parents=True)
+    (tmp_path / "model" / "images").mkdir()
+    (tmp_path / "model" / "images" / "tex.png").write_bytes(png((10, 120, 240)))
+    (tmp_path / "secret.png").write_bytes(png((7, 7, 7)) + SECRET)
+    path = gltf_with_images(folder, ["../images/tex.png", "../../secret.png", "/proc/self/environ"])
+    with caplog.at_level(logging.WARNING):
+        mesh = read_mesh(path, files_root=tmp_path / "model")
+    assert warnings_naming([r.getMessage() for r in caplog.records], ["../../secret.png", "/proc/self/environ"]) == \
+        {"../../secret.png": 1, "/proc/self/environ": 1}
+    assert mesh.textures[0][0, 0].tolist() == [10, 120, 240]
+    out = tmp_path / "out" / "edited.gltf"
+    out.parent.mkdir()
+    write_mesh(out, mesh.with_vertices(mesh.vertices + 1))
+    assert_nothing_leaked(out, {"edited.gltf", "edited_tex.png"})

@@ -347,19 +347,19 @@ def read_gltf_json(p: Path) -> tuple[dict, bytes | None]:
     return doc, chunk
 
 
-def _gltf_uri_bytes(p: Path, uri: str, limit: int = IMAGE_BYTES) -> bytes | str | None:
+def _gltf_uri_bytes(p: Path, uri: str, limit: int = IMAGE_BYTES, root: Path | None = None) -> bytes | str | None:
     """The bytes a URI of the glTF ``p`` names: a ``data:`` URI's own, or a file's as :mod:`kpd.io.references`
     allows (inside the file's folder, a regular file of at most ``limit`` bytes); else why it is not read (a str), or
     None when the file is missing."""
     if uri.startswith("data:"):
         return base64.b64decode(uri.split(",", 1)[1])
-    found = references.locate_uri(p.parent, uri)
+    found = references.locate_uri(p.parent if root is None else root, p.parent, uri)
     if found.path is None:
         return found.refused
     return references.read_named(found.path, limit)
 
 
-def _image_files(p: Path, doc: dict) -> dict[int, tuple[bytes, np.ndarray]]:
+def _image_files(p: Path, doc: dict, root: Path | None = None) -> dict[int, tuple[bytes, np.ndarray]]:
     """{image index: (its file's bytes, its pixels)} of the images the glTF ``p`` keeps in files beside it that
     :mod:`kpd.io.references` allows and that decode: the only image files a write copies. One warning for each
     other one."""
@@ -368,7 +368,7 @@ def _image_files(p: Path, doc: dict) -> dict[int, tuple[bytes, np.ndarray]]:
         uri = image.get("uri") if isinstance(image, dict) else None
         if not isinstance(uri, str) or uri.startswith("data:"):
             continue
-        raw = _gltf_uri_bytes(p, uri)
+        raw = _gltf_uri_bytes(p, uri, IMAGE_BYTES, root)
         if raw is None:
             log.warning("%s: texture file %r is missing; read without it", p, uri)
             continue
@@ -402,7 +402,7 @@ class GltfSource:
         self.image_files = {} if image_files is None else image_files  # {index: (bytes, pixels)}, _image_files
 
 
-def read_buffers(p: Path, doc: dict, chunk: bytes | None) -> list:
+def read_buffers(p: Path, doc: dict, chunk: bytes | None, root: Path | None = None) -> list:
     """The bytes of every buffer: the ``.glb``'s binary chunk, a ``data:`` URI's, or a file's beside the glTF as
     :mod:`kpd.io.references` allows (at most the memory kpd may take: checked before it is read)."""
     out = []
@@ -414,7 +414,7 @@ def read_buffers(p: Path, doc: dict, chunk: bytes | None) -> list:
             uri = buffer["uri"]
             if not isinstance(uri, str):
                 raise InputError(f"{p}: buffer {i} has a uri that is not a string")
-            data = _gltf_uri_bytes(p, uri, memory_free())
+            data = _gltf_uri_bytes(p, uri, memory_free(), root)
             if data is None:
                 raise InputError(f"{p}: its buffer {uri!r} is missing")
             if isinstance(data, str):
@@ -583,9 +583,10 @@ def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, np.power((c + 0.055) / 1.055, 2.4))
 
 
-def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | PointSet":
+def read(p: Path, name: str | None = None, *, points: bool = False, root: Path | None = None) -> "Mesh | PointSet":
     """Read a ``.gltf``/``.glb`` (every triangle primitive of every mesh node of the default scene, in world
-    coordinates, each primitive's vertices in the file's order), with its materials' base colours and images."""
+    coordinates, each primitive's vertices in the file's order), with its materials' base colours and images; the
+    files it names are read inside ``root`` only (its own folder when None; :mod:`kpd.io.references`)."""
     from kpd.io.images import read_image_bytes
     from kpd.mesh import PointSet
 
@@ -596,15 +597,15 @@ def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | P
     if not isinstance(doc, dict) or str(doc.get("asset", {}).get("version", "2.0")).split(".")[0] != "2":
         raise InputError(f"{p}: not a glTF 2.0 file")
     try:
-        return _read(p, doc, chunk, name if name is not None else str(p), points, read_image_bytes, PointSet)
+        return _read(p, doc, chunk, name if name is not None else str(p), points, read_image_bytes, PointSet, root)
     except InputError:
         raise
     except (KeyError, IndexError, TypeError, ValueError) as exc:
         raise InputError(f"{p}: a malformed glTF file ({type(exc).__name__}: {exc})") from None
 
 
-def _read(p, doc, chunk, name, points, read_image_bytes, PointSet):
-    buffers = read_buffers(p, doc, chunk)
+def _read(p, doc, chunk, name, points, read_image_bytes, PointSet, root=None):
+    buffers = read_buffers(p, doc, chunk, root)
     blocks, vertices, normals, colors, tris, corner_uvs, has_uv, materials = [], [], [], [], [], [], [], []
     offset = 0
     skipped = 0
@@ -674,7 +675,7 @@ def _read(p, doc, chunk, name, points, read_image_bytes, PointSet):
     mask = np.concatenate(has_uv)
     uvs = np.vstack(corner_uvs) if mask.any() else None
     ids = np.concatenate(materials)
-    files = _image_files(p, doc)
+    files = _image_files(p, doc, root)
     textures, texture_ids = _materials(p, doc, buffers, ids, read_image_bytes, files)
     if textures and uvs is None:
         uvs = np.zeros((3 * len(T), 2))

@@ -108,18 +108,19 @@ def find_map(folder: Path, name: str, whole: str) -> Path | None:
     return locate_map(folder, folder, name, whole).path
 
 
-def library_references(p: Path, names: str) -> list[tuple[str, Named]]:
+def library_references(p: Path, names: str, root: Path | None = None) -> list[tuple[str, Named]]:
     """The files of one ``mtllib`` statement of the OBJ ``p`` (several names may follow it; a name may hold spaces),
-    judged by :func:`kpd.io.references.locate` inside the OBJ's folder."""
-    whole = locate(p.parent, p.parent, names)
+    judged by :func:`kpd.io.references.locate` inside ``root`` (the OBJ's folder when None)."""
+    root = p.parent if root is None else root
+    whole = locate(root, p.parent, names)
     if whole.path is not None or len(names.split()) < 2:
         return [(names, whole)]
-    return [(name, locate(p.parent, p.parent, name)) for name in names.split()]
+    return [(name, locate(root, p.parent, name)) for name in names.split()]
 
 
-def library_files(p: Path, names: str) -> list[tuple[str, Path | None]]:
+def library_files(p: Path, names: str, root: Path | None = None) -> list[tuple[str, Path | None]]:
     """:func:`library_references` as (name, real path or None)."""
-    return [(name, found.path) for name, found in library_references(p, names)]
+    return [(name, found.path) for name, found in library_references(p, names, root)]
 
 
 def map_statements(data: bytes) -> list[tuple[int, bytes]]:

@@ -65,6 +65,7 @@ class ObjSource:
     libraries : the ``mtllib`` statements as (start, end) spans with their file names (resolved paths or None).
     files : {real path: bytes} of the material libraries and maps kpd read (:mod:`kpd.io.references`): the only
         files a write copies.
+    root : the folder tree those files were looked for in.
     """
 
     path: Path
@@ -78,6 +79,7 @@ class ObjSource:
     libraries: list = field(default_factory=list)
     face_lines: int = 0
     files: dict = field(default_factory=dict)
+    root: Path | None = None
 
 
 _SPACE, _TAB, _HASH, _SLASH, _NEWLINE = 32, 9, 35, 47, 10
@@ -490,7 +492,7 @@ def _colors(values: np.ndarray) -> np.ndarray | None:
     return np.ascontiguousarray(values)
 
 
-def _material_files(p: Path, source: ObjSource) -> tuple[dict, dict, dict]:
+def _material_files(p: Path, source: ObjSource, root: Path) -> tuple[dict, dict, dict]:
     """The material libraries the OBJ ``p`` names and the maps they name, as :mod:`kpd.io.references` allows them:
     {real path: bytes} of every file accepted (the libraries' text, the maps' bytes: all a writer copies),
     {real path: (H, W, C) uint8} of the maps, and the materials by name. One warning for each file not read."""
@@ -500,7 +502,7 @@ def _material_files(p: Path, source: ObjSource) -> tuple[dict, dict, dict]:
     judged: set = set()  # files looked at (read or refused), each reported once
     missing = []
     for _, _, names in source.libraries:
-        for lib_name, found in mtl.library_references(p, names):
+        for lib_name, found in mtl.library_references(p, names, root):
             if found.refused is not None:
                 references.warn_refused(p, "material library", lib_name, found.refused)
                 continue
@@ -516,10 +518,10 @@ def _material_files(p: Path, source: ObjSource) -> tuple[dict, dict, dict]:
                     references.warn_refused(p, "material library", lib_name, data)
                     continue
                 files[found.path] = data
-                _map_files(p, found.path, data, files, images, judged)
+                _map_files(p, root, found.path, data, files, images, judged)
             if found.path not in files:
                 continue
-            for material in mtl.read_library(p, found.path, files[found.path], p.parent).values():
+            for material in mtl.read_library(p, found.path, files[found.path], root).values():
                 materials.setdefault(material.name, material)
                 if material.map_kd_name and material.map_kd is None and material.map_kd_refused is None:
                     missing.append(material.map_kd_name)
@@ -529,12 +531,12 @@ def _material_files(p: Path, source: ObjSource) -> tuple[dict, dict, dict]:
     return files, images, materials
 
 
-def _map_files(p: Path, library: Path, data: bytes, files: dict, images: dict, judged: set) -> None:
+def _map_files(p: Path, root: Path, library: Path, data: bytes, files: dict, images: dict, judged: set) -> None:
     """Read every map the library names that :mod:`kpd.io.references` allows and that decodes as an image into
     ``files`` (its bytes) and ``images`` (its pixels); one warning for each other one."""
     for _, arguments in mtl.map_statements(data):
         name, whole = mtl.map_name(arguments)
-        found = mtl.locate_map(p.parent, library.parent, name, whole)
+        found = mtl.locate_map(root, library.parent, name, whole)
         if found.refused is not None:
             references.warn_refused(p, f"map of {library.name}", name, found.refused)
             continue
@@ -551,9 +553,10 @@ def _map_files(p: Path, library: Path, data: bytes, files: dict, images: dict, j
         images[found.path] = image
 
 
-def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | PointSet":
+def read(p: Path, name: str | None = None, *, points: bool = False, root: Path | None = None) -> "Mesh | PointSet":
     """Read an OBJ file (see the module notes); ``name`` is the path as the user gave it, for messages. With
-    ``points``, a file without faces gives a :class:`~kpd.mesh.PointSet` of its vertices instead of an error."""
+    ``points``, a file without faces gives a :class:`~kpd.mesh.PointSet` of its vertices instead of an error. The
+    files it names are read inside ``root`` only (its own folder when None; :mod:`kpd.io.references`)."""
     data = p.read_bytes()
     if b"\0" in data[:4096]:
         raise InputError(f"{p}: not a text OBJ file (it holds binary data)")
@@ -561,7 +564,8 @@ def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | P
     if source is None:
         return PointSet(arrays["vertices"], None, arrays["colors"], path=name if name is not None else os.fspath(p))
     T = len(arrays["triangles"])
-    source.files, images, materials = _material_files(p, source)
+    source.root = p.parent if root is None else Path(root)
+    source.files, images, materials = _material_files(p, source, source.root)
     textures, ids, texture_files = [], None, []
     face_material = arrays["face_material"]
     if face_material is not None and materials:
@@ -646,7 +650,7 @@ def _source_companions(stem: str, source: ObjSource) -> tuple[dict, dict]:
     images: dict[Path, str] = {}
     taken = {f"{stem}.obj".lower()}
     for _, _, names in source.libraries:
-        for lib_name, lib in _library_files(source.path, names):
+        for lib_name, lib in _library_files(source.path, names, source.root):
             if lib is None or lib in libs or lib not in source.files:
                 continue
             new = f"{stem}.mtl" if not libs else _unique(f"{stem}_{Path(lib_name).name}", taken)
@@ -654,7 +658,7 @@ def _source_companions(stem: str, source: ObjSource) -> tuple[dict, dict]:
             renames = {}
             for statement in _map_statements(source.files[lib]):
                 name, whole = mtl.map_name(statement[1])
-                found = mtl.locate_map(source.path.parent, lib.parent, name, whole)
+                found = mtl.locate_map(source.root or source.path.parent, lib.parent, name, whole)
                 f = found.path
                 if f is None or f not in source.files:
                     if found.refused is not None or f is not None:
@@ -695,12 +699,12 @@ def _write_from_source(target: Path, mesh: Mesh, source: ObjSource) -> None:
             streams.append((source.vn_spans[referenced], *_fmt(normals[referenced], b"vn ")))
     lib_names = {}
     for _, _, names in source.libraries:
-        for lib_name, lib in _library_files(source.path, names):
+        for lib_name, lib in _library_files(source.path, names, source.root):
             if lib in libs:
                 lib_names[lib_name] = libs[lib][0]
     statements = []
     for _, _, names in source.libraries:
-        found = mtl.library_references(source.path, names)
+        found = mtl.library_references(source.path, names, source.root)
         files = [lib_names[n] for n, f in found if f.path in libs]
         missing = all(f.path is None and f.refused is None for _, f in found)
         why = b" (missing when kpd read the file)" if missing else b" (not read by kpd)"

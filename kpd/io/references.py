@@ -5,7 +5,9 @@ A file may come from someone else, and the names inside it are theirs to choose.
 - its name is relative (no absolute path, no drive, no control character; for a glTF URI, no scheme but ``data:``),
 - it lies inside the input's own folder tree once every symlink is followed (``os.path.realpath``, then
   :meth:`pathlib.Path.is_relative_to` the folder's real path): a ``..`` or a symlink that leaves the folder is not
-  followed, and nothing under ``/proc``, ``/dev`` or ``/sys`` is read wherever the input lies,
+  followed, and nothing under ``/proc``, ``/dev`` or ``/sys`` is read wherever the input lies (a caller may name a
+  wider tree it trusts: ``read_mesh(..., files_root=)``, for a dataset that keeps its maps beside the models' folders
+  as ShapeNet does),
 - it is a regular file (not a device, a FIFO or a socket) no larger than the bound of its kind, checked on the open
   file before it is read,
 - and it is what it claims to be: an image that decodes, a material library that is text.
@@ -70,13 +72,13 @@ def locate(root: Path, folder: Path, name: str) -> Named:
     return Named(real)
 
 
-def locate_uri(root: Path, uri: str) -> Named:
+def locate_uri(root: Path, folder: Path, uri: str) -> Named:
     """:func:`locate` of a glTF URI that is not a ``data:`` URI: percent-decoded first (RFC 3986), and refused when it
     has a scheme (``file:``, ``http:``) or decodes to a control character (``%00``)."""
     scheme = urllib.parse.urlsplit(uri).scheme if ":" in uri else ""
     if len(scheme) > 1:  # one letter is a drive, which locate refuses as absolute
         return Named(None, f"a URI of scheme {scheme!r}")
-    return locate(root, root, urllib.parse.unquote(uri, errors="replace"))
+    return locate(root, folder, urllib.parse.unquote(uri, errors="replace"))
 
 
 def read_named(path: Path, limit: int) -> bytes | str:
