@@ -9,7 +9,8 @@ colours from ``COLOR_0``; one texture per used material, its base-colour image o
 Writing a mesh read from a glTF file of the same kind (``.glb`` to ``.glb``, ``.gltf`` to ``.gltf``) keeps that file
 whole (:func:`write_from_source`): only the POSITION (and NORMAL) data change, in place where they are plain float32
 data, every node, primitive, material, image, sampler, extension and morph target stays; a ``.gltf``'s external
-buffers and images are written beside it as ``<stem>_<name>``. Any other mesh is written from its arrays: one
+buffers and images are written beside it as ``<stem>_<name>`` (the files kpd read: inside the input's folder tree,
+:mod:`kpd.io.references`). Any other mesh is written from its arrays: one
 primitive per material and per presence of UVs, a 1x1 texture as a plain ``baseColorFactor``, an image read from a
 JPEG file embedded or copied as that JPEG, others as PNG. (Open3D 0.20 writes neither UVs nor textures to glTF and
 writes ``.glb`` files without their binary chunk; its reader, Assimp, merges primitives and drops base colours.)

@@ -11,7 +11,8 @@ Writing a mesh read from an OBJ (:func:`write`, directly or after :meth:`~kpd.me
 only the ``v`` lines (and the ``vn`` lines, turned with the surface) of the input's own text: groups, smoothing
 groups, lines, comments, materials and face order stay as they were; the ``.mtl`` is copied as ``<stem>.mtl`` with
 its maps renamed, and every image it names is copied byte for byte as ``<stem>_<its name>`` (a JPEG stays a JPEG),
-so that the outputs of one folder never collide. Any other mesh is written by :func:`write` from its arrays: ``v``
+so that the outputs of one folder never collide. Only the files kpd read are copied: those inside the input's folder
+tree that are what they claim (:mod:`kpd.io.references`); the statement of any other is kept as a comment. Any other mesh is written by :func:`write` from its arrays: ``v``
 (with ``r g b`` when it has vertex colours), ``vt`` on the faces that have UVs, ``vn``, one material per texture
 (a 1x1 texture as a plain ``Kd`` colour, others as ``<stem>_<i>.png``).
 
