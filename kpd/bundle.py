@@ -27,10 +27,11 @@ import numpy as np
 from kpd import onnx_contract as contract
 from kpd.cage import Cage
 from kpd.errors import BundleError, InputError
+from kpd.io.common import memory_free
 from kpd.prior import KeypointPrior
 
 __all__ = ["Bundle", "read_bundle", "write_bundle", "resolve_bundle", "shipped_bundles", "manifest_checksum",
-           "MODELS_DIR"]
+           "MODELS_DIR", "MANIFEST_BYTES", "FILE_BYTES", "RATIO"]
 
 log = logging.getLogger(__name__)
 
@@ -147,52 +148,121 @@ def resolve_bundle(name_or_path: str | os.PathLike) -> Path:
 def read_bundle(name_or_path: str | os.PathLike) -> Bundle:
     """Read and validate a bundle (folder, zip, or shipped name).
 
+    Only the manifest and the files it lists are read, each after its size (and, in a zip, its compression ratio)
+    passed the bounds below; every file is a plain name inside the bundle; the ONNX graphs are checked to be
+    self-contained (:func:`kpd.onnx_contract.graph_refusal`) before anything runs them.
+
     Raises
     ------
-    BundleError naming the problem: missing file, changed bytes, other format version, a mis-shaped array.
+    BundleError naming the problem: missing file, changed bytes, other format version, a mis-shaped array, a file
+    too large, a graph that reaches outside the bundle.
     """
     path = resolve_bundle(name_or_path)
-    raw = _read_files(path)
     where = str(path)
-    if contract.MANIFEST_FILE not in raw:
-        raise BundleError(f"{where}: not a kpd bundle: {contract.MANIFEST_FILE} is missing")
-    try:
-        manifest = json.loads(raw[contract.MANIFEST_FILE].decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise BundleError(f"{where}: {contract.MANIFEST_FILE} is not valid JSON ({exc})") from exc
-    if not isinstance(manifest, dict):
-        raise BundleError(f"{where}: {contract.MANIFEST_FILE} must hold a JSON object")
-    _check_format(manifest, where)
-    recorded = manifest.get(_CHECKSUM_KEY)
-    actual = manifest_checksum(manifest)
-    if recorded != actual:
-        raise BundleError(f"{where}: {contract.MANIFEST_FILE} was modified: checksum {recorded} recorded, "
-                          f"{actual} computed")
-    files = _check_files(manifest, raw, where)
+    with _Members(path) as members:
+        manifest_bytes = members.read(contract.MANIFEST_FILE, MANIFEST_BYTES)
+        if manifest_bytes is None:
+            raise BundleError(f"{where}: not a kpd bundle: {contract.MANIFEST_FILE} is missing")
+        try:
+            manifest = json.loads(manifest_bytes.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+            raise BundleError(f"{where}: {contract.MANIFEST_FILE} is not valid JSON ({exc})") from exc
+        if not isinstance(manifest, dict):
+            raise BundleError(f"{where}: {contract.MANIFEST_FILE} must hold a JSON object")
+        _check_format(manifest, where)
+        recorded = manifest.get(_CHECKSUM_KEY)
+        actual = manifest_checksum(manifest)
+        if recorded != actual:
+            raise BundleError(f"{where}: {contract.MANIFEST_FILE} was modified: checksum {recorded} recorded, "
+                              f"{actual} computed")
+        files = _check_files(manifest, members, where)
     try:
         _check_manifest(manifest, files)
     except (KeyError, TypeError, ValueError, InputError) as exc:
         detail = f"lacks {exc.args[0]!r}" if isinstance(exc, KeyError) else str(exc)
         raise BundleError(f"{where}: invalid manifest: {detail}") from exc
+    for spec in contract.GRAPHS:
+        name = manifest["graphs"][spec.key]["file"]
+        refusal = contract.graph_refusal(files[name])
+        if refusal is not None:
+            raise BundleError(f"{where}: {name} is refused: {refusal}")
     return Bundle(path=path, manifest=manifest, files=files)
 
 
-def _read_files(path: Path) -> dict[str, bytes]:
-    if path.is_dir():
-        return {p.name: p.read_bytes() for p in path.iterdir() if p.is_file()}
-    if not path.is_file():
-        raise BundleError(f"{path}: no such bundle")
-    if not zipfile.is_zipfile(path):
-        raise BundleError(f"{path}: a bundle must be a .kpd folder or a .zip of one")
-    try:
-        with zipfile.ZipFile(path) as archive:
-            names = [n for n in archive.namelist() if not n.endswith("/")]
-            roots = {n.split("/")[0] for n in names if "/" in n}
-            # files at the archive's root, or inside one top-level folder
-            prefix = roots.pop() + "/" if len(roots) == 1 and all("/" in n for n in names) else ""
-            return {n[len(prefix):]: archive.read(n) for n in names if "/" not in n[len(prefix):]}
-    except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
-        raise BundleError(f"{path}: damaged zip ({exc or type(exc).__name__})") from exc
+MANIFEST_BYTES = 64 << 20  # the manifest is JSON of a few hundred kilobytes (W_C, the prior, the cage)
+FILE_BYTES = 1 << 30  # one file of a bundle: the largest graph kpd exports is tens of megabytes
+RATIO = 100  # the most a zip member may inflate (ONNX weights and point clouds barely deflate; JSON about 4x)
+_RATIO_FROM = 1 << 20  # bytes below which a member's ratio is not judged (a small file of zeros is no threat)
+_MAX_FILES = 64
+
+
+class _Members:
+    """The files of a bundle folder or zip, read one by one on request, each only after its size is checked."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.archive = None
+        self.prefix = ""
+        if path.is_dir():
+            return
+        if not path.is_file():
+            raise BundleError(f"{path}: no such bundle")
+        if not zipfile.is_zipfile(path):
+            raise BundleError(f"{path}: a bundle must be a .kpd folder or a .zip of one")
+        try:
+            self.archive = zipfile.ZipFile(path)
+            names = [n for n in self.archive.namelist() if not n.endswith("/")]
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as exc:
+            raise BundleError(f"{path}: damaged zip ({exc or type(exc).__name__})") from exc
+        roots = {n.split("/")[0] for n in names if "/" in n}
+        # files at the archive's root, or inside one top-level folder
+        self.prefix = roots.pop() + "/" if len(roots) == 1 and all("/" in n for n in names) else ""
+
+    def __enter__(self) -> "_Members":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.archive is not None:
+            self.archive.close()
+
+    def read(self, name: str, limit: int) -> bytes | None:
+        """The bytes of the bundle's file ``name`` (a plain file name), or None when it has none; BundleError when
+        it is larger than ``limit`` or (in a zip) inflates more than :data:`RATIO` times."""
+        if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name or any(ord(c) < 32 for c in name):
+            raise BundleError(f"{self.path}: the manifest names {name!r}, not a plain file name of the bundle")
+        if self.archive is None:
+            return self._read_file(name, limit)
+        try:
+            info = self.archive.getinfo(self.prefix + name)
+        except KeyError:
+            return None
+        if info.file_size > limit:
+            raise BundleError(f"{self.path}: {name} inflates to {info.file_size} bytes, over the {limit} kpd reads "
+                              "for one file of a bundle")
+        if info.file_size > _RATIO_FROM and info.file_size > RATIO * max(info.compress_size, 1):
+            raise BundleError(f"{self.path}: {name} inflates {info.file_size // max(info.compress_size, 1)} times "
+                              f"({info.compress_size} to {info.file_size} bytes), more than the {RATIO} of a bundle")
+        try:
+            with self.archive.open(info) as fh:
+                data = fh.read(info.file_size + 1)
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, NotImplementedError) as exc:
+            raise BundleError(f"{self.path}: damaged zip ({exc or type(exc).__name__})") from exc
+        if len(data) != info.file_size:
+            raise BundleError(f"{self.path}: damaged zip ({name} holds {len(data)} of its {info.file_size} bytes)")
+        return data
+
+    def _read_file(self, name: str, limit: int) -> bytes | None:
+        from kpd.io.references import locate, read_named
+
+        found = locate(self.path, self.path, name)
+        if found.refused is not None:
+            raise BundleError(f"{self.path}: {name} is not read ({found.refused}); a bundle holds its own files")
+        if found.path is None:
+            return None
+        data = read_named(found.path, limit)
+        if isinstance(data, str):
+            raise BundleError(f"{self.path}: {name} is not read ({data})")
+        return data
 
 
 def _check_format(manifest: dict, where: str) -> None:
@@ -205,23 +275,31 @@ def _check_format(manifest: dict, where: str) -> None:
                           f"{contract.FORMAT_VERSION} (re-export the model with this kpd)")
 
 
-def _check_files(manifest: dict, raw: dict[str, bytes], where: str) -> dict[str, bytes]:
+def _check_files(manifest: dict, members: _Members, where: str) -> dict[str, bytes]:
     listed = manifest.get("files")
     if not isinstance(listed, dict) or not listed:
         raise BundleError(f"{where}: manifest lists no files")
-    needed = {manifest.get("graphs", {}).get(g.key, {}).get("file", g.file) for g in contract.GRAPHS}
-    if manifest.get("template"):
-        needed.add(manifest["template"].get("file", contract.TEMPLATE_FILE))
-    for name in sorted(needed - set(listed)):
+    if len(listed) > _MAX_FILES:
+        raise BundleError(f"{where}: manifest lists {len(listed)} files; a bundle holds at most {_MAX_FILES}")
+    graphs = manifest.get("graphs") if isinstance(manifest.get("graphs"), dict) else {}
+    needed = [(graphs.get(g.key) if isinstance(graphs.get(g.key), dict) else {}).get("file", g.file)
+              for g in contract.GRAPHS]
+    if isinstance(manifest.get("template"), dict):
+        needed.append(manifest["template"].get("file", contract.TEMPLATE_FILE))
+    if not all(isinstance(name, str) for name in needed):
+        raise BundleError(f"{where}: invalid manifest: a file name that is not a string")
+    needed = set(needed)
+    for name in sorted(needed - set(listed), key=str):
         raise BundleError(f"{where}: manifest has no sha256 for {name}")
     files = {}
     for name, digest in sorted(listed.items()):
-        if name not in raw:
+        data = members.read(name, min(FILE_BYTES, memory_free()))
+        if data is None:
             raise BundleError(f"{where}: {name} is missing")
-        actual = hashlib.sha256(raw[name]).hexdigest()
+        actual = hashlib.sha256(data).hexdigest()
         if actual != digest:
             raise BundleError(f"{where}: {name} was modified: sha256 {digest} expected, {actual} found")
-        files[name] = raw[name]
+        files[name] = data
     return files
 
 
@@ -236,6 +314,8 @@ def _check_manifest(manifest: dict, files: dict[str, bytes]) -> None:
         raise ValueError(f"normalization must be {contract.NORMALIZATION!r}; got {inputs['normalization']!r}")
     for spec in contract.GRAPHS:
         graph = manifest["graphs"][spec.key]
+        if graph["file"] not in files:
+            raise ValueError(f"graph {spec.key} is in {graph['file']!r}, which the manifest does not list")
         if graph["input"] != contract.INPUT_NAME or graph["output"] != spec.output:
             raise ValueError(f"graph {spec.key} must map {contract.INPUT_NAME!r} -> {spec.output!r}; "
                              f"got {graph['input']!r} -> {graph['output']!r}")

@@ -210,7 +210,11 @@ class Model:
 
         def call(spec: contract.GraphSpec) -> np.ndarray:
             input_name, output_name = self._io[spec.key]
-            return self._sessions[spec.key].run([output_name], {input_name: array})[0]
+            try:
+                return self._sessions[spec.key].run([output_name], {input_name: array})[0]
+            except _ort_failures() as exc:  # the graph's own failure (an allocation it cannot make, for one)
+                raise BundleError(f"{self.bundle.path}: {spec.file} failed in onnxruntime "
+                                  f"({_one_line(exc)})") from exc
 
         if self._pool is not None:  # Γ on a worker thread while Φ runs here (onnxruntime releases the GIL)
             pending = self._pool.submit(call, contract.INFLUENCE_GRAPH)
@@ -404,15 +408,24 @@ class Model:
         return self._prior
 
 
-def _session(ort, bundle: Bundle, spec: contract.GraphSpec, options, providers):
+def _ort_failures() -> tuple:
+    """The exceptions onnxruntime raises for a graph it cannot open or run."""
     from onnxruntime.capi import onnxruntime_pybind11_state as state
 
-    failures = (state.Fail, state.InvalidGraph, state.InvalidProtobuf, state.InvalidArgument, state.NotImplemented,
-                state.NoSuchFile, state.RuntimeException, RuntimeError, ValueError)
+    return (state.Fail, state.InvalidGraph, state.InvalidProtobuf, state.InvalidArgument, state.NotImplemented,
+            state.NoSuchFile, state.RuntimeException, state.EPFail, RuntimeError, ValueError, MemoryError)
+
+
+def _one_line(exc: BaseException) -> str:
+    """onnxruntime's message on one line (it may span several, with a stack of its own)."""
+    return " ".join(str(exc).split())[:500] or type(exc).__name__
+
+
+def _session(ort, bundle: Bundle, spec: contract.GraphSpec, options, providers):
     try:
         return ort.InferenceSession(bundle.graph(spec), options, providers=providers)
-    except failures as exc:
-        raise BundleError(f"{bundle.path}: {spec.file} cannot be opened by onnxruntime ({exc})") from exc
+    except _ort_failures() as exc:
+        raise BundleError(f"{bundle.path}: {spec.file} cannot be opened by onnxruntime ({_one_line(exc)})") from exc
 
 
 def _check_session(session, bundle: Bundle, spec: contract.GraphSpec) -> tuple[str, str]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+import subprocess
 import zipfile
 from pathlib import Path
 
@@ -44,7 +45,7 @@ def toy_reference(points: np.ndarray, w: dict, k: int, c: int) -> tuple[np.ndarr
     return keypoints, influence
 
 
-def _toy_graph(spec: contract.GraphSpec, w: dict, k: int, c: int, meta: dict) -> bytes:
+def _toy_graph(spec: contract.GraphSpec, w: dict, k: int, c: int, meta: dict, edit=None) -> bytes:
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
@@ -79,18 +80,23 @@ def _toy_graph(spec: contract.GraphSpec, w: dict, k: int, c: int, meta: dict) ->
     for key, value in {**meta, contract.META_GRAPH: spec.key}.items():
         entry = model.metadata_props.add()
         entry.key, entry.value = key, value
+    if edit is not None:  # a hostile variant (the tests of self-contained bundles)
+        edit(spec, model)
+        return model.SerializeToString()
     onnx.checker.check_model(model)
     return model.SerializeToString()
 
 
 def make_toy_bundle(path, *, k: int = 4, c: int = 42, seed: int = 0, prior: bool = True, template: bool = True,
-                    graph_k: int | None = None, meta_version: str | None = None, up: str | None = "+z") -> Path:
-    """Write a small valid bundle (or, with ``graph_k`` / ``meta_version``, one whose graphs disagree with it)."""
+                    graph_k: int | None = None, meta_version: str | None = None, up: str | None = "+z",
+                    edit=None) -> Path:
+    """Write a small valid bundle (or, with ``graph_k`` / ``meta_version``, one whose graphs disagree with it; with
+    ``edit(spec, model)``, one whose graphs ``edit`` changed in place, the manifest sealed over them)."""
     w = toy_weights(graph_k or k, c, seed)
     meta = {contract.META_FORMAT: contract.FORMAT_NAME,
             contract.META_FORMAT_VERSION: meta_version or str(contract.FORMAT_VERSION),
             contract.META_KEYPOINTS: str(graph_k or k), contract.META_CAGE_VERTICES: str(c)}
-    graphs = [_toy_graph(spec, w, graph_k or k, c, meta) for spec in contract.GRAPHS]
+    graphs = [_toy_graph(spec, w, graph_k or k, c, meta, edit) for spec in contract.GRAPHS]
     rng = np.random.default_rng(seed + 1)
     fitted = None
     if prior:
@@ -261,3 +267,204 @@ def test_copy_keeps_validity(tmp_path, toy):
     copy = tmp_path / "copy.kpd"
     shutil.copytree(toy, copy)
     assert read_bundle(copy).manifest == read_bundle(toy).manifest
+
+
+# --- bundles from others: sizes checked before reading, graphs that stay inside the bundle ----------------------------
+
+
+def _deflated_zeros(nbytes: int) -> tuple[bytes, int]:
+    """A raw deflate stream of ``nbytes`` zero bytes (a multiple of 16 MiB) and its CRC-32, made from one compressed
+    block repeated (a full flush makes each block stand alone), so that a bomb costs a second to build."""
+    import zlib
+
+    piece = 16 << 20
+    compressor = zlib.compressobj(9, zlib.DEFLATED, -15)
+    block = compressor.compress(bytes(piece)) + compressor.flush(zlib.Z_FULL_FLUSH)
+    crc = 0
+    zeros = bytes(piece)
+    for _ in range(nbytes // piece):
+        crc = zlib.crc32(zeros, crc)
+    return block * (nbytes // piece) + b"\x03\x00", crc
+
+
+def _write_zip(path: Path, members: dict) -> None:
+    """A zip of ``members`` {name: bytes, or (deflate stream, crc, size)} written by hand: deflated members are
+    stored as given, the others as they are (method 0)."""
+    import struct
+    import zlib
+
+    local, central = bytearray(), bytearray()
+    for name, data in members.items():
+        raw = name.encode()
+        if isinstance(data, tuple):
+            body, crc, size, method = *data, 8
+        else:
+            body, crc, size, method = data, zlib.crc32(data), len(data), 0
+        offset = len(local)
+        local += struct.pack("<IHHHHHIIIHH", 0x04034B50, 20, 0, method, 0, 0x5221, crc, len(body), size, len(raw), 0)
+        local += raw + body
+        central += struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 20, 20, 0, method, 0, 0x5221, crc, len(body), size,
+                               len(raw), 0, 0, 0, 0, 0o644 << 16, offset)
+        central += raw
+    end = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, len(members), len(members), len(central), len(local), 0)
+    path.write_bytes(bytes(local + central + end))
+
+
+@pytest.fixture(scope="module")
+def bomb() -> tuple[bytes, int, int]:
+    body, crc = _deflated_zeros(2 << 30)
+    return body, crc, 2 << 30
+
+
+def test_zip_members_inflating_to_gigabytes_are_refused_before_they_are_read(tmp_path, bomb):
+    """A zip of a few megabytes whose listed members inflate to 2 GiB each: one line, nothing inflated."""
+    toy = make_toy_bundle(tmp_path / "toy.kpd")
+    members = {p.name: p.read_bytes() for p in toy.iterdir()}
+    members.update({"keypoints.onnx": bomb, "influence.onnx": bomb, "template.npy": bomb})
+    path = tmp_path / "bomb.zip"
+    _write_zip(path, members)
+    assert path.stat().st_size < 8 << 20
+    with pytest.raises(BundleError, match=r"influence.onnx inflates to 2147483648 bytes, over the 1073741824"):
+        read_bundle(path)
+
+
+def test_a_zip_member_the_manifest_does_not_list_is_never_read(tmp_path, bomb):
+    toy = make_toy_bundle(tmp_path / "toy.kpd")
+    members = {p.name: p.read_bytes() for p in toy.iterdir()}
+    members["extra.bin"] = bomb
+    _write_zip(tmp_path / "extra.zip", members)
+    bundle = read_bundle(tmp_path / "extra.zip")
+    assert set(bundle.files) == {"keypoints.onnx", "influence.onnx", "template.npy"}
+
+
+def test_a_highly_compressed_member_is_refused_by_its_ratio(tmp_path):
+    import zlib
+
+    toy = make_toy_bundle(tmp_path / "toy.kpd")
+    members = {p.name: p.read_bytes() for p in toy.iterdir()}
+    compressor = zlib.compressobj(9, zlib.DEFLATED, -15)
+    zeros = bytes(64 << 20)
+    members["template.npy"] = (compressor.compress(zeros) + compressor.flush(), zlib.crc32(zeros), len(zeros))
+    _write_zip(tmp_path / "dense.zip", members)
+    with pytest.raises(BundleError, match=r"template.npy inflates \d+ times .* more than the 100 of a bundle"):
+        read_bundle(tmp_path / "dense.zip")
+
+
+def test_the_bomb_through_the_command_is_one_line_and_little_memory(tmp_path, bomb):
+    from test_trust_files import peak_of
+
+    toy = make_toy_bundle(tmp_path / "toy.kpd")
+    members = {p.name: p.read_bytes() for p in toy.iterdir()}
+    members.update({"keypoints.onnx": bomb, "influence.onnx": bomb, "template.npy": bomb})
+    _write_zip(tmp_path / "bomb.zip", members)
+    (tmp_path / "points.xyz").write_text("\n".join(f"{x} {x * 2} {x * 3}" for x in np.linspace(-1, 1, 64)))
+    import sys
+
+    done, peak = peak_of([sys.executable, "-m", "kpd.cli", "keypoints", str(tmp_path / "bomb.zip"),
+                          str(tmp_path / "points.xyz")])
+    assert done.returncode == 2 and done.stderr.count("\n") == 1 and "inflates to 2147483648" in done.stderr
+    assert peak < 0.5 * 2**30, peak
+
+
+@pytest.mark.parametrize("name", ["../manifest.json", "sub/x.onnx", ".."])
+def test_a_manifest_naming_a_path_is_refused(toy, name):
+    _rewrite_manifest(toy, lambda m: m["files"].update({name: "0" * 64}))
+    with pytest.raises(BundleError, match="not a plain file name of the bundle"):
+        read_bundle(toy)
+
+
+def test_a_bundle_file_that_is_a_symlink_out_is_refused(tmp_path, toy):
+    outside = tmp_path / "elsewhere.npy"
+    shutil.move(toy / "template.npy", outside)
+    (toy / "template.npy").symlink_to(outside)
+    with pytest.raises(BundleError, match="template.npy is not read \\(outside the input's folder\\)"):
+        read_bundle(toy)
+
+
+def _external_w1(spec, model) -> None:
+    """Store the first layer's weights outside the graph, in ``blob.bin`` of the current folder."""
+    from onnx import TensorProto
+    from onnx.external_data_helper import set_external_data
+
+    tensor = next(t for t in model.graph.initializer if t.name == "w1")
+    set_external_data(tensor, location="blob.bin", offset=0, length=len(tensor.raw_data))
+    tensor.data_location = TensorProto.EXTERNAL
+    tensor.ClearField("raw_data")
+
+
+def _foreign_import(spec, model) -> None:
+    model.opset_import.add(domain="com.microsoft", version=1)
+
+
+def _foreign_node(spec, model) -> None:
+    model.graph.node[2].domain = "custom.evil"
+
+
+def _constant_weights(spec, model) -> None:
+    """The weights as a Constant node whose tensor is external: a tensor inside a node's attribute."""
+    from onnx import TensorProto, helper
+    from onnx.external_data_helper import set_external_data
+
+    tensor = next(t for t in model.graph.initializer if t.name == "b1")
+    model.graph.initializer.remove(tensor)
+    set_external_data(tensor, location="blob.bin")
+    tensor.data_location = TensorProto.EXTERNAL
+    tensor.ClearField("raw_data")
+    model.graph.node.insert(0, helper.make_node("Constant", [], ["b1"], value=tensor))
+
+
+@pytest.mark.parametrize("edit, message", [
+    (_external_w1, "tensor 'w1' keeps its data outside the model"),
+    (_constant_weights, "tensor 'b1' keeps its data outside the model"),
+    (_foreign_import, "imports the operator set 'com.microsoft'"),
+    (_foreign_node, "node 'Relu' is of the operator set 'custom.evil'"),
+])
+def test_graphs_that_reach_outside_the_bundle_are_refused(tmp_path, monkeypatch, edit, message):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "blob.bin").write_bytes(np.ones(3 * HIDDEN, np.float32).tobytes())  # where onnxruntime would look
+    path = make_toy_bundle(tmp_path / "hostile.kpd", edit=edit)
+    with pytest.raises(BundleError, match=f"hostile.kpd: keypoints.onnx is refused: .*{message}"):
+        read_bundle(path)
+
+
+def test_not_a_protobuf_graph_is_refused(tmp_path):
+    def garbage(spec, model) -> None:
+        model.graph.name = "x"
+
+    path = make_toy_bundle(tmp_path / "odd.kpd", edit=garbage)
+    (path / "keypoints.onnx").write_bytes(b"\xff\xff\xff")
+    _rewrite_manifest(path, lambda m: m["files"].update(
+        {"keypoints.onnx": hashlib.sha256(b"\xff\xff\xff").hexdigest()}))
+    with pytest.raises(BundleError, match="keypoints.onnx is refused: not an ONNX model"):
+        read_bundle(path)
+
+
+def _huge_constant(spec, model) -> None:
+    """A ConstantOfShape of 2^33 floats added to the output: onnxruntime fails to allocate it when the graph runs."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    model.graph.initializer.append(numpy_helper.from_array(np.array([2**33], np.int64), "huge_shape"))
+    last = model.graph.node[-1]
+    last.output[0] = "before_huge"
+    model.graph.node.extend([
+        helper.make_node("ConstantOfShape", ["huge_shape"], ["huge"],
+                         value=helper.make_tensor("zero", TensorProto.FLOAT, [1], [0.0])),
+        helper.make_node("ReduceMax", ["huge"], ["huge_max"], keepdims=0),
+        helper.make_node("Add", ["before_huge", "huge_max"], [spec.output])])
+
+
+def test_an_allocation_onnxruntime_cannot_make_is_one_line_naming_the_bundle(tmp_path):
+    import sys
+
+    from kpd.runtime import Model
+
+    path = make_toy_bundle(tmp_path / "huge.kpd", edit=_huge_constant)
+    model = Model.load(path)
+    with pytest.raises(BundleError, match=r"huge.kpd: (keypoints|influence).onnx failed in onnxruntime \(.*"
+                                          r"allocate"):
+        model.run(np.zeros((8, 3)))
+    (tmp_path / "points.xyz").write_text("\n".join(f"{x} {x * 2} {x * 3}" for x in np.linspace(-1, 1, 64)))
+    done = subprocess.run([sys.executable, "-m", "kpd.cli", "keypoints", str(path), str(tmp_path / "points.xyz")],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert "huge.kpd" in done.stderr and "failed in onnxruntime" in done.stderr

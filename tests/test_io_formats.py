@@ -19,6 +19,7 @@ from PIL import Image
 
 from kpd.io import Mesh, read_mesh, write_mesh
 from kpd.io.gltf import read_gltf_json
+from kpd.io.mtl import MAP_KEYS
 
 SHAPENET = "shapenetcore_obj"
 
@@ -47,18 +48,18 @@ def _grid(n=6):
 
 
 def make_obj(folder: Path) -> Path:
-    """An OBJ as exporters write them: two materials with maps in a sibling folder (a JPEG and a PNG), one with a
+    """An OBJ as exporters write them: two materials with maps in a folder of their own (a JPEG and a PNG), one with a
     colour only, faces without texture coordinates beside faces with them, groups, smoothing groups, a polyline,
     comments, CRLF-free text with tabs."""
-    models, maps = folder / "models", folder / "images"
-    models.mkdir(parents=True)
-    maps.mkdir()
+    models = folder / "models"
+    maps = models / "images"  # inside the OBJ's folder tree: kpd reads nothing outside it (kpd.io.references)
+    maps.mkdir(parents=True)
     (maps / "wood.jpg").write_bytes(_image_bytes((120, 80, 40)))
     (maps / "label.png").write_bytes(_image_bytes((20, 60, 200), fmt="PNG"))
     (models / "thing.mtl").write_text(
-        "# made by a test\nnewmtl wood\nKd 1 1 1\nKs 0.2 0.2 0.2\nmap_Kd ../images/wood.jpg\n\n"
-        "newmtl red\nKd 0.9 0.1 0.1\nillum 2\n\nnewmtl label\nKd 1 1 1\nmap_Kd -s 1 1 1 ../images/label.png\n"
-        "bump ../images/wood.jpg\n")
+        "# made by a test\nnewmtl wood\nKd 1 1 1\nKs 0.2 0.2 0.2\nmap_Kd images/wood.jpg\n\n"
+        "newmtl red\nKd 0.9 0.1 0.1\nillum 2\n\nnewmtl label\nKd 1 1 1\nmap_Kd -s 1 1 1 images/label.png\n"
+        "bump images/wood.jpg\n")
     vertices, triangles = _grid()
     rng = np.random.default_rng(0)
     lines = ["# exported by a test", "mtllib thing.mtl", "o thing"]
@@ -102,9 +103,10 @@ def parse_numbers(lines: list[str], key: str) -> np.ndarray:
     return np.array([[float(x) for x in s.split()[1:4]] for s in lines if s.split()[:1] == [key]])
 
 
-def assert_obj_kept(src: Path, out: Path, vertices: np.ndarray) -> None:
+def assert_obj_kept(src: Path, out: Path, vertices: np.ndarray, *, outside: bool = False) -> None:
     """``out`` is ``src`` with only its v (and vn) lines and the names of its companions changed; the v lines hold
-    ``vertices``; the .mtl and every map are there, maps byte for byte."""
+    ``vertices``; the .mtl and every map are there, maps byte for byte. A map outside the input's folder (``../``)
+    is commented out and not copied, unless ``outside`` (it was read from a wider ``files_root``)."""
     a, b = obj_lines(src), obj_lines(out)
     assert len(a) == len(b)
     for x, y in zip(a, b):
@@ -126,7 +128,11 @@ def assert_obj_kept(src: Path, out: Path, vertices: np.ndarray) -> None:
     mtl_out = (out.parent / f"{out.stem}.mtl").read_text().splitlines()
     assert len(mtl_in) == len(mtl_out)
     for x, y in zip(mtl_in, mtl_out):
-        if x.split()[:1] and x.split()[0].lower() in ("map_kd", "bump", "map_bump", "map_ks", "map_d", "norm"):
+        if x.split()[:1] and x.split()[0].lower() in ("map_kd", "bump", "map_bump", "map_ks", "map_d", "norm") and \
+                x.split()[-1].startswith("../") and not outside:  # not read, not copied, not named
+            assert y == f"# {x} (not read by kpd)"
+            assert not (out.parent / f"{out.stem}_{Path(x.split()[-1]).name}").exists()
+        elif x.split()[:1] and x.split()[0].lower() in ("map_kd", "bump", "map_bump", "map_ks", "map_d", "norm"):
             old, new = x.split()[-1], y.split()[-1]
             assert x.rsplit(None, 1)[0] == y.rsplit(None, 1)[0]  # options kept
             assert new == f"{out.stem}_{Path(old).name}"
@@ -258,13 +264,13 @@ def test_obj_read_other_ways_is_written_from_its_arrays(tmp_path):
 
 def test_missing_material_library_and_map_are_warnings(tmp_path, caplog):
     path = make_obj(tmp_path / "in")
-    (tmp_path / "in" / "images" / "label.png").unlink()
+    (tmp_path / "in" / "models" / "images" / "label.png").unlink()
     mesh = read_mesh(path)
     assert "label.png" in caplog.text and "missing" in caplog.text
     assert mesh.textures[2].shape == (1, 1, 3)  # drawn in its colour
     write_mesh(tmp_path / "out.obj", mesh.with_vertices(mesh.vertices + 1))
     assert sorted(os.listdir(tmp_path)) == ["in", "out.mtl", "out.obj", "out_wood.jpg"]
-    assert "../images/label.png" in (tmp_path / "out.mtl").read_text()  # the reference kept as the input had it
+    assert "images/label.png" in (tmp_path / "out.mtl").read_text()  # the reference kept as the input had it
     (tmp_path / "in" / "models" / "thing.mtl").unlink()
     caplog.clear()
     mesh = read_mesh(path)
@@ -444,13 +450,32 @@ def shapenet_files(data_dir: Path) -> list[Path]:
     return files
 
 
-def test_every_shapenet_model_keeps_its_materials_maps_and_uvs_through_a_deformation(data_dir, tmp_path):
+def test_every_shapenet_model_keeps_its_materials_maps_and_uvs_through_a_deformation(data_dir, tmp_path, caplog):
     """All 38 models: the deformed output is the input's own file with new v and vn lines, its .mtl and every map
-    beside it, and reads back with the same materials, textures, UVs and UV mask."""
+    beside it, and reads back with the same materials, textures, UVs and UV mask. ShapeNet keeps its maps in
+    ``../images``, outside the model's folder: read only when the model's own folder is named as ``files_root``; read
+    by default, each map statement is one warning, and no map is read or copied."""
     files = shapenet_files(data_dir)
     mixed = textured = 0
     for i, path in enumerate(files):
+        mesh = read_mesh(path, files_root=path.parents[1])
+        moved = mesh.with_vertices(affine(mesh.vertices))
+        out = tmp_path / f"trusted{i}" / "out.obj"
+        out.parent.mkdir()
+        write_mesh(out, moved)
+        assert_obj_kept(path, out, moved.vertices, outside=True)
+        assert_same_features(mesh, read_mesh(out))
+        textured += any(t.shape[0] > 1 for t in mesh.textures)
+    assert textured == 20
+    textured = 0
+    for i, path in enumerate(files):
+        caplog.clear()
         mesh = read_mesh(path)
+        mtl = path.with_suffix(".mtl")
+        outside = [s for s in mtl.read_text().splitlines() if s.split()[:1] and
+                   s.split()[0].lower().encode() in MAP_KEYS and s.split()[-1].startswith("../")] if mtl.exists() else []
+        warned = [r for r in caplog.records if "is not read (outside the input's folder)" in r.getMessage()]
+        assert len(warned) == len(outside), (path, [r.getMessage() for r in warned])
         moved = mesh.with_vertices(affine(mesh.vertices))
         out = tmp_path / f"m{i}" / "out.obj"
         out.parent.mkdir()
@@ -459,7 +484,8 @@ def test_every_shapenet_model_keeps_its_materials_maps_and_uvs_through_a_deforma
         back = read_mesh(out)
         assert_same_features(mesh, back)
         mixed += mesh.triangle_uv_mask is not None and bool(mesh.triangle_uv_mask.any())
-        textured += any(t.shape[0] > 1 for t in mesh.textures)
+        textured += any(s.split()[0].lower() == "map_kd" for s in outside)
+        assert not any(t.shape[0] > 1 for t in mesh.textures)
     assert len(files) == 38 and mixed >= 12 and textured == 20
 
 

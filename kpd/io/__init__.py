@@ -15,7 +15,7 @@ OBJ's vertices are its ``v`` lines in order, its faces keep their texture coordi
 in ``Mesh.triangle_uv_mask``), every material is kept (its map, or its ``Kd`` colour as a 1x1 texture), and a mesh
 read from an OBJ or glTF file is written back in that file's own structure with only the positions (and the normals,
 turned with the surface) changed, its material library and images copied beside the output under the output's
-name. PLY (binary and ASCII), text OFF and binary STL are read (and PLY and OFF written) by kpd too, by numpy or
+name (only files kpd read inside the input's folder tree: :mod:`kpd.io.references`). PLY (binary and ASCII), text OFF and binary STL are read (and PLY and OFF written) by kpd too, by numpy or
 compiled passes that give Open3D's mesh (OFF's decimals read exactly, not as float32), fast at the size of a scan
 (docs/scale.md); other PLY, OFF and STL files and point clouds go through Open3D, with the checks Open3D leaves
 out: Open3D returns an empty or half-read geometry with a console warning for a missing, broken or truncated file,
@@ -26,7 +26,9 @@ Layout
 The types :class:`~kpd.mesh.Mesh` and :class:`~kpd.mesh.PointSet` live in :mod:`kpd.mesh` (with the conventions for
 UVs, textures and material ids) and are re-exported here. :mod:`kpd.io.dispatch` reads and writes by extension and
 hands each format's own work to its module: :mod:`kpd.io.ply`, :mod:`kpd.io.pcd`, :mod:`kpd.io.off`,
-:mod:`kpd.io.stl`, :mod:`kpd.io.obj`, :mod:`kpd.io.gltf`, :mod:`kpd.io.keypoints`, :mod:`kpd.io.images` (PNG);
+:mod:`kpd.io.stl`, :mod:`kpd.io.obj` (with :mod:`kpd.io.mtl` for its material libraries), :mod:`kpd.io.gltf`,
+:mod:`kpd.io.keypoints`, :mod:`kpd.io.images` (PNG); :mod:`kpd.io.numbers` is the compiled number scanner of the
+text readers, :mod:`kpd.io.references` decides which files a file may name (inside its own folder tree only),
 :mod:`kpd.io.capture` holds Open3D's log and stderr capture, :mod:`kpd.io.atomic` the one writer,
 :mod:`kpd.io.integrity` content hashes and safe numpy loading.
 

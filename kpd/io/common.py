@@ -14,7 +14,7 @@ from kpd.errors import InputError
 from kpd.io.atomic import incomplete
 
 __all__ = ["MESH_FORMATS", "POINT_FORMATS", "KEYPOINT_FORMATS", "input_path", "output_path", "incomplete",
-           "verify_companion", "check_header_counts", "count_lines", "describe", "read_table"]
+           "verify_companion", "check_header_counts", "count_lines", "describe", "read_table", "memory_free"]
 
 MESH_FORMATS = (".obj", ".ply", ".off", ".stl", ".gltf", ".glb")
 POINT_FORMATS = (".ply", ".pcd", ".xyz", ".pts", ".npy", ".npz")
@@ -59,6 +59,22 @@ def verify_companion(p: Path, tmp: Path) -> None:
         from kpd.io.images import check_png
 
         check_png(p, tmp)
+
+
+def memory_free() -> int:
+    """Bytes of memory a process could still take now (Linux's MemAvailable, else the free pages): the bound of what
+    one size a file declares may take before it is read."""
+    try:
+        with open("/proc/meminfo", "rb") as fh:
+            for line in fh:
+                if line.startswith(b"MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError):
+        return 1 << 62
 
 
 def check_header_counts(tmp: Path, *pairs) -> None:

@@ -37,12 +37,15 @@ def file_up(path: str | os.PathLike | None) -> str | None:
     return "+y" if Path(path).suffix.lower() in (".gltf", ".glb") else None
 
 
-def read_mesh(path: str | os.PathLike) -> Mesh:
+def read_mesh(path: str | os.PathLike, *, files_root: str | os.PathLike | None = None) -> Mesh:
     """Read a triangle mesh.
 
     Parameters
     ----------
     path : ``.obj``, ``.ply``, ``.off``, ``.stl``, ``.gltf`` or ``.glb``
+    files_root : the folder tree the files an OBJ or glTF names (material libraries, maps, images, buffers) must lie
+        in; the file's own folder when None. Name a wider one only when you trust all of it (a dataset that keeps
+        maps beside its models' folders, as ShapeNet's ``../images``); see :mod:`kpd.io.references`.
 
     Returns
     -------
@@ -53,14 +56,16 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     ------
     InputError
         For a missing file, an unknown extension, an unreadable, truncated or empty file, a file without triangles,
-        NaN or inf coordinates, or triangles that index missing vertices. A texture file that is missing is not an
-        error: the mesh is read without it and a warning is logged.
+        NaN or inf coordinates, or triangles that index missing vertices. A texture file that is missing, or one
+        that is not read (outside ``files_root``, not a regular file, not an image), is not an error: the mesh is read
+        without it and one warning naming it is logged.
     """
     p, ext = input_path(path, MESH_FORMATS, "mesh")
+    root = None if files_root is None else Path(files_root)
     if ext == ".obj":
-        return obj.read(p, os.fspath(path))
+        return obj.read(p, os.fspath(path), root=root)
     if ext in (".gltf", ".glb"):
-        return gltf.read(p, os.fspath(path))
+        return gltf.read(p, os.fspath(path), root=root)
     if ext == ".ply":  # a PLY by kpd (numpy; compiled passes for ASCII), as Open3D reads it; the rest by Open3D
         ply.check_complete(p)
         mesh = ply.read_mesh(p, os.fspath(path)) if _has_faces(p) else None
@@ -126,19 +131,20 @@ def read_points(path: str | os.PathLike, *, drop_nonfinite: bool = False) -> Poi
     return PointSet(points, normals, colors, path=name)
 
 
-def read_shape(path: str | os.PathLike) -> Mesh | PointSet:
+def read_shape(path: str | os.PathLike, *, files_root: str | os.PathLike | None = None) -> Mesh | PointSet:
     """Read a file as a :class:`Mesh` if it has triangles, else as a :class:`PointSet`.
 
     Mesh formats (``.obj .off .stl .gltf .glb`` and ``.ply`` with faces) give a Mesh; ``.ply`` without faces and
-    the point formats give a PointSet. Errors as in :func:`read_mesh` and :func:`read_points`.
+    the point formats give a PointSet. ``files_root`` and errors as in :func:`read_mesh` and :func:`read_points`.
     """
     p, ext = input_path(path, tuple(dict.fromkeys(MESH_FORMATS + POINT_FORMATS)), "shape")
+    root = None if files_root is None else Path(files_root)
     if ext not in MESH_FORMATS:
         return read_points(path)
     if ext == ".obj":
-        return obj.read(p, os.fspath(path), points=True)
+        return obj.read(p, os.fspath(path), points=True, root=root)
     if ext in (".gltf", ".glb"):
-        return gltf.read(p, os.fspath(path), points=True)
+        return gltf.read(p, os.fspath(path), points=True, root=root)
     if ext == ".off":  # text OFF by kpd, as in read_mesh
         shape = off.read_mesh(p, os.fspath(path), points=True)
         if shape is not None:

@@ -9,7 +9,8 @@ colours from ``COLOR_0``; one texture per used material, its base-colour image o
 Writing a mesh read from a glTF file of the same kind (``.glb`` to ``.glb``, ``.gltf`` to ``.gltf``) keeps that file
 whole (:func:`write_from_source`): only the POSITION (and NORMAL) data change, in place where they are plain float32
 data, every node, primitive, material, image, sampler, extension and morph target stays; a ``.gltf``'s external
-buffers and images are written beside it as ``<stem>_<name>``. Any other mesh is written from its arrays: one
+buffers and images are written beside it as ``<stem>_<name>`` (the files kpd read: inside the input's folder tree,
+:mod:`kpd.io.references`). Any other mesh is written from its arrays: one
 primitive per material and per presence of UVs, a 1x1 texture as a plain ``baseColorFactor``, an image read from a
 JPEG file embedded or copied as that JPEG, others as PNG. (Open3D 0.20 writes neither UVs nor textures to glTF and
 writes ``.glb`` files without their binary chunk; its reader, Assimp, merges primitives and drops base colours.)
@@ -31,8 +32,10 @@ import numpy as np
 from kpd.errors import InputError
 from kpd.grouping import first_occurrence_groups, vertex_value_groups
 from kpd.io.atomic import atomic_files, atomic_output
-from kpd.io.common import verify_companion
-from kpd.io.images import encode_png
+from kpd.io import references
+from kpd.io.common import memory_free, verify_companion
+from kpd.io.images import decode_image, encode_png
+from kpd.io.references import IMAGE_BYTES
 from kpd.mesh import Mesh, PointSet
 
 __all__ = ["read", "write", "companions", "read_gltf_json", "read_buffers", "read_accessor", "GltfSource",
@@ -345,14 +348,37 @@ def read_gltf_json(p: Path) -> tuple[dict, bytes | None]:
     return doc, chunk
 
 
-def _gltf_uri_bytes(p: Path, uri: str) -> bytes | None:
+def _gltf_uri_bytes(p: Path, uri: str, limit: int = IMAGE_BYTES, root: Path | None = None) -> bytes | str | None:
+    """The bytes a URI of the glTF ``p`` names: a ``data:`` URI's own, or a file's as :mod:`kpd.io.references`
+    allows (inside the file's folder, a regular file of at most ``limit`` bytes); else why it is not read (a str), or
+    None when the file is missing."""
     if uri.startswith("data:"):
         return base64.b64decode(uri.split(",", 1)[1])
-    f = p.parent / urllib.parse.unquote(uri)
-    if not f.is_file():
-        log.warning("%s: texture file %r is missing; read without it", p, uri)
-        return None
-    return f.read_bytes()
+    found = references.locate_uri(p.parent if root is None else root, p.parent, uri)
+    if found.path is None:
+        return found.refused
+    return references.read_named(found.path, limit)
+
+
+def _image_files(p: Path, doc: dict, root: Path | None = None) -> dict[int, tuple[bytes, np.ndarray]]:
+    """{image index: (its file's bytes, its pixels)} of the images the glTF ``p`` keeps in files beside it that
+    :mod:`kpd.io.references` allows and that decode: the only image files a write copies. One warning for each
+    other one."""
+    out = {}
+    for i, image in enumerate(doc.get("images", [])):
+        uri = image.get("uri") if isinstance(image, dict) else None
+        if not isinstance(uri, str) or uri.startswith("data:"):
+            continue
+        raw = _gltf_uri_bytes(p, uri, IMAGE_BYTES, root)
+        if raw is None:
+            log.warning("%s: texture file %r is missing; read without it", p, uri)
+            continue
+        pixels = decode_image(raw) if isinstance(raw, bytes) else None
+        if pixels is None:
+            references.warn_refused(p, "image", uri, raw if isinstance(raw, str) else "not an image that decodes")
+            continue
+        out[i] = (raw, pixels)
+    return out
 
 
 # --- kpd's own reader and the writer that keeps the file ------------------------------------------------------------
@@ -366,30 +392,83 @@ class GltfSource:
 
     ``blocks`` lists, per (node, POSITION accessor) pair, the node's world matrix (4, 4), the accessor, the NORMAL
     accessor (or None) and the first row of the block in the mesh's vertices; the mesh's vertex rows are the
-    blocks' accessor rows, in order.
+    blocks' accessor rows, in order. ``image_files`` holds the image files kpd read beside it (the only ones a write
+    copies).
     """
 
     def __init__(self, path: Path, doc: dict, buffers: list, blocks: list, vertices: np.ndarray,
-                 triangles: np.ndarray, normals: np.ndarray | None) -> None:
+                 triangles: np.ndarray, normals: np.ndarray | None, image_files: dict | None = None) -> None:
         self.path, self.doc, self.buffers, self.blocks = path, doc, buffers, blocks
         self.vertices, self.triangles, self.normals = vertices, triangles, normals
+        self.image_files = {} if image_files is None else image_files  # {index: (bytes, pixels)}, _image_files
 
 
-def read_buffers(p: Path, doc: dict, chunk: bytes | None) -> list:
+def read_buffers(p: Path, doc: dict, chunk: bytes | None, root: Path | None = None) -> list:
+    """The bytes of every buffer: the ``.glb``'s binary chunk, a ``data:`` URI's, or a file's beside the glTF as
+    :mod:`kpd.io.references` allows (at most the memory kpd may take: checked before it is read)."""
     out = []
     for i, buffer in enumerate(doc.get("buffers", [])):
+        declared = buffer.get("byteLength", 0)
+        if isinstance(declared, bool) or not isinstance(declared, int) or declared < 0:
+            raise InputError(f"{p}: buffer {i} declares a byteLength of {declared!r}")
         if "uri" in buffer:
-            data = _gltf_uri_bytes(p, buffer["uri"])
+            uri = buffer["uri"]
+            if not isinstance(uri, str):
+                raise InputError(f"{p}: buffer {i} has a uri that is not a string")
+            data = _gltf_uri_bytes(p, uri, memory_free(), root)
             if data is None:
-                raise InputError(f"{p}: its buffer {buffer['uri']!r} is missing")
+                raise InputError(f"{p}: its buffer {uri!r} is missing")
+            if isinstance(data, str):
+                raise InputError(f"{p}: its buffer {uri!r} is not read ({data})")
         elif i == 0 and chunk is not None:
             data = chunk
         else:
             raise InputError(f"{p}: buffer {i} has no data (a .glb without its binary chunk?)")
-        if len(data) < buffer.get("byteLength", 0):
-            raise InputError(f"{p}: buffer {i} holds {len(data)} of its {buffer['byteLength']} bytes (truncated)")
+        if len(data) < declared:
+            raise InputError(f"{p}: buffer {i} holds {len(data)} of its {declared} bytes (truncated)")
         out.append(data)
     return out
+
+
+def _count(p: Path, what: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise InputError(f"{p}: {what} must be a non-negative integer; got {value!r}")
+    return value
+
+
+def _view_range(p: Path, doc: dict, buffers: list, index: Any) -> tuple[bytes, int, int, int | None]:
+    """(the buffer, the view's first byte, its length, its byteStride) of a buffer view, checked to lie inside its
+    buffer."""
+    view = doc["bufferViews"][index]
+    buffer = _count(p, f"bufferView {index}'s buffer", view["buffer"])
+    if buffer >= len(buffers):
+        raise InputError(f"{p}: bufferView {index} names buffer {buffer} of {len(buffers)}")
+    start = _count(p, f"bufferView {index}'s byteOffset", view.get("byteOffset", 0))
+    length = _count(p, f"bufferView {index}'s byteLength", view["byteLength"])
+    if start + length > len(buffers[buffer]):
+        raise InputError(f"{p}: bufferView {index} reaches byte {start + length} of its buffer's "
+                         f"{len(buffers[buffer])} (truncated file?)")
+    stride = view.get("byteStride")
+    return buffers[buffer], start, length, None if stride is None else _count(p, f"bufferView {index}'s byteStride",
+                                                                                stride)
+
+
+def _held_elements(p: Path, doc: dict) -> int:
+    """The most elements any accessor with data in a buffer view can hold: the bound of an accessor without one
+    (zeros and its sparse values), so that a file declares no more than it carries."""
+    most = 0
+    views = doc.get("bufferViews", [])
+    for acc in doc.get("accessors", []):
+        if not isinstance(acc, dict) or not isinstance(acc.get("bufferView"), int) or \
+                not 0 <= acc["bufferView"] < len(views) or not isinstance(views[acc["bufferView"]], dict):
+            continue
+        size = np.dtype(_COMPONENTS.get(acc.get("componentType"), np.uint8)).itemsize
+        size *= _WIDTH.get(acc.get("type"), 1)
+        length = views[acc["bufferView"]].get("byteLength", 0)
+        count = acc.get("count", 0)
+        if isinstance(length, int) and isinstance(count, int):
+            most = max(most, min(count, length // size))
+    return most
 
 
 def read_accessor(p: Path, doc: dict, buffers: list, index: int) -> np.ndarray:
@@ -397,23 +476,33 @@ def read_accessor(p: Path, doc: dict, buffers: list, index: int) -> np.ndarray:
     acc = doc["accessors"][index]
     dtype = np.dtype(_COMPONENTS[acc["componentType"]]).newbyteorder("<")
     width = _WIDTH[acc["type"]]
-    count = acc["count"]
+    count = _count(p, f"accessor {index}'s count", acc["count"])
+    element = dtype.itemsize * width
     if "bufferView" in acc:
-        view = doc["bufferViews"][acc["bufferView"]]
-        data = buffers[view["buffer"]]
-        start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
-        stride = view.get("byteStride") or dtype.itemsize * width
-        if count and start + stride * (count - 1) + dtype.itemsize * width > len(data):
-            raise InputError(f"{p}: accessor {index} reaches past the end of its buffer (truncated file?)")
-        raw = np.ndarray((count, width), dtype=dtype, buffer=data, offset=start, strides=(stride, dtype.itemsize))
+        data, start, length, stride = _view_range(p, doc, buffers, acc["bufferView"])
+        offset = _count(p, f"accessor {index}'s byteOffset", acc.get("byteOffset", 0))
+        stride = stride or element
+        if stride < element:
+            raise InputError(f"{p}: accessor {index}'s elements of {element} bytes overlap (byteStride {stride})")
+        if count and offset + stride * (count - 1) + element > length:
+            raise InputError(f"{p}: accessor {index} reaches past the end of its buffer view (truncated file?)")
+        raw = np.ndarray((count, width), dtype=dtype, buffer=data, offset=start + offset,
+                         strides=(stride, dtype.itemsize))
         out = np.array(raw)
     else:
+        if count > _held_elements(p, doc):
+            raise InputError(f"{p}: accessor {index} declares {count} elements and holds no data (no bufferView); "
+                             "no accessor of the file holds that many")
+        if count * width * (8 + dtype.itemsize) > memory_free():
+            raise InputError(f"{p}: accessor {index} declares {count} elements, more than the memory left can hold")
         out = np.zeros((count, width), dtype=dtype)
     sparse = acc.get("sparse")
     if sparse:
         idx_view = doc["bufferViews"][sparse["indices"]["bufferView"]]
         idx_type = np.dtype(_COMPONENTS[sparse["indices"]["componentType"]]).newbyteorder("<")
-        n = sparse["count"]
+        n = _count(p, f"accessor {index}'s sparse count", sparse["count"])
+        if n > count:
+            raise InputError(f"{p}: accessor {index} has {n} sparse values for its {count} elements")
         idx = np.frombuffer(buffers[idx_view["buffer"]], dtype=idx_type, count=n,
                             offset=idx_view.get("byteOffset", 0) + sparse["indices"].get("byteOffset", 0))
         val_view = doc["bufferViews"][sparse["values"]["bufferView"]]
@@ -495,9 +584,10 @@ def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, np.power((c + 0.055) / 1.055, 2.4))
 
 
-def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | PointSet":
+def read(p: Path, name: str | None = None, *, points: bool = False, root: Path | None = None) -> "Mesh | PointSet":
     """Read a ``.gltf``/``.glb`` (every triangle primitive of every mesh node of the default scene, in world
-    coordinates, each primitive's vertices in the file's order), with its materials' base colours and images."""
+    coordinates, each primitive's vertices in the file's order), with its materials' base colours and images; the
+    files it names are read inside ``root`` only (its own folder when None; :mod:`kpd.io.references`)."""
     from kpd.io.images import read_image_bytes
     from kpd.mesh import PointSet
 
@@ -508,13 +598,15 @@ def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | P
     if not isinstance(doc, dict) or str(doc.get("asset", {}).get("version", "2.0")).split(".")[0] != "2":
         raise InputError(f"{p}: not a glTF 2.0 file")
     try:
-        return _read(p, doc, chunk, name if name is not None else str(p), points, read_image_bytes, PointSet)
+        return _read(p, doc, chunk, name if name is not None else str(p), points, read_image_bytes, PointSet, root)
+    except InputError:
+        raise
     except (KeyError, IndexError, TypeError, ValueError) as exc:
         raise InputError(f"{p}: a malformed glTF file ({type(exc).__name__}: {exc})") from None
 
 
-def _read(p, doc, chunk, name, points, read_image_bytes, PointSet):
-    buffers = read_buffers(p, doc, chunk)
+def _read(p, doc, chunk, name, points, read_image_bytes, PointSet, root=None):
+    buffers = read_buffers(p, doc, chunk, root)
     blocks, vertices, normals, colors, tris, corner_uvs, has_uv, materials = [], [], [], [], [], [], [], []
     offset = 0
     skipped = 0
@@ -584,19 +676,22 @@ def _read(p, doc, chunk, name, points, read_image_bytes, PointSet):
     mask = np.concatenate(has_uv)
     uvs = np.vstack(corner_uvs) if mask.any() else None
     ids = np.concatenate(materials)
-    textures, texture_ids = _materials(p, doc, buffers, ids, read_image_bytes)
+    files = _image_files(p, doc, root)
+    textures, texture_ids = _materials(p, doc, buffers, ids, read_image_bytes, files)
     if textures and uvs is None:
         uvs = np.zeros((3 * len(T), 2))
     mesh = Mesh(vertices=V, triangles=T, vertex_normals=N, vertex_colors=C, triangle_uvs=uvs, textures=textures,
                 triangle_material_ids=texture_ids, triangle_uv_mask=mask if uvs is not None else None, path=name)
     mesh_uses = [n.get("mesh") for n in doc.get("nodes", []) if "mesh" in n]
     if len(mesh_uses) == len(set(mesh_uses)):  # an instanced mesh cannot take two deformations: written anew
-        mesh._source = GltfSource(p, doc, buffers, blocks, V, T, N)
+        mesh._source = GltfSource(p, doc, buffers, blocks, V, T, N, files)
     return mesh
 
 
-def _materials(p: Path, doc: dict, buffers: list, ids: np.ndarray, read_image_bytes) -> tuple[list, np.ndarray | None]:
-    """One texture per used material: its base-colour image, or a 1x1 image of its base colour (sRGB)."""
+def _materials(p: Path, doc: dict, buffers: list, ids: np.ndarray, read_image_bytes,
+               files: dict) -> tuple[list, np.ndarray | None]:
+    """One texture per used material: its base-colour image, or a 1x1 image of its base colour (sRGB). ``files``:
+    the image files read beside the glTF (:func:`_image_files`)."""
     used, compact = np.unique(ids, return_inverse=True)
     images, colors = [], []
     cache: dict[int, np.ndarray | None] = {}
@@ -609,7 +704,9 @@ def _materials(p: Path, doc: dict, buffers: list, ids: np.ndarray, read_image_by
         if ref is not None:
             try:
                 source = doc["textures"][ref["index"]]["source"]
-                if source not in cache:
+                if source in files:
+                    cache[source] = files[source][1]
+                elif source not in cache:
                     raw = _image_bytes(p, doc, buffers, doc["images"][source])
                     cache[source] = None if raw is None else read_image_bytes(raw, f"{p} image {source}")
                 image = cache[source]
@@ -625,11 +722,13 @@ def _materials(p: Path, doc: dict, buffers: list, ids: np.ndarray, read_image_by
 
 
 def _image_bytes(p: Path, doc: dict, buffers: list, image: dict) -> bytes | None:
+    """The bytes of an image kept in the glTF itself (a buffer view, a ``data:`` URI); None for a file beside it
+    (read by :func:`_image_files`, or not at all)."""
     if "bufferView" in image:
-        view = doc["bufferViews"][image["bufferView"]]
-        start = view.get("byteOffset", 0)
-        return bytes(buffers[view["buffer"]][start : start + view["byteLength"]])
-    return _gltf_uri_bytes(p, image["uri"])
+        data, start, length, _ = _view_range(p, doc, buffers, image["bufferView"])
+        return bytes(data[start : start + length])
+    uri = image["uri"]
+    return base64.b64decode(uri.split(",", 1)[1]) if uri.startswith("data:") else None
 
 
 def own_source(mesh: Mesh, p: Path) -> GltfSource | None:
@@ -649,8 +748,8 @@ def source_companions(p: Path, source: GltfSource) -> dict:
     for kind in ("buffers", "images"):
         for i, item in enumerate(source.doc.get(kind, [])):
             uri = item.get("uri")
-            if uri is None or uri.startswith("data:"):
-                continue
+            if uri is None or uri.startswith("data:") or (kind == "images" and i not in source.image_files):
+                continue  # kept in the file, or an image file kpd did not read: not copied
             name = f"{p.stem}_{Path(urllib.parse.unquote(uri)).name}"
             base, suffix = name.rsplit(".", 1) if "." in name else (name, "")
             k = 2
@@ -697,9 +796,8 @@ def write_from_source(target: Path, mesh: Mesh, source: GltfSource) -> None:
             buffer["uri"] = "data:application/octet-stream;base64," + base64.b64encode(bytes(buffers[i])).decode()
     for (kind, i), (uri, name) in source_companions(target, source).items():
         doc[kind][i]["uri"] = urllib.parse.quote(name)
-        data = bytes(buffers[i]) if kind == "buffers" else _gltf_uri_bytes(source.path, uri)
-        if data is not None:
-            (target.parent / name).write_bytes(data)
+        data = bytes(buffers[i]) if kind == "buffers" else source.image_files[i][0]
+        (target.parent / name).write_bytes(data)
     if binary:
         blob = bytes(buffers[0]) if buffers and "uri" not in doc["buffers"][0] else b""
         blob += b"\0" * (-len(blob) % 4)

@@ -19,7 +19,8 @@ import numpy as np
 from kpd.errors import InputError
 from kpd.io.atomic import atomic_output, incomplete
 
-__all__ = ["encode_png", "write_png", "read_png", "verify_png", "check_png", "read_image", "read_image_bytes"]
+__all__ = ["encode_png", "write_png", "read_png", "verify_png", "check_png", "read_image", "read_image_bytes",
+           "decode_image"]
 
 log = logging.getLogger("kpd.io")
 
@@ -87,19 +88,34 @@ def verify_png(path: str | os.PathLike) -> None:
     check_png(Path(path), Path(path))
 
 
-def read_image_bytes(data: bytes, name: str) -> np.ndarray | None:
+def decode_image(data: bytes) -> np.ndarray | None:
     """(H, W, C) uint8 (C in 1, 3, 4) of an image file's bytes (JPEG, PNG, ... through Pillow), as stored (top row
-    first); None with a logged warning naming ``name`` when it cannot be decoded."""
+    first), or None when they do not decode. Pillow's bound on pixels refuses a small file of huge dimensions."""
+    return _decoded(data)[0]
+
+
+def _decoded(data: bytes) -> tuple[np.ndarray | None, Exception | None]:
+    import warnings
+
     from PIL import Image, UnidentifiedImageError
 
     try:
-        with Image.open(io.BytesIO(data)) as image:
-            if image.mode not in ("L", "RGB", "RGBA"):
-                image = image.convert("RGBA" if "A" in image.mode or "transparency" in image.info else "RGB")
-            return np.array(image, dtype=np.uint8)
-    except (OSError, UnidentifiedImageError, ValueError, Image.DecompressionBombError) as exc:
+        with warnings.catch_warnings():  # an image between Pillow's bound and twice it decodes, without a word
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data)) as image:
+                if image.mode not in ("L", "RGB", "RGBA"):
+                    image = image.convert("RGBA" if "A" in image.mode or "transparency" in image.info else "RGB")
+                return np.array(image, dtype=np.uint8), None
+    except (OSError, UnidentifiedImageError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
+        return None, exc
+
+
+def read_image_bytes(data: bytes, name: str) -> np.ndarray | None:
+    """:func:`decode_image`, with a logged warning naming ``name`` when the bytes do not decode."""
+    image, exc = _decoded(data)
+    if image is None:
         log.warning("%s: the image cannot be read (%s); read without it", name, exc)
-        return None
+    return image
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray | None:

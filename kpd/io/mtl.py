@@ -2,7 +2,8 @@
 
 kpd reads of a library what it draws (each material's ``Kd`` colour and its ``map_Kd`` image) and keeps the rest as
 text: a library written beside an output is the input's own text with the files its map statements name renamed to
-the copies written beside it (:func:`renamed_library`).
+the copies written beside it (:func:`renamed_library`). The files a library or its OBJ names are found as
+:mod:`kpd.io.references` allows: inside the OBJ's own folder tree only.
 """
 
 from __future__ import annotations
@@ -11,8 +12,10 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["MAP_KEYS", "DEFAULT_KD", "Material", "read_library", "map_file", "map_statements", "renamed_library",
-           "find_map", "library_files", "strip_comment"]
+from kpd.io.references import Named, locate
+
+__all__ = ["MAP_KEYS", "DEFAULT_KD", "Material", "read_library", "map_file", "map_name", "map_statements",
+           "renamed_library", "find_map", "locate_map", "library_files", "library_references", "strip_comment"]
 
 log = logging.getLogger("kpd.io.obj")
 
@@ -30,12 +33,14 @@ def strip_comment(s: bytes) -> bytes:
 
 @dataclass
 class Material:
-    """One ``newmtl`` of a material library: its ``Kd`` colour and its ``map_Kd`` image file (resolved)."""
+    """One ``newmtl`` of a material library: its ``Kd`` colour and its ``map_Kd`` image file (its real path), or why
+    that file is not read."""
 
     name: str
     kd: tuple = DEFAULT_KD
     map_kd: Path | None = None
     map_kd_name: str | None = None
+    map_kd_refused: str | None = None
 
 
 def map_file(statement: bytes) -> bytes:
@@ -44,11 +49,19 @@ def map_file(statement: bytes) -> bytes:
     return parts[-1] if parts else b""
 
 
-def read_library(p: Path, mtl: Path) -> dict[str, Material]:
-    """The materials of one ``.mtl`` file, by name."""
+def map_name(arguments: bytes) -> tuple[str, str]:
+    """The file name of a map statement's arguments, and its whole argument text (a name may hold spaces), with
+    backslashes as slashes."""
+    return (map_file(arguments).decode("utf-8", "replace").replace("\\", "/"),
+            arguments.decode("utf-8", "replace").replace("\\", "/"))
+
+
+def read_library(p: Path, mtl: Path, data: bytes | None = None, root: Path | None = None) -> dict[str, Material]:
+    """The materials of one ``.mtl`` file (its bytes ``data``, read here when None), by name; their maps are found
+    inside ``root``, the OBJ's folder (the library's own folder when None)."""
     materials: dict[str, Material] = {}
     current = None
-    for raw in mtl.read_bytes().split(b"\n"):
+    for raw in (mtl.read_bytes() if data is None else data).split(b"\n"):
         s = strip_comment(raw).strip()
         if not s:
             continue
@@ -70,31 +83,44 @@ def read_library(p: Path, mtl: Path) -> dict[str, Material]:
                 log.warning("%s: material %s has an unreadable Kd %r; drawn grey", p, current.name,
                             rest.decode("utf-8", "replace"))
         elif key == b"map_kd":
-            name = map_file(rest).decode("utf-8", "replace").replace("\\", "/")
+            name, whole = map_name(strip_comment(rest).strip())
             current.map_kd_name = name
-            current.map_kd = find_map(mtl.parent, name, rest.decode("utf-8", "replace").replace("\\", "/"))
+            current.map_kd, current.map_kd_refused = locate_map(mtl.parent if root is None else root, mtl.parent,
+                                                                name, whole)
     return materials
 
 
-def find_map(folder: Path, name: str, whole: str) -> Path | None:
+def locate_map(root: Path, folder: Path, name: str, whole: str) -> Named:
     """The file a map statement names: its last token, else its whole argument text (a name with spaces), else the
-    token's base name, in ``folder``."""
-    for candidate in (folder / name, folder / whole, folder / Path(name).name):
-        if candidate.is_file():
-            return candidate
-    return None
+    token's base name (a map named by a path of another machine), in ``folder``; the first candidate inside ``root``
+    (:func:`kpd.io.references.locate`), else why the first refused one is not read."""
+    refused = None
+    for candidate in (name, whole, name.rsplit("/", 1)[-1]):
+        found = locate(root, folder, candidate)
+        if found.path is not None:
+            return found
+        refused = refused or found.refused
+    return Named(None, refused)
 
 
-def library_files(p: Path, names: str) -> list[tuple[str, Path | None]]:
-    """The files of one ``mtllib`` statement (several names may follow it; a name may hold spaces)."""
-    whole = p.parent / names
-    if whole.is_file():
+def find_map(folder: Path, name: str, whole: str) -> Path | None:
+    """:func:`locate_map` inside ``folder``: the file's real path, or None."""
+    return locate_map(folder, folder, name, whole).path
+
+
+def library_references(p: Path, names: str, root: Path | None = None) -> list[tuple[str, Named]]:
+    """The files of one ``mtllib`` statement of the OBJ ``p`` (several names may follow it; a name may hold spaces),
+    judged by :func:`kpd.io.references.locate` inside ``root`` (the OBJ's folder when None)."""
+    root = p.parent if root is None else root
+    whole = locate(root, p.parent, names)
+    if whole.path is not None or len(names.split()) < 2:
         return [(names, whole)]
-    out = []
-    for name in names.split():
-        f = p.parent / name
-        out.append((name, f if f.is_file() else None))
-    return out
+    return [(name, locate(root, p.parent, name)) for name in names.split()]
+
+
+def library_files(p: Path, names: str, root: Path | None = None) -> list[tuple[str, Path | None]]:
+    """:func:`library_references` as (name, real path or None)."""
+    return [(name, found.path) for name, found in library_references(p, names, root)]
 
 
 def map_statements(data: bytes) -> list[tuple[int, bytes]]:
@@ -109,14 +135,19 @@ def map_statements(data: bytes) -> list[tuple[int, bytes]]:
 
 
 def renamed_library(data: bytes, renames: dict) -> bytes:
-    """A library's bytes with the file names of its map statements replaced by ``renames`` ({old: new})."""
+    """A library's bytes with the file names of its map statements replaced by ``renames`` ({old: new}); a statement
+    whose name maps to None (a file kpd did not read) is kept as a comment, so that the copy names no file beside it."""
     lines = data.split(b"\n")
     for i, arguments in map_statements(data):
         name = map_file(arguments)
-        new = renames.get(name.decode("utf-8", "replace").replace("\\", "/"))
-        if new is None:
+        key = name.decode("utf-8", "replace").replace("\\", "/")
+        if key not in renames:
             continue
+        new = renames[key]
         line = lines[i]
+        if new is None:
+            lines[i] = b"# " + line.rstrip(b"\r") + b" (not read by kpd)" + (b"\r" if line.endswith(b"\r") else b"")
+            continue
         cut = line.rfind(name)
         lines[i] = line[:cut] + new.encode("utf-8") + line[cut + len(name):]
     return b"\n".join(lines)

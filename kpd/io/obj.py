@@ -11,7 +11,8 @@ Writing a mesh read from an OBJ (:func:`write`, directly or after :meth:`~kpd.me
 only the ``v`` lines (and the ``vn`` lines, turned with the surface) of the input's own text: groups, smoothing
 groups, lines, comments, materials and face order stay as they were; the ``.mtl`` is copied as ``<stem>.mtl`` with
 its maps renamed, and every image it names is copied byte for byte as ``<stem>_<its name>`` (a JPEG stays a JPEG),
-so that the outputs of one folder never collide. Any other mesh is written by :func:`write` from its arrays: ``v``
+so that the outputs of one folder never collide. Only the files kpd read are copied: those inside the input's folder
+tree that are what they claim (:mod:`kpd.io.references`); the statement of any other is kept as a comment. Any other mesh is written by :func:`write` from its arrays: ``v``
 (with ``r g b`` when it has vertex colours), ``vt`` on the faces that have UVs, ``vn``, one material per texture
 (a 1x1 texture as a plain ``Kd`` colour, others as ``<stem>_<i>.png``).
 
@@ -32,7 +33,8 @@ from kpd.errors import InputError, WriteError
 from kpd._compiled import compiled_on_first_call
 from kpd.io.atomic import atomic_files
 from kpd.io.common import incomplete, verify_companion
-from kpd.io.images import read_image
+from kpd.io import mtl, references
+from kpd.io.images import decode_image
 from kpd.io.mtl import (DEFAULT_KD as _DEFAULT_KD, MAP_KEYS as _MAP_KEYS, Material, find_map as _find_map,  # noqa: F401
                         library_files as _library_files, map_file as _map_file, map_statements as _map_statements,
                         read_library, renamed_library as _renamed_library, strip_comment as _strip_comment)
@@ -62,6 +64,9 @@ class ObjSource:
     corner_normals : (T, 3) int64, the ``vn`` index of each corner, -1 where the corner has none.
     vertices : (V, 3) float64, the positions as read (a write of unchanged positions copies the text as it is).
     libraries : the ``mtllib`` statements as (start, end) spans with their file names (resolved paths or None).
+    files : {real path: bytes} of the material libraries and maps kpd read (:mod:`kpd.io.references`): the only
+        files a write copies.
+    root : the folder tree those files were looked for in.
     """
 
     path: Path
@@ -74,6 +79,8 @@ class ObjSource:
     vertices: np.ndarray
     libraries: list = field(default_factory=list)
     face_lines: int = 0
+    files: dict = field(default_factory=dict)
+    root: Path | None = None
 
 
 _SPACE, _TAB, _HASH, _SLASH, _NEWLINE = 32, 9, 35, 47, 10
@@ -486,9 +493,71 @@ def _colors(values: np.ndarray) -> np.ndarray | None:
     return np.ascontiguousarray(values)
 
 
-def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | PointSet":
+def _material_files(p: Path, source: ObjSource, root: Path) -> tuple[dict, dict, dict]:
+    """The material libraries the OBJ ``p`` names and the maps they name, as :mod:`kpd.io.references` allows them:
+    {real path: bytes} of every file accepted (the libraries' text, the maps' bytes: all a writer copies),
+    {real path: (H, W, C) uint8} of the maps, and the materials by name. One warning for each file not read."""
+    files: dict[Path, bytes] = {}
+    images: dict[Path, np.ndarray] = {}
+    materials: dict[str, Material] = {}
+    judged: set = set()  # files looked at (read or refused), each reported once
+    missing = []
+    for _, _, names in source.libraries:
+        for lib_name, found in mtl.library_references(p, names, root):
+            if found.refused is not None:
+                references.warn_refused(p, "material library", lib_name, found.refused)
+                continue
+            if found.path is None:
+                log.warning("%s: material library %r is missing; read without materials and textures", p, lib_name)
+                continue
+            if found.path not in judged:
+                judged.add(found.path)
+                data = references.read_named(found.path, references.MTL_BYTES)
+                if isinstance(data, bytes) and not references.is_text(data):
+                    data = "not a text file"
+                if isinstance(data, str):
+                    references.warn_refused(p, "material library", lib_name, data)
+                    continue
+                files[found.path] = data
+                _map_files(p, root, found.path, data, files, images, judged)
+            if found.path not in files:
+                continue
+            for material in mtl.read_library(p, found.path, files[found.path], root).values():
+                materials.setdefault(material.name, material)
+                if material.map_kd_name and material.map_kd is None and material.map_kd_refused is None:
+                    missing.append(material.map_kd_name)
+    if missing:
+        log.warning("%s: texture file(s) %s named in the material library are missing; read without them",
+                    p, ", ".join(dict.fromkeys(missing)))
+    return files, images, materials
+
+
+def _map_files(p: Path, root: Path, library: Path, data: bytes, files: dict, images: dict, judged: set) -> None:
+    """Read every map the library names that :mod:`kpd.io.references` allows and that decodes as an image into
+    ``files`` (its bytes) and ``images`` (its pixels); one warning for each other one."""
+    for _, arguments in mtl.map_statements(data):
+        name, whole = mtl.map_name(arguments)
+        found = mtl.locate_map(root, library.parent, name, whole)
+        if found.refused is not None:
+            references.warn_refused(p, f"map of {library.name}", name, found.refused)
+            continue
+        if found.path is None or found.path in judged:
+            continue  # a missing map_Kd is reported with the materials
+        judged.add(found.path)
+        raw = references.read_named(found.path, references.IMAGE_BYTES)
+        image = decode_image(raw) if isinstance(raw, bytes) else None
+        if image is None:
+            references.warn_refused(p, f"map of {library.name}", name,
+                                    raw if isinstance(raw, str) else "not an image that decodes")
+            continue
+        files[found.path] = raw
+        images[found.path] = image
+
+
+def read(p: Path, name: str | None = None, *, points: bool = False, root: Path | None = None) -> "Mesh | PointSet":
     """Read an OBJ file (see the module notes); ``name`` is the path as the user gave it, for messages. With
-    ``points``, a file without faces gives a :class:`~kpd.mesh.PointSet` of its vertices instead of an error."""
+    ``points``, a file without faces gives a :class:`~kpd.mesh.PointSet` of its vertices instead of an error. The
+    files it names are read inside ``root`` only (its own folder when None; :mod:`kpd.io.references`)."""
     data = p.read_bytes()
     if b"\0" in data[:4096]:
         raise InputError(f"{p}: not a text OBJ file (it holds binary data)")
@@ -496,39 +565,22 @@ def read(p: Path, name: str | None = None, *, points: bool = False) -> "Mesh | P
     if source is None:
         return PointSet(arrays["vertices"], None, arrays["colors"], path=name if name is not None else os.fspath(p))
     T = len(arrays["triangles"])
-    materials: dict[str, Material] = {}
-    missing_maps = []
-    for _, _, names in source.libraries:
-        for lib_name, lib in _library_files(p, names):
-            if lib is None:
-                log.warning("%s: material library %r is missing; read without materials and textures", p, lib_name)
-                continue
-            for material in read_library(p, lib).values():
-                materials.setdefault(material.name, material)
-                if material.map_kd_name and material.map_kd is None:
-                    missing_maps.append(material.map_kd_name)
-    if missing_maps:
-        log.warning("%s: texture file(s) %s named in the material library are missing; read without them",
-                    p, ", ".join(dict.fromkeys(missing_maps)))
+    source.root = p.parent if root is None else Path(root)
+    source.files, images, materials = _material_files(p, source, source.root)
     textures, ids, texture_files = [], None, []
     face_material = arrays["face_material"]
     if face_material is not None and materials:
         used, face_ids = face_material
-        images, colors = [], []
-        cache: dict[Path, np.ndarray | None] = {}
+        chosen, colors = [], []
         for m in used:
             material = materials.get(m) if m is not None else None
-            image = None
-            if material is not None and material.map_kd is not None:
-                if material.map_kd not in cache:
-                    cache[material.map_kd] = read_image(material.map_kd)
-                image = cache[material.map_kd]
+            image = images.get(material.map_kd) if material is not None and material.map_kd is not None else None
             kd = material.kd if material is not None else _DEFAULT_KD
             colors.append(kd)
-            images.append(image)
+            chosen.append(image)
             texture_files.append(material.map_kd if image is not None else None)
-        if any(i is not None for i in images) or len(set(colors)) > 1:
-            for image, kd in zip(images, colors):
+        if any(i is not None for i in chosen) or len(set(colors)) > 1:
+            for image, kd in zip(chosen, colors):
                 if image is None:
                     image = np.round(np.array(kd, dtype=np.float64) * 255).astype(np.uint8).reshape(1, 1, 3)
                 textures.append(image)
@@ -593,23 +645,26 @@ def _fmt(rows: np.ndarray, prefix: bytes, tails: list | None = None) -> tuple:
 
 
 def _source_companions(stem: str, source: ObjSource) -> tuple[dict, dict]:
-    """Output names: {library path: (new name, its map renames)} and {image path: new name}."""
+    """Output names: {library path: (new name, its map renames)} and {image path: new name}, of the files kpd read
+    (``source.files``); a map it did not read is renamed to None (:func:`kpd.io.mtl.renamed_library`)."""
     libs: dict[Path, tuple[str, dict]] = {}
     images: dict[Path, str] = {}
     taken = {f"{stem}.obj".lower()}
     for _, _, names in source.libraries:
-        for lib_name, lib in _library_files(source.path, names):
-            if lib is None or lib in libs:
+        for lib_name, lib in _library_files(source.path, names, source.root):
+            if lib is None or lib in libs or lib not in source.files:
                 continue
             new = f"{stem}.mtl" if not libs else _unique(f"{stem}_{Path(lib_name).name}", taken)
             taken.add(new.lower())
             renames = {}
-            for statement in _map_statements(lib.read_bytes()):
-                name = _map_file(statement[1]).decode("utf-8", "replace").replace("\\", "/")
-                f = _find_map(lib.parent, name, statement[1].decode("utf-8", "replace").replace("\\", "/"))
-                if f is None:
+            for statement in _map_statements(source.files[lib]):
+                name, whole = mtl.map_name(statement[1])
+                found = mtl.locate_map(source.root or source.path.parent, lib.parent, name, whole)
+                f = found.path
+                if f is None or f not in source.files:
+                    if found.refused is not None or f is not None:
+                        renames[name] = None
                     continue
-                f = f.resolve()
                 if f not in images:
                     images[f] = _unique(f"{stem}_{f.name}", taken)
                     taken.add(images[f].lower())
@@ -645,23 +700,26 @@ def _write_from_source(target: Path, mesh: Mesh, source: ObjSource) -> None:
             streams.append((source.vn_spans[referenced], *_fmt(normals[referenced], b"vn ")))
     lib_names = {}
     for _, _, names in source.libraries:
-        for lib_name, lib in _library_files(source.path, names):
-            if lib is not None:
+        for lib_name, lib in _library_files(source.path, names, source.root):
+            if lib in libs:
                 lib_names[lib_name] = libs[lib][0]
     statements = []
     for _, _, names in source.libraries:
-        files = [lib_names[n] for n, lib in _library_files(source.path, names) if lib is not None]
+        found = mtl.library_references(source.path, names, source.root)
+        files = [lib_names[n] for n, f in found if f.path in libs]
+        missing = all(f.path is None and f.refused is None for _, f in found)
+        why = b" (missing when kpd read the file)" if missing else b" (not read by kpd)"
         statements.append(("mtllib " + " ".join(files)).encode("utf-8") if files else b"# mtllib " +
-                          names.encode("utf-8") + b" (missing when kpd read the file)")
+                          names.encode("utf-8") + why)
     spans = np.array([(start, end) for start, end, _ in source.libraries], dtype=np.int64).reshape(-1, 2)
     streams.append((spans, *text.joined(statements)))
     with open(target, "wb") as fh:
         if text.write_spliced(fh, source.data, streams) != b"\n":
             fh.write(b"\n")
     for lib, (new, renames) in libs.items():
-        target.parent.joinpath(new).write_bytes(_renamed_library(lib.read_bytes(), renames))
+        target.parent.joinpath(new).write_bytes(_renamed_library(source.files[lib], renames))
     for image, new in images.items():
-        target.parent.joinpath(new).write_bytes(image.read_bytes())
+        target.parent.joinpath(new).write_bytes(source.files[image])
 
 
 def _write_arrays(target: Path, mesh: Mesh) -> None:
