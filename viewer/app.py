@@ -162,7 +162,7 @@ class EditorApp(EditorPanel, FrameScheduler):
         self._slider_base = self.session.keypoints
 
     def _stand_in(self) -> Any:
-        from kpd.viewer.gl import image_maps, stand_in
+        from kpd.viewer.standins import image_maps, stand_in
 
         return stand_in(self.mesh.vertices, self.drawing.shaded.drawn, fine=not image_maps(self.mesh))
 
@@ -204,7 +204,8 @@ class EditorApp(EditorPanel, FrameScheduler):
         self._running = False
 
     def _build(self) -> None:
-        from kpd.viewer.gl import GLView, RigDrawing
+        from kpd.viewer.glview import GLView
+        from kpd.viewer.rigdrawing import RigDrawing
 
         s = self.settings
         self._started = time.time()

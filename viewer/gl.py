@@ -27,7 +27,7 @@ from kpd.viewer.shots import Layer, Shot, frame_points, render_shots
 from kpd.viewer.standins import (COARSE_STAND_IN_TRIANGLES, FINE_STAND_IN_CELLS, STAND_IN_TRIANGLES, coarse_stand_in,
                                  fine_stand_in, image_maps, stand_in, stand_in_colors)
 
-# private names the tests of the modules above read, importable from here as before the split
+# private names that code outside the modules reads from here
 from kpd.viewer.culling import _BLOCK as _BLOCK, _block_hidden as _block_hidden, _margin as _margin  # isort: skip
 from kpd.viewer.culling import _project as _project, _showing as _showing  # isort: skip
 from kpd.viewer.glview import _raster_threads as _raster_threads, _runtime_dir as _runtime_dir  # isort: skip
@@ -47,6 +47,6 @@ __all__ = [
     "PROXY_TRIANGLES", "proxy_triangles",
 ]
 
-# the names these had before "stand-in" was the one word for them and the normals' classes were public
+# other names of the coarse stand-in and of the normals' classes, for the code that imports them by those
 PROXY_TRIANGLES, proxy_triangles = COARSE_STAND_IN_TRIANGLES, coarse_stand_in
 _Welding, _Normals = Welding, ShadingNormals
