@@ -365,6 +365,7 @@ def _image_files(p: Path, doc: dict, root: Path | None = None) -> dict[int, tupl
     :mod:`kpd.io.references` allows and that decode: the only image files a write copies. One warning for each
     other one."""
     out = {}
+    said: set = set()
     for i, image in enumerate(doc.get("images", [])):
         uri = image.get("uri") if isinstance(image, dict) else None
         if not isinstance(uri, str) or uri.startswith("data:"):
@@ -375,7 +376,8 @@ def _image_files(p: Path, doc: dict, root: Path | None = None) -> dict[int, tupl
             continue
         pixels = decode_image(raw) if isinstance(raw, bytes) else None
         if pixels is None:
-            references.warn_refused(p, "image", uri, raw if isinstance(raw, str) else "not an image that decodes")
+            references.warn_refused(p, "image", uri, raw if isinstance(raw, str) else "not an image that decodes",
+                                    said)
             continue
         out[i] = (raw, pixels)
     return out

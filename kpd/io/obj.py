@@ -501,11 +501,12 @@ def _material_files(p: Path, source: ObjSource, root: Path) -> tuple[dict, dict,
     images: dict[Path, np.ndarray] = {}
     materials: dict[str, Material] = {}
     judged: set = set()  # files looked at (read or refused), each reported once
+    said: set = set()
     missing = []
     for _, _, names in source.libraries:
         for lib_name, found in mtl.library_references(p, names, root):
             if found.refused is not None:
-                references.warn_refused(p, "material library", lib_name, found.refused)
+                references.warn_refused(p, "material library", lib_name, found.refused, said)
                 continue
             if found.path is None:
                 log.warning("%s: material library %r is missing; read without materials and textures", p, lib_name)
@@ -516,10 +517,10 @@ def _material_files(p: Path, source: ObjSource, root: Path) -> tuple[dict, dict,
                 if isinstance(data, bytes) and not references.is_text(data):
                     data = "not a text file"
                 if isinstance(data, str):
-                    references.warn_refused(p, "material library", lib_name, data)
+                    references.warn_refused(p, "material library", lib_name, data, said)
                     continue
                 files[found.path] = data
-                _map_files(p, root, found.path, data, files, images, judged)
+                _map_files(p, root, found.path, data, files, images, judged, said)
             if found.path not in files:
                 continue
             for material in mtl.read_library(p, found.path, files[found.path], root).values():
@@ -532,14 +533,15 @@ def _material_files(p: Path, source: ObjSource, root: Path) -> tuple[dict, dict,
     return files, images, materials
 
 
-def _map_files(p: Path, root: Path, library: Path, data: bytes, files: dict, images: dict, judged: set) -> None:
+def _map_files(p: Path, root: Path, library: Path, data: bytes, files: dict, images: dict, judged: set,
+               said: set) -> None:
     """Read every map the library names that :mod:`kpd.io.references` allows and that decodes as an image into
     ``files`` (its bytes) and ``images`` (its pixels); one warning for each other one."""
     for _, arguments in mtl.map_statements(data):
         name, whole = mtl.map_name(arguments)
         found = mtl.locate_map(root, library.parent, name, whole)
         if found.refused is not None:
-            references.warn_refused(p, f"map of {library.name}", name, found.refused)
+            references.warn_refused(p, f"map of {library.name}", name, found.refused, said)
             continue
         if found.path is None or found.path in judged:
             continue  # a missing map_Kd is reported with the materials
@@ -548,7 +550,7 @@ def _map_files(p: Path, root: Path, library: Path, data: bytes, files: dict, ima
         image = decode_image(raw) if isinstance(raw, bytes) else None
         if image is None:
             references.warn_refused(p, f"map of {library.name}", name,
-                                    raw if isinstance(raw, str) else "not an image that decodes")
+                                    raw if isinstance(raw, str) else "not an image that decodes", said)
             continue
         files[found.path] = raw
         images[found.path] = image

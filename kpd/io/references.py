@@ -106,6 +106,11 @@ def is_text(data: bytes) -> bool:
     return not data.translate(None, _NOT_CONTROL)
 
 
-def warn_refused(owner: Path | str, what: str, name: str, reason: str) -> None:
-    """The one warning of a named file that is not read (nor copied)."""
+def warn_refused(owner: Path | str, what: str, name: str, reason: str, said: set | None = None) -> None:
+    """The one warning of a named file that is not read (nor copied); ``said`` holds what was already said while
+    reading ``owner``, so that a name several statements repeat is said once."""
+    if said is not None:
+        if (what, name) in said:
+            return
+        said.add((what, name))
     log.warning("%s: %s %r is not read (%s); read without it", owner, what, name, reason)
