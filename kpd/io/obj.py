@@ -12,9 +12,10 @@ only the ``v`` lines (and the ``vn`` lines, turned with the surface) of the inpu
 groups, lines, comments, materials and face order stay as they were; the ``.mtl`` is copied as ``<stem>.mtl`` with
 its maps renamed, and every image it names is copied byte for byte as ``<stem>_<its name>`` (a JPEG stays a JPEG),
 so that the outputs of one folder never collide. Only the files kpd read are copied: those inside the input's folder
-tree that are what they claim (:mod:`kpd.io.references`); the statement of any other is kept as a comment. Any other mesh is written by :func:`write` from its arrays: ``v``
-(with ``r g b`` when it has vertex colours), ``vt`` on the faces that have UVs, ``vn``, one material per texture
-(a 1x1 texture as a plain ``Kd`` colour, others as ``<stem>_<i>.png``).
+tree that are what they claim (:mod:`kpd.io.references`); the statement of any other is kept as a comment. Any
+other mesh is written by :func:`write` from its arrays: ``v`` (with ``r g b`` when it has vertex colours), ``vt``
+on the faces that have UVs, ``vn``, one material per texture (a 1x1 texture as a plain ``Kd`` colour, others as
+``<stem>_<i>.png``).
 
 Faces of more than three corners (Blender's quads and n-gons) are read as fans of triangles from their first corner;
 the file's own structure written back keeps them as the polygons they are.
@@ -155,7 +156,8 @@ def _values(p: Path, data: bytes, lines, rows: np.ndarray, prefix: int, widths: 
     out = np.zeros((n, max(widths)))
     counts = np.empty(n, dtype=np.int64)
     exact = np.empty(n, dtype=np.bool_)
-    in_halves(scan_numbers, n, np.frombuffer(data, dtype=np.uint8), first[rows] + prefix, ends[rows], out, counts, exact)
+    buf = np.frombuffer(data, dtype=np.uint8)
+    in_halves(scan_numbers, n, buf, first[rows] + prefix, ends[rows], out, counts, exact)
     for j in np.flatnonzero(~exact).tolist():  # rare: words Python reads, or reports
         i = int(rows[j])
         try:
