@@ -286,3 +286,9 @@ def test_a_file_named_by_several_statements_is_one_warning(tmp_path, caplog):
         read_mesh(tmp_path / "m.obj")
     lines = [r.getMessage() for r in caplog.records]
     assert warnings_naming(lines, ["../t.png", "../x.mtl"]) == {"../t.png": 1, "../x.mtl": 1} and len(lines) == 2
+
+
+def test_deeply_nested_json_is_one_error(tmp_path):
+    (tmp_path / "deep.gltf").write_text("[" * 100_000)
+    with pytest.raises(InputError, match="could not be read as glTF"):
+        read_mesh(tmp_path / "deep.gltf")

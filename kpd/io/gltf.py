@@ -595,7 +595,7 @@ def read(p: Path, name: str | None = None, *, points: bool = False, root: Path |
 
     try:
         doc, chunk = read_gltf_json(p)
-    except (ValueError, KeyError, struct.error, UnicodeDecodeError) as exc:
+    except (ValueError, KeyError, struct.error, UnicodeDecodeError, RecursionError) as exc:
         raise InputError(f"{p}: could not be read as glTF ({exc})") from None
     if not isinstance(doc, dict) or str(doc.get("asset", {}).get("version", "2.0")).split(".")[0] != "2":
         raise InputError(f"{p}: not a glTF 2.0 file")
