@@ -48,7 +48,9 @@ class Named(NamedTuple):
 def locate(root: Path, folder: Path, name: str) -> Named:
     """The file ``name`` (relative to ``folder``) names, judged against the input's folder ``root`` (see the module
     notes). Reads nothing and logs nothing."""
-    if not name or any(ord(c) < 32 or ord(c) == 127 for c in name):
+    if not name.strip():
+        return Named(None)
+    if any(ord(c) < 32 or ord(c) == 127 for c in name):
         return Named(None, "its name holds a control character")
     if name.startswith(("/", "\\")) or (len(name) > 1 and name[1] == ":" and name[0].isalpha()):
         return Named(None, "an absolute path")
