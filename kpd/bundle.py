@@ -228,7 +228,8 @@ class _Members:
     def read(self, name: str, limit: int) -> bytes | None:
         """The bytes of the bundle's file ``name`` (a plain file name), or None when it has none; BundleError when
         it is larger than ``limit`` or (in a zip) inflates more than :data:`RATIO` times."""
-        if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name or any(ord(c) < 32 for c in name):
+        if not isinstance(name, str) or name in ("", ".", "..") or "/" in name or "\\" in name or \
+                any(ord(c) < 32 for c in name):
             raise BundleError(f"{self.path}: the manifest names {name!r}, not a plain file name of the bundle")
         if self.archive is None:
             return self._read_file(name, limit)

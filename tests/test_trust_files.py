@@ -276,3 +276,19 @@ def test_a_wider_files_root_is_the_callers_choice(tmp_path, caplog):
     out.parent.mkdir()
     write_mesh(out, mesh.with_vertices(mesh.vertices + 1))
     assert_nothing_leaked(out, {"edited.gltf", "edited_tex.png"})
+
+
+def test_a_file_named_by_several_statements_is_one_warning(tmp_path, caplog):
+    (tmp_path / "m.mtl").write_text("newmtl a\nmap_Kd ../t.png\nmap_d ../t.png\nnewmtl b\nmap_Kd ../t.png\n")
+    (tmp_path / "m.obj").write_text("\n".join(["mtllib m.mtl", "mtllib ../x.mtl", "mtllib ../x.mtl"]
+                                              + sphere_obj_lines()) + "\n")
+    with caplog.at_level(logging.WARNING):
+        read_mesh(tmp_path / "m.obj")
+    lines = [r.getMessage() for r in caplog.records]
+    assert warnings_naming(lines, ["../t.png", "../x.mtl"]) == {"../t.png": 1, "../x.mtl": 1} and len(lines) == 2
+
+
+def test_deeply_nested_json_is_one_error(tmp_path):
+    (tmp_path / "deep.gltf").write_text("[" * 100_000)
+    with pytest.raises(InputError, match="could not be read as glTF"):
+        read_mesh(tmp_path / "deep.gltf")

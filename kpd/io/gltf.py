@@ -365,6 +365,7 @@ def _image_files(p: Path, doc: dict, root: Path | None = None) -> dict[int, tupl
     :mod:`kpd.io.references` allows and that decode: the only image files a write copies. One warning for each
     other one."""
     out = {}
+    said: set = set()
     for i, image in enumerate(doc.get("images", [])):
         uri = image.get("uri") if isinstance(image, dict) else None
         if not isinstance(uri, str) or uri.startswith("data:"):
@@ -375,7 +376,8 @@ def _image_files(p: Path, doc: dict, root: Path | None = None) -> dict[int, tupl
             continue
         pixels = decode_image(raw) if isinstance(raw, bytes) else None
         if pixels is None:
-            references.warn_refused(p, "image", uri, raw if isinstance(raw, str) else "not an image that decodes")
+            references.warn_refused(p, "image", uri, raw if isinstance(raw, str) else "not an image that decodes",
+                                    said)
             continue
         out[i] = (raw, pixels)
     return out
@@ -593,7 +595,7 @@ def read(p: Path, name: str | None = None, *, points: bool = False, root: Path |
 
     try:
         doc, chunk = read_gltf_json(p)
-    except (ValueError, KeyError, struct.error, UnicodeDecodeError) as exc:
+    except (ValueError, KeyError, struct.error, UnicodeDecodeError, RecursionError) as exc:
         raise InputError(f"{p}: could not be read as glTF ({exc})") from None
     if not isinstance(doc, dict) or str(doc.get("asset", {}).get("version", "2.0")).split(".")[0] != "2":
         raise InputError(f"{p}: not a glTF 2.0 file")

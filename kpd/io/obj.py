@@ -12,9 +12,10 @@ only the ``v`` lines (and the ``vn`` lines, turned with the surface) of the inpu
 groups, lines, comments, materials and face order stay as they were; the ``.mtl`` is copied as ``<stem>.mtl`` with
 its maps renamed, and every image it names is copied byte for byte as ``<stem>_<its name>`` (a JPEG stays a JPEG),
 so that the outputs of one folder never collide. Only the files kpd read are copied: those inside the input's folder
-tree that are what they claim (:mod:`kpd.io.references`); the statement of any other is kept as a comment. Any other mesh is written by :func:`write` from its arrays: ``v``
-(with ``r g b`` when it has vertex colours), ``vt`` on the faces that have UVs, ``vn``, one material per texture
-(a 1x1 texture as a plain ``Kd`` colour, others as ``<stem>_<i>.png``).
+tree that are what they claim (:mod:`kpd.io.references`); the statement of any other is kept as a comment. Any
+other mesh is written by :func:`write` from its arrays: ``v`` (with ``r g b`` when it has vertex colours), ``vt``
+on the faces that have UVs, ``vn``, one material per texture (a 1x1 texture as a plain ``Kd`` colour, others as
+``<stem>_<i>.png``).
 
 Faces of more than three corners (Blender's quads and n-gons) are read as fans of triangles from their first corner;
 the file's own structure written back keeps them as the polygons they are.
@@ -155,7 +156,8 @@ def _values(p: Path, data: bytes, lines, rows: np.ndarray, prefix: int, widths: 
     out = np.zeros((n, max(widths)))
     counts = np.empty(n, dtype=np.int64)
     exact = np.empty(n, dtype=np.bool_)
-    in_halves(scan_numbers, n, np.frombuffer(data, dtype=np.uint8), first[rows] + prefix, ends[rows], out, counts, exact)
+    buf = np.frombuffer(data, dtype=np.uint8)
+    in_halves(scan_numbers, n, buf, first[rows] + prefix, ends[rows], out, counts, exact)
     for j in np.flatnonzero(~exact).tolist():  # rare: words Python reads, or reports
         i = int(rows[j])
         try:
@@ -501,11 +503,12 @@ def _material_files(p: Path, source: ObjSource, root: Path) -> tuple[dict, dict,
     images: dict[Path, np.ndarray] = {}
     materials: dict[str, Material] = {}
     judged: set = set()  # files looked at (read or refused), each reported once
+    said: set = set()
     missing = []
     for _, _, names in source.libraries:
         for lib_name, found in mtl.library_references(p, names, root):
             if found.refused is not None:
-                references.warn_refused(p, "material library", lib_name, found.refused)
+                references.warn_refused(p, "material library", lib_name, found.refused, said)
                 continue
             if found.path is None:
                 log.warning("%s: material library %r is missing; read without materials and textures", p, lib_name)
@@ -516,10 +519,10 @@ def _material_files(p: Path, source: ObjSource, root: Path) -> tuple[dict, dict,
                 if isinstance(data, bytes) and not references.is_text(data):
                     data = "not a text file"
                 if isinstance(data, str):
-                    references.warn_refused(p, "material library", lib_name, data)
+                    references.warn_refused(p, "material library", lib_name, data, said)
                     continue
                 files[found.path] = data
-                _map_files(p, root, found.path, data, files, images, judged)
+                _map_files(p, root, found.path, data, files, images, judged, said)
             if found.path not in files:
                 continue
             for material in mtl.read_library(p, found.path, files[found.path], root).values():
@@ -532,14 +535,15 @@ def _material_files(p: Path, source: ObjSource, root: Path) -> tuple[dict, dict,
     return files, images, materials
 
 
-def _map_files(p: Path, root: Path, library: Path, data: bytes, files: dict, images: dict, judged: set) -> None:
+def _map_files(p: Path, root: Path, library: Path, data: bytes, files: dict, images: dict, judged: set,
+               said: set) -> None:
     """Read every map the library names that :mod:`kpd.io.references` allows and that decodes as an image into
     ``files`` (its bytes) and ``images`` (its pixels); one warning for each other one."""
     for _, arguments in mtl.map_statements(data):
         name, whole = mtl.map_name(arguments)
         found = mtl.locate_map(root, library.parent, name, whole)
         if found.refused is not None:
-            references.warn_refused(p, f"map of {library.name}", name, found.refused)
+            references.warn_refused(p, f"map of {library.name}", name, found.refused, said)
             continue
         if found.path is None or found.path in judged:
             continue  # a missing map_Kd is reported with the materials
@@ -548,7 +552,7 @@ def _map_files(p: Path, root: Path, library: Path, data: bytes, files: dict, ima
         image = decode_image(raw) if isinstance(raw, bytes) else None
         if image is None:
             references.warn_refused(p, f"map of {library.name}", name,
-                                    raw if isinstance(raw, str) else "not an image that decodes")
+                                    raw if isinstance(raw, str) else "not an image that decodes", said)
             continue
         files[found.path] = raw
         images[found.path] = image

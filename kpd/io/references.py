@@ -48,7 +48,9 @@ class Named(NamedTuple):
 def locate(root: Path, folder: Path, name: str) -> Named:
     """The file ``name`` (relative to ``folder``) names, judged against the input's folder ``root`` (see the module
     notes). Reads nothing and logs nothing."""
-    if not name or any(ord(c) < 32 or ord(c) == 127 for c in name):
+    if not name.strip():
+        return Named(None)
+    if any(ord(c) < 32 or ord(c) == 127 for c in name):
         return Named(None, "its name holds a control character")
     if name.startswith(("/", "\\")) or (len(name) > 1 and name[1] == ":" and name[0].isalpha()):
         return Named(None, "an absolute path")
@@ -106,6 +108,11 @@ def is_text(data: bytes) -> bool:
     return not data.translate(None, _NOT_CONTROL)
 
 
-def warn_refused(owner: Path | str, what: str, name: str, reason: str) -> None:
-    """The one warning of a named file that is not read (nor copied)."""
+def warn_refused(owner: Path | str, what: str, name: str, reason: str, said: set | None = None) -> None:
+    """The one warning of a named file that is not read (nor copied); ``said`` holds what was already said while
+    reading ``owner``, so that a name several statements repeat is said once."""
+    if said is not None:
+        if (what, name) in said:
+            return
+        said.add((what, name))
     log.warning("%s: %s %r is not read (%s); read without it", owner, what, name, reason)
