@@ -255,7 +255,7 @@ class _Members:
     def _read_file(self, name: str, limit: int) -> bytes | None:
         from kpd.io.references import locate, read_named
 
-        found = locate(self.path, self.path, name)
+        found = locate(self.path, self.path, name, dataset_layouts=False)
         if found.refused is not None:
             raise BundleError(f"{self.path}: {name} is not read ({found.refused}); a bundle holds its own files")
         if found.path is None:

@@ -65,3 +65,24 @@ def test_read_named_checks_the_open_file(folder, tmp_path):
 def test_is_text():
     assert references.is_text(b"newmtl a\r\n\tKd 1 1 1\x0c\x1b")
     assert not references.is_text(b"newmtl a\0") and not references.is_text(b"\x01\x02")
+
+
+def test_shapenet_layout_reaches_the_images_folder_beside_models_and_nothing_else(tmp_path):
+    """ShapeNetCore keeps <model>/models/model_normalized.obj and its maps in <model>/images/: that sibling folder is
+    accepted, the rest of the parent is not, and a bundle (dataset_layouts=False) gets no such exception."""
+    models = tmp_path / "model" / "models"
+    (tmp_path / "model" / "images").mkdir(parents=True)
+    models.mkdir()
+    (tmp_path / "model" / "images" / "texture0.jpg").write_bytes(b"x")
+    (tmp_path / "model" / "secret.jpg").write_bytes(b"x")
+    (tmp_path / "model" / "imagesX").mkdir()
+    (tmp_path / "model" / "imagesX" / "t.jpg").write_bytes(b"x")
+    found = references.locate(models, models, "../images/texture0.jpg")
+    assert found.refused is None and found.path == (tmp_path / "model" / "images" / "texture0.jpg").resolve()
+    for name in ("../secret.jpg", "../images/../secret.jpg", "../imagesX/t.jpg", "../../model/secret.jpg"):
+        assert references.locate(models, models, name).refused == "outside the input's folder", name
+    assert references.locate(models, models, "../images/texture0.jpg",
+                             dataset_layouts=False).refused == "outside the input's folder"
+    other = tmp_path / "model" / "meshes"  # the exception is for a folder named models only
+    other.mkdir()
+    assert references.locate(other, other, "../images/texture0.jpg").refused == "outside the input's folder"

@@ -6,8 +6,8 @@ A file may come from someone else, and the names inside it are theirs to choose.
 - it lies inside the input's own folder tree once every symlink is followed (``os.path.realpath``, then
   :meth:`pathlib.Path.is_relative_to` the folder's real path): a ``..`` or a symlink that leaves the folder is not
   followed, and nothing under ``/proc``, ``/dev`` or ``/sys`` is read wherever the input lies (a caller may name a
-  wider tree it trusts: ``read_mesh(..., files_root=)``, for a dataset that keeps its maps beside the models' folders
-  as ShapeNet does),
+  wider tree it trusts: ``read_mesh(..., files_root=)``; ShapeNetCore's layout, maps in the ``images`` folder
+  beside a ``models`` folder, is accepted as it is),
 - it is a regular file (not a device, a FIFO or a socket) no larger than the bound of its kind, checked on the open
   file before it is read,
 - and it is what it claims to be: an image that decodes, a material library that is text.
@@ -45,9 +45,13 @@ class Named(NamedTuple):
     refused: str | None = None
 
 
-def locate(root: Path, folder: Path, name: str) -> Named:
+def locate(root: Path, folder: Path, name: str, *, dataset_layouts: bool = True) -> Named:
     """The file ``name`` (relative to ``folder``) names, judged against the input's folder ``root`` (see the module
-    notes). Reads nothing and logs nothing."""
+    notes). Reads nothing and logs nothing.
+
+    ``dataset_layouts``: also accept ShapeNetCore's layout, a ``models`` folder whose maps lie in the ``images``
+    folder beside it (``<model>/models/model_normalized.obj`` naming ``../images/texture0.jpg``): that sibling
+    folder only, never the rest of the parent."""
     if not name.strip():
         return Named(None)
     if any(ord(c) < 32 or ord(c) == 127 for c in name):
@@ -61,7 +65,10 @@ def locate(root: Path, folder: Path, name: str) -> Named:
         return Named(None, f"its path cannot be resolved ({exc})")
     if any(real == s or real.is_relative_to(s) for s in _SYSTEM):
         return Named(None, "a system file")
-    if not real.is_relative_to(top):
+    trees = [top]
+    if dataset_layouts and top.name == "models":
+        trees.append(top.parent / "images")
+    if not any(real.is_relative_to(tree) for tree in trees):
         return Named(None, "outside the input's folder")
     try:
         st = os.stat(real)
