@@ -123,6 +123,24 @@ def test_kpd_deform_reads_and_copies_nothing_outside_the_folder(tmp_path):
     assert_nothing_leaked(out, {"edited.obj", "edited.mtl", "edited_good.png"})
 
 
+@pytest.mark.parametrize("command", ["align", "scan"])
+def test_the_other_commands_share_the_rule(tmp_path, command):
+    """``kpd align`` and ``kpd scan`` write the hostile OBJ back in its own structure too: the same warnings, once
+    each, and nothing of the victim's beside the output."""
+    path, named = hostile_obj(tmp_path)
+    plain = tmp_path / "plain.obj"
+    plain.write_text("\n".join(line for line in sphere_obj_lines() if line != "usemtl m") + "\n")
+    out = tmp_path / "out" / "edited.obj"
+    out.parent.mkdir()
+    argv = {"align": ["align", str(make_toy_bundle(tmp_path / "toy.kpd")), str(path), str(plain)],
+            "scan": ["scan", str(path), "--reference", str(plain), "--report", str(tmp_path / "report.json")]}
+    done = subprocess.run([sys.executable, "-m", "kpd.cli", *argv[command], "--out", str(out)], capture_output=True,
+                          text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert warnings_naming(done.stderr.splitlines(), named) == {name: 1 for name in named}, done.stderr
+    assert_nothing_leaked(out, {"edited.obj", "edited.mtl", "edited_good.png"})
+
+
 def gltf_with_images(folder: Path, uris: list[str]) -> Path:
     """A textured .gltf (its buffer a data: URI) whose images are ``uris``, one material each."""
     from kpd.mesh import Mesh
