@@ -68,7 +68,7 @@ def test_shapenet_pictures_show_their_materials(data_dir, tmp_path):
     root = data_dir / "shapenetcore_obj"
     cup = read_mesh(root / "cup/1f035aa5fc6da0983ecac81e09b15ea9/models/model_normalized.obj")
     bench = root / "bench/a047cb14c22517e6f33e284fed03c3fc"
-    bench = read_mesh(bench / "models/model_normalized.obj", files_root=bench)  # its maps are in ../images
+    bench = read_mesh(bench / "models/model_normalized.obj")  # its maps are in ../images, ShapeNet's layout
     for mesh, name in ((cup, "cup"), (bench, "bench")):
         render_sheet([mesh], tmp_path / f"{name}.png", up="y", cell=2.4)
     r, g, b = np.moveaxis(read_png(tmp_path / "cup.png").astype(int), 2, 0)
