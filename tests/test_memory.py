@@ -82,3 +82,7 @@ def test_the_memory_is_checked_once_per_binding(tmp_path, monkeypatch):
     assert main(["deform", "chair", str(tmp_path / "box.ply"), "--move", "0:0,0,0.1", "--out",
                  str(tmp_path / "out.ply")]) == 0
     assert len(asked) == 3
+    # kpd render binds later, beside getting the mesh ready to draw: the memory is asked for once there too
+    assert main(["render", "chair", str(tmp_path / "box.ply"), "--out", str(tmp_path / "box.png"), "--size",
+                 "160x120"]) == 0
+    assert len(asked) == 4

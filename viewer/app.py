@@ -72,7 +72,7 @@ class PendingRig(NamedTuple):
     bind: Callable[[], Any]
 
 
-Binding = PendingRig  # its name before, still imported by the commands
+Binding = PendingRig  # its name before this version
 
 
 class EditorApp(EditorPanel, FrameScheduler):

@@ -107,15 +107,17 @@ def frame_lines(model, shape, seed: int, name: str, *, prediction=None) -> list[
     return frame_warnings(model if prediction is None else _Sampled(model, prediction), shape, seed=seed, name=name)
 
 
-def rig_checked(model, mesh, seed: int, name: str):
+def rig_checked(model, mesh, seed: int, name: str, *, check_memory: bool = True):
     """``model.rig(mesh)`` with the frame check of :func:`warn_frame`, both from one surface sample: the check runs
     on a worker thread while the mesh is bound (it needs the networks and one core, the binding mostly the other) and
-    its warnings are printed when both are done. A mesh too large for the memory ends before any work."""
+    its warnings are printed when both are done. A mesh too large for the memory ends before any work
+    (``check_memory=False``: the caller checked it)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from kpd.rig import check_bind_memory
 
-    check_bind_memory(len(mesh.vertices), len(mesh.triangles), model.num_keypoints)
+    if check_memory:
+        check_bind_memory(len(mesh.vertices), len(mesh.triangles), model.num_keypoints)
     prediction = model.predict(mesh, seed=seed)
     with ThreadPoolExecutor(1, thread_name_prefix="kpd-frame-check") as pool:
         lines = pool.submit(frame_lines, model, mesh, seed, name, prediction=prediction)
@@ -377,7 +379,8 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bo
         scan = scan_frame(args, model, mesh)
 
         def bind():
-            aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed)
+            aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=args.seed,
+                                check_memory=not later)  # checked above when later
             return ScanRig(aligned, mesh, scan)
 
         up, front = shape_view(model, args.shape, scan)
@@ -385,7 +388,7 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bo
                       up or args.up, front, category_azimuth(model))
 
     def bind():
-        return rig_checked(model, mesh, args.seed, args.shape)
+        return rig_checked(model, mesh, args.seed, args.shape, check_memory=not later)
 
     # without --scan the mesh is taken in the model's frame, so the model's up axis is the shape's (unless the
     # file's format defines one)
@@ -395,9 +398,9 @@ def load_source(args: argparse.Namespace, *, need_prior: bool = False, later: bo
 
 
 def _later(mesh: Any, model: Any, bind: Any) -> Any:
-    from kpd.viewer.app import Binding
+    from kpd.viewer.app import PendingRig
 
-    return Binding(mesh, model.num_keypoints, bind)
+    return PendingRig(mesh, model.num_keypoints, bind)
 
 
 # --- what a command writes --------------------------------------------------------------------------------------

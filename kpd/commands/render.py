@@ -78,9 +78,9 @@ def bind_beside_drawing(rig, settings):
     second or more for millions of triangles); a rig already made is returned as it is, with None."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from kpd.viewer.app import Binding
+    from kpd.viewer.app import PendingRig
 
-    if not isinstance(rig, Binding):
+    if not isinstance(rig, PendingRig):
         return rig, None
     from kpd.viewer.gl import ShadedMesh
 
