@@ -24,7 +24,7 @@ from kpd.viewer.camera import camera_pose
 from kpd.viewer.settings import ViewSettings, front_axis, up_axis
 
 # the commands that read a shape for a model and check its frame
-FRAME_COMMANDS = ("keypoints", "deform", "align", "sample", "render", "rig", "view")
+FRAME_COMMANDS = ("keypoints", "deform", "align", "sample", "render", "rig", "view", "demo")
 MOVE_COMMANDS = ("deform", "render")
 AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 
@@ -181,6 +181,15 @@ def test_sample_and_align_take_scan(toy, chair_file, tmp_path, capsys):
     assert json.loads((tmp_path / "a.json").read_text())["scan"] is True
     assert kpd("align", toy, chair_file, other, "--up", "z", "--out", tmp_path / "b.ply") == 2
     assert "--up goes with --scan" in capsys.readouterr().err
+
+
+def test_demo_takes_scan_with_its_own_mesh(toy, chair_file, tmp_path, capsys):
+    assert kpd("demo", "--model", toy, "--mesh", chair_file, "--scan", "--up", "z", "--out", tmp_path / "d") == 0
+    record = json.loads((tmp_path / "d" / "keypoints.json").read_text())
+    assert "scan" in record and not (tmp_path / "d" / "rig.npz").exists()  # a .npz rig holds no scan frame
+    assert "--scan" in capsys.readouterr().out.splitlines()[-1]  # the next command orients the mesh alike
+    assert kpd("demo", "--model", toy, "--scan", "--out", tmp_path / "e") == 2
+    assert "--scan goes with --mesh" in capsys.readouterr().err
 
 
 def _gltf_root_rotation(path: Path):
