@@ -58,21 +58,23 @@ def _warnings(capsys) -> dict[str, list[str]]:
     check = FrameCheck(0.3, 0.1, np.eye(3), 90.0, True, "y", 0.2, 0.1, 0.1, False)
     frame = [*check.warnings("chair", "a.obj"), *check._replace(up=None).warnings("chair"),
              *check._replace(foreign=True).warnings("chair")]
+    ambiguous = []
     for up_given in (False, True):
-        frame.append(ambiguity_advice(up_given))
+        ambiguous.append(ambiguity_advice(up_given))
         for alternatives in ([("z", 180)], [("z", 90)], [("x", 90)], [("x", 90), ("z", 180)]):
-            frame.append(ambiguity_advice(up_given, _orientation(alternatives), "+z"))
+            ambiguous.append(ambiguity_advice(up_given, _orientation(alternatives), "+z"))
     warn_moves({3: np.array([0.0, 0.0, 5.0])}, np.random.default_rng(0).uniform(0, 0.6, (50, 3)))
     moves = capsys.readouterr().err.splitlines()
     assert moves and all("--move" in line for line in moves)
-    return {"frame": frame, "move": moves}
+    return {"frame": frame + ambiguous, "ambiguous": ambiguous, "move": moves}
 
 
 def test_every_flag_a_warning_suggests_is_an_option_of_its_command(capsys):
     options = _options()
     texts = _warnings(capsys)
     assert any("--scan" in t for t in texts["frame"]) and any("--up" in t for t in texts["frame"])
-    for kind, commands in (("frame", FRAME_COMMANDS), ("move", MOVE_COMMANDS)):
+    # kpd scan prints the ambiguity advice too
+    for kind, commands in (("frame", FRAME_COMMANDS), ("ambiguous", ("scan",)), ("move", MOVE_COMMANDS)):
         for text in texts[kind]:
             # "kpd scan --picture": another command named with its own flag
             for other, flags in re.findall(r"kpd (\w+)((?: --[\w-]+)+)", text):
