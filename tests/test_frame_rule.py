@@ -24,7 +24,7 @@ from kpd.viewer.camera import camera_pose
 from kpd.viewer.settings import ViewSettings, front_axis, up_axis
 
 # the commands that read a shape for a model and check its frame
-FRAME_COMMANDS = ("keypoints", "deform", "align", "sample", "render", "rig", "view")
+FRAME_COMMANDS = ("keypoints", "deform", "align", "sample", "render", "rig", "view", "demo")
 MOVE_COMMANDS = ("deform", "render")
 AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 
@@ -58,21 +58,23 @@ def _warnings(capsys) -> dict[str, list[str]]:
     check = FrameCheck(0.3, 0.1, np.eye(3), 90.0, True, "y", 0.2, 0.1, 0.1, False)
     frame = [*check.warnings("chair", "a.obj"), *check._replace(up=None).warnings("chair"),
              *check._replace(foreign=True).warnings("chair")]
+    ambiguous = []
     for up_given in (False, True):
-        frame.append(ambiguity_advice(up_given))
+        ambiguous.append(ambiguity_advice(up_given))
         for alternatives in ([("z", 180)], [("z", 90)], [("x", 90)], [("x", 90), ("z", 180)]):
-            frame.append(ambiguity_advice(up_given, _orientation(alternatives), "+z"))
+            ambiguous.append(ambiguity_advice(up_given, _orientation(alternatives), "+z"))
     warn_moves({3: np.array([0.0, 0.0, 5.0])}, np.random.default_rng(0).uniform(0, 0.6, (50, 3)))
     moves = capsys.readouterr().err.splitlines()
     assert moves and all("--move" in line for line in moves)
-    return {"frame": frame, "move": moves}
+    return {"frame": frame + ambiguous, "ambiguous": ambiguous, "move": moves}
 
 
 def test_every_flag_a_warning_suggests_is_an_option_of_its_command(capsys):
     options = _options()
     texts = _warnings(capsys)
     assert any("--scan" in t for t in texts["frame"]) and any("--up" in t for t in texts["frame"])
-    for kind, commands in (("frame", FRAME_COMMANDS), ("move", MOVE_COMMANDS)):
+    # kpd scan prints the ambiguity advice too
+    for kind, commands in (("frame", FRAME_COMMANDS), ("ambiguous", ("scan",)), ("move", MOVE_COMMANDS)):
         for text in texts[kind]:
             # "kpd scan --picture": another command named with its own flag
             for other, flags in re.findall(r"kpd (\w+)((?: --[\w-]+)+)", text):
@@ -181,6 +183,15 @@ def test_sample_and_align_take_scan(toy, chair_file, tmp_path, capsys):
     assert json.loads((tmp_path / "a.json").read_text())["scan"] is True
     assert kpd("align", toy, chair_file, other, "--up", "z", "--out", tmp_path / "b.ply") == 2
     assert "--up goes with --scan" in capsys.readouterr().err
+
+
+def test_demo_takes_scan_with_its_own_mesh(toy, chair_file, tmp_path, capsys):
+    assert kpd("demo", "--model", toy, "--mesh", chair_file, "--scan", "--up", "z", "--out", tmp_path / "d") == 0
+    record = json.loads((tmp_path / "d" / "keypoints.json").read_text())
+    assert "scan" in record and not (tmp_path / "d" / "rig.npz").exists()  # a .npz rig holds no scan frame
+    assert "--scan" in capsys.readouterr().out.splitlines()[-1]  # the next command orients the mesh alike
+    assert kpd("demo", "--model", toy, "--scan", "--out", tmp_path / "e") == 2
+    assert "--scan goes with --mesh" in capsys.readouterr().err
 
 
 def _gltf_root_rotation(path: Path):

@@ -143,8 +143,8 @@ class _Sampled:
 
 def scan_frame(args: argparse.Namespace, model, shape, path: str | None = None, **kwargs):
     """``--scan``: the shape oriented into the model's frame (:class:`kpd.frame.ScanFrame`), searched with ``--up``
-    or, for glTF, the file's y up; what it decided is printed (stderr), with the category check of the oriented shape
-    (:meth:`kpd.frame.ScanFrame.category_warnings`). ``path``: the shape's file (default ``args.shape``)."""
+    or, for glTF, the file's y up; what it decided is printed (stderr), with the category check that runs without
+    ``--scan`` (:meth:`kpd.frame.ScanFrame.category_warnings`). ``path``: the shape's file (default ``args.shape``)."""
     from kpd.frame import ScanFrame
     from kpd.io import file_up
 
