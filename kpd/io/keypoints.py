@@ -72,6 +72,8 @@ def read_keypoints(path: str | os.PathLike) -> np.ndarray:
         data = json.loads(p.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"{p}: not valid JSON ({exc})") from exc
+    except RecursionError as exc:  # Python's JSON parser recurses once per nested list or object
+        raise InputError(f"{p}: not keypoints: its JSON nests lists or objects too deeply") from exc
     if isinstance(data, dict):
         if "keypoints" not in data:
             raise InputError(f"{p}: expected the key 'keypoints'; found {sorted(data)}")

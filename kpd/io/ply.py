@@ -48,7 +48,7 @@ from kpd._compiled import compiled_on_first_call
 from kpd.errors import InputError
 from kpd.io.common import count_lines
 
-__all__ = ["check_complete", "read_header", "read_mesh", "read_vertices", "write_mesh", "Header", "Element"]
+__all__ = ["check_complete", "check_corners", "read_header", "read_mesh", "read_vertices", "write_mesh", "Header", "Element"]
 
 _PLY_TYPE_SIZES = {
     "char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
@@ -528,9 +528,144 @@ def read_mesh(p: Path, name: str | None = None):
 
     data = _read(p, faces=True)
     if data is None:
+        check_corners(p)
         return None
     points, normals, colors = _vertex_arrays(data)
     return Mesh(vertices=points, triangles=data.triangles, vertex_normals=normals, vertex_colors=colors, path=name)
+
+
+# --- what Open3D is given -----------------------------------------------------------------------------------------
+
+
+def check_corners(p: Path) -> None:
+    """Raise if a face of a PLY that Open3D is to read (:func:`read_mesh` gave None) has a corner outside the
+    vertices: Open3D's reader cuts a polygon by ear clipping on its corners' positions without checking their
+    indices, and ends the process (a segmentation fault) on a corner beyond the vertices. Files whose face lists
+    cannot be walked (a header beyond :func:`read_header`, lists of a floating type, data that ends early) are left
+    to Open3D, which refuses them.
+
+    Raises
+    ------
+    InputError
+        Naming the first such face (its number, from 0) and its corner.
+    """
+    header = read_header(p)
+    if not header.known or header.format not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        return
+    vertices = next((e.count for e in header.elements if e.name == "vertex"), 0)
+    faces = next((e for e in header.elements if e.name == "face"), None)
+    if faces is None or not any(name in _FACE_LISTS and isinstance(kind, tuple) for name, kind in faces.properties):
+        return
+    if any(_PLY_NUMPY[kind[1]][0] == "f" or _PLY_NUMPY[kind[0]][0] == "f"
+           for e in header.elements for _, kind in e.properties if isinstance(kind, tuple)):
+        return
+    face_list = next(name for name in _FACE_LISTS if any(n == name for n, _ in faces.properties))
+    if header.format == "ascii":
+        found = _ascii_corner_outside(p, header, faces, face_list, vertices)
+    else:
+        found = _binary_corner_outside(p, header, faces, face_list, vertices)
+    if found is not None:
+        face, corner = found
+        raise InputError(f"{p}: face {face} has the corner {corner}, outside the {vertices} vertices [0, {vertices})")
+
+
+def _layout(element: Element, face_list: str | None) -> tuple[np.ndarray, ...]:
+    """Per property of ``element``: 1 for a list, its (count) size and signedness, the list's item size and
+    signedness, and 1 for the face list whose items are checked."""
+    rows = []
+    for name, kind in element.properties:
+        if isinstance(kind, tuple):
+            rows.append((1, _PLY_TYPE_SIZES[kind[0]], _PLY_NUMPY[kind[0]][0] == "i", _PLY_TYPE_SIZES[kind[1]],
+                         _PLY_NUMPY[kind[1]][0] == "i", name == face_list))
+        else:
+            rows.append((0, _PLY_TYPE_SIZES[kind], 0, 0, 0, 0))
+    table = np.array(rows, np.int64).reshape(-1, 6)
+    return tuple(table[:, k].copy() for k in range(6))
+
+
+def _binary_corner_outside(p: Path, header: Header, faces: Element, face_list: str, vertices: int):
+    raw = np.fromfile(p, dtype=np.uint8, offset=header.data_start)
+    big = header.format == "binary_big_endian"
+    at = 0
+    found = np.full(2, -1, np.int64)
+    for element in header.elements:
+        layout = _layout(element, face_list if element is faces else None)
+        at = _walk(raw, at, element.count, *layout, big, vertices, found)
+        if at < 0:
+            return None  # the data ends early: Open3D refuses the file
+        if element is faces:
+            return None if found[0] < 0 else (int(found[0]), int(found[1]))
+    return None
+
+
+@compiled_on_first_call
+def _walk(raw, at, count, is_list, size, signed, item_size, item_signed, checked, big, vertices,
+          found):  # pragma: no cover - compiled
+    """Walk ``count`` records of one element from byte ``at`` of ``raw``; the first record with a checked corner
+    outside [0, vertices) is put in ``found`` (record, corner). The byte after the records, or -1 when the data
+    ends first."""
+    n = len(raw)
+    for r in range(count):
+        for k in range(len(is_list)):
+            if at + size[k] > n:
+                return -1
+            if is_list[k] == 0:
+                at += size[k]
+                continue
+            length = 0
+            for j in range(size[k]):  # the count, an integer of size[k] bytes in the file's byte order
+                length = length * 256 + np.int64(raw[at + (j if big else size[k] - 1 - j)])
+            if signed[k] and length >= np.int64(1) << (8 * size[k] - 1):
+                length -= np.int64(1) << (8 * size[k])
+            at += size[k]
+            if length < 0 or at + length * item_size[k] > n:
+                return -1
+            if checked[k] and found[0] < 0:
+                for j in range(length):
+                    corner = 0
+                    w = item_size[k]
+                    for i in range(w):
+                        corner = corner * 256 + np.int64(raw[at + j * w + (i if big else w - 1 - i)])
+                    if item_signed[k] and corner >= np.int64(1) << (8 * w - 1):
+                        corner -= np.int64(1) << (8 * w)
+                    if corner < 0 or corner >= vertices:
+                        found[0], found[1] = r, corner
+                        return at
+            at += length * item_size[k]
+    return at
+
+
+def _ascii_corner_outside(p: Path, header: Header, faces: Element, face_list: str, vertices: int):
+    """As :func:`_binary_corner_outside`, for the words of an ASCII PLY (rply reads them as one stream)."""
+    with open(p, "rb") as fh:
+        fh.seek(header.data_start)
+        words = fh.read().split()
+    at = 0
+    for element in header.elements:
+        is_list = [isinstance(kind, tuple) for _, kind in element.properties]
+        if not any(is_list):
+            at += element.count * len(is_list)
+            continue
+        for r in range(element.count):
+            for (name, kind), listed in zip(element.properties, is_list):
+                if not listed:
+                    at += 1
+                    continue
+                if at >= len(words) or not _WHOLE.fullmatch(words[at]):
+                    return None  # Open3D refuses the file
+                length = int(words[at])
+                if length < 0 or at + 1 + length > len(words):
+                    return None
+                if element is faces and name == face_list:
+                    for word in words[at + 1 : at + 1 + length]:
+                        if not _WHOLE.fullmatch(word):
+                            return None
+                        if not 0 <= int(word) < vertices:
+                            return r, int(word)
+                at += 1 + length
+        if element is faces:
+            return None
+    return None
 
 
 # --- writing -------------------------------------------------------------------------------------------------------
