@@ -577,6 +577,29 @@ def test_resume_removes_temporaries_of_a_killed_run(inputs, tiny_run, tmp_path, 
     assert not [p for p in run.iterdir() if ".kpd-tmp-" in p.name]
 
 
+# --- the whole of stderr: one line, nothing before it -----------------------------------------------------------
+
+
+@pytest.mark.parametrize("case", ["sample", "bench"])
+def test_full_disk_leaves_no_progress_bar_on_stderr(case, inputs, full_disk, capfd):
+    """stderr as a pipe gets it (error_lines reduces a bar's redraws, which a log file keeps)."""
+    argv = _full_disk_cases(inputs, full_disk, full_disk)[case]
+    before = snapshot(full_disk, inputs)
+    code, _, err = kpd(capfd, *argv)
+    assert code == 2 and err.count("\n") == 1 and "\r" not in err and err.startswith("kpd "), repr(err)
+    assert "disk is full" in err
+    assert snapshot(full_disk, inputs) == before
+
+
+def test_bench_of_a_mesh_whose_points_coincide_prints_one_line(inputs, tmp_path, capfd):
+    write_mesh(tmp_path / "point.ply", Mesh(vertices=np.ones((4, 3)), triangles=[[0, 1, 2], [0, 2, 3]]))
+    before = snapshot(tmp_path, inputs)
+    code, _, err = kpd(capfd, "bench", inputs / "toy.kpd", "--mesh", tmp_path / "point.ply", "--repeats", "1",
+                       "--out", tmp_path / "b.json")
+    assert code == 2 and err.count("\n") == 1 and "\r" not in err and err.startswith("kpd "), repr(err)
+    assert snapshot(tmp_path, inputs) == before
+
+
 # --- integrity: hashes and damaged files --------------------------------------------------------------------------
 
 
