@@ -20,8 +20,10 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import io
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -687,6 +689,104 @@ def test_damaged_npz_points_and_rigs(damage, message, inputs, tmp_path, capfd):
     assert "pickle" not in line
     assert_fault(kpd(capfd, "deform", "--rig", path, "--out", tmp_path / "d.ply"), before, tmp_path,
                  match="" if damage != "text" else "a text file")
+
+
+# --- files made to harm the reader (found by tests/test_fuzz.py) ----------------------------------------------------
+
+
+def _polygon_ply(path: Path, *, binary: bool, corner: int) -> None:
+    """Four vertices and one quad whose last corner is ``corner``: kpd leaves polygons to Open3D's reader."""
+    head = (f"ply\nformat {'binary_little_endian' if binary else 'ascii'} 1.0\nelement vertex 4\n"
+            "property float x\nproperty float y\nproperty float z\nelement face 1\n"
+            "property list uchar int vertex_indices\nend_header\n").encode()
+    corners = [0, 1, 2, corner]
+    if binary:
+        body = np.eye(4, 3, dtype="<f4").tobytes() + bytes([4]) + np.array(corners, "<i4").tobytes()
+    else:
+        body = b"".join(b"%g %g %g\n" % tuple(row) for row in np.eye(4, 3)) + b"4 %d %d %d %d\n" % tuple(corners)
+    path.write_bytes(head + body)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_polygon_with_a_corner_beyond_the_vertices(binary, inputs, tmp_path):
+    """Open3D's PLY reader ends the process on such a corner (a segmentation fault): a process of its own here."""
+    _polygon_ply(tmp_path / "bad.ply", binary=binary, corner=2**31 - 7)
+    before = snapshot(tmp_path, inputs)
+    done = subprocess.run([KPD, "keypoints", str(inputs / "toy.kpd"), str(tmp_path / "bad.ply"), "--out",
+                           str(tmp_path / "kp.json")], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 2, done.stderr
+    assert error_lines(done.stderr) == [done.stderr.strip()] and "face 0 has the corner 2147483641" in done.stderr
+    assert snapshot(tmp_path, inputs) == before
+    _polygon_ply(tmp_path / "good.ply", binary=binary, corner=3)  # within the vertices: Open3D reads it as before
+    from kpd.io import read_mesh
+
+    assert read_mesh(tmp_path / "good.ply").triangles.shape == (2, 3)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_face_of_fewer_than_three_corners_or_a_partial_normal_in_a_file_open3d_reads(binary, inputs, tmp_path):
+    """Open3D's PLY reader reads on after a face of 0 to 2 corners (garbage or a segmentation fault later), its PCD
+    reader ends the process on a normal of one or two fields: each is one line, exit 2."""
+    _polygon_ply(tmp_path / "short.ply", binary=binary, corner=3)
+    data = (tmp_path / "short.ply").read_bytes()
+    (tmp_path / "short.ply").write_bytes(data[:-17] + bytes([2]) + data[-16:] if binary else
+                                         data.replace(b"4 0 1 2 3", b"2 0 1"))
+    write_points(tmp_path / "p.pcd", np.eye(4, 3), normals=np.eye(4, 3))
+    (tmp_path / "n.pcd").write_bytes((tmp_path / "p.pcd").read_bytes().replace(b"normal_x", b"normal_q", 1))
+    before = snapshot(tmp_path, inputs)
+    for path, message in ((tmp_path / "short.ply", "face 0 has 2 corners"), (tmp_path / "n.pcd", "without normal_x")):
+        done = subprocess.run([KPD, "keypoints", str(inputs / "toy.kpd"), str(path), "--out",
+                               str(tmp_path / "kp.json")], capture_output=True, text=True, timeout=600)
+        assert done.returncode == 2 and error_lines(done.stderr) == [done.stderr.strip()], done.stderr
+        assert message in done.stderr
+    assert snapshot(tmp_path, inputs) == before
+
+
+def test_npz_member_declaring_a_huge_array_or_inflating_like_a_bomb(inputs, tmp_path, capfd):
+    from kpd.io import read_points
+    from kpd.rig import Rig
+
+    lying = tmp_path / "lying.npz"  # the header of points.npy declares 2^28 x 3 doubles (6 GiB); 24 bytes follow
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": "<f8", "fortran_order": False, "shape": (2**28, 3)})
+    with zipfile.ZipFile(lying, "w") as archive:
+        archive.writestr("points.npy", buf.getvalue() + bytes(24))
+    bomb = tmp_path / "bomb.npz"  # 64 MiB of zeros deflated to 64 kB
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as archive:
+        with archive.open("points.npy", "w", force_zip64=True) as fh:
+            np.lib.format.write_array(fh, np.zeros((1 << 23, 1)))
+    for path, message in ((lying, "declares a float64 array of shape (268435456, 3)"), (bomb, "more than 100 times")):
+        for read in (read_points, Rig.load):
+            with pytest.raises(InputError, match=re.escape(message)):
+                read(path)
+        before = snapshot(tmp_path)
+        assert_fault(kpd(capfd, "deform", "--rig", path, "--out", tmp_path / "d.ply"), before, tmp_path,
+                     match=message)
+
+
+def test_rig_with_arrays_of_another_shape_and_its_hash_recomputed(inputs, tmp_path):
+    from kpd.io.integrity import HASH_KEY, content_hash
+    from kpd.rig import Rig
+
+    with np.load(inputs / "rig.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    for key, value in (("straightened", np.zeros(7, bool)), ("mesh_vertices", None), ("cage_faces", np.eye(3)),
+                       ("normalizer_center", np.zeros(7))):
+        changed = {k: v for k, v in arrays.items() if k != key}
+        if value is not None:
+            changed[key] = value
+        changed[HASH_KEY] = np.array(content_hash(changed))
+        np.savez(tmp_path / "r.npz", **changed)
+        with pytest.raises(InputError, match="r.npz"):
+            Rig.load(tmp_path / "r.npz")
+
+
+def test_keypoint_json_nested_too_deeply(tmp_path):
+    from kpd.io import read_keypoints
+
+    (tmp_path / "k.json").write_text('{"keypoints": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    with pytest.raises(InputError, match="nests lists or objects too deeply"):
+        read_keypoints(tmp_path / "k.json")
 
 
 def test_damaged_bundle_zip(inputs, tmp_path, capfd):

@@ -1,4 +1,5 @@
-"""PCD: the completeness check Open3D leaves out (it pads a truncated file with zeros)."""
+"""PCD: the checks Open3D leaves out: completeness (it pads a truncated file with zeros), and the normal's three
+fields (a file naming some of them ends the process in Open3D's reader)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,13 @@ from kpd.io.common import count_lines
 
 __all__ = ["check_complete"]
 
+_NORMALS = ("normal_x", "normal_y", "normal_z")
+
 
 def check_complete(p: Path) -> None:
-    """Raise if a PCD file holds fewer points than its header declares (Open3D pads such files with zeros)."""
+    """Raise if a PCD file holds fewer points than its header declares (Open3D pads such files with zeros), or if
+    its ``FIELDS`` name some but not all of ``normal_x normal_y normal_z`` (Open3D's reader then reads the missing
+    ones from nowhere: a segmentation fault)."""
     with open(p, "rb") as fh:
         head = fh.read(1 << 16)
     end = re.search(rb"^DATA[ \t]+(\w+)[ \t]*\r?\n", head, re.M)
@@ -23,6 +28,10 @@ def check_complete(p: Path) -> None:
         tokens = s.split()
         if tokens and not tokens[0].startswith("#"):
             header[tokens[0].upper()] = tokens[1:]
+    normals = [name for name in _NORMALS if name in header.get("FIELDS", [])]
+    if normals and len(normals) < 3:
+        missing = " ".join(name for name in _NORMALS if name not in normals)
+        raise InputError(f"{p}: its FIELDS name {' '.join(normals)} without {missing}; a normal takes all three")
     try:
         n = int(header["POINTS"][0])
         sizes = [int(x) for x in header["SIZE"]]

@@ -539,15 +539,15 @@ def read_mesh(p: Path, name: str | None = None):
 
 def check_corners(p: Path) -> None:
     """Raise if a face of a PLY that Open3D is to read (:func:`read_mesh` gave None) has a corner outside the
-    vertices: Open3D's reader cuts a polygon by ear clipping on its corners' positions without checking their
-    indices, and ends the process (a segmentation fault) on a corner beyond the vertices. Files whose face lists
+    vertices or fewer than three corners: Open3D's reader cuts a polygon by ear clipping on its corners' positions
+    without checking their indices or their number, and ends the process (a segmentation fault) on such a face. Files whose face lists
     cannot be walked (a header beyond :func:`read_header`, lists of a floating type, data that ends early) are left
     to Open3D, which refuses them.
 
     Raises
     ------
     InputError
-        Naming the first such face (its number, from 0) and its corner.
+        Naming the first such face (its number, from 0) and its corner or its number of corners.
     """
     header = read_header(p)
     if not header.known or header.format not in ("ascii", "binary_little_endian", "binary_big_endian"):
@@ -565,7 +565,9 @@ def check_corners(p: Path) -> None:
     else:
         found = _binary_corner_outside(p, header, faces, face_list, vertices)
     if found is not None:
-        face, corner = found
+        face, corner, corners = found
+        if corner is None:
+            raise InputError(f"{p}: face {face} has {corners} corners; a face has 3 or more")
         raise InputError(f"{p}: face {face} has the corner {corner}, outside the {vertices} vertices [0, {vertices})")
 
 
@@ -587,14 +589,15 @@ def _binary_corner_outside(p: Path, header: Header, faces: Element, face_list: s
     raw = np.fromfile(p, dtype=np.uint8, offset=header.data_start)
     big = header.format == "binary_big_endian"
     at = 0
-    found = np.full(2, -1, np.int64)
+    found = np.full(3, -1, np.int64)  # the face, its corner outside, or its number of corners when fewer than 3
     for element in header.elements:
         layout = _layout(element, face_list if element is faces else None)
         at = _walk(raw, at, element.count, *layout, big, vertices, found)
         if at < 0:
             return None  # the data ends early: Open3D refuses the file
         if element is faces:
-            return None if found[0] < 0 else (int(found[0]), int(found[1]))
+            return None if found[0] < 0 else (int(found[0]), int(found[1]) if found[2] < 0 else None,
+                                               int(found[2]))
     return None
 
 
@@ -621,6 +624,9 @@ def _walk(raw, at, count, is_list, size, signed, item_size, item_signed, checked
             if length < 0 or at + length * item_size[k] > n:
                 return -1
             if checked[k] and found[0] < 0:
+                if length < 3:
+                    found[0], found[1], found[2] = r, -1, length
+                    return at
                 for j in range(length):
                     corner = 0
                     w = item_size[k]
@@ -657,11 +663,13 @@ def _ascii_corner_outside(p: Path, header: Header, faces: Element, face_list: st
                 if length < 0 or at + 1 + length > len(words):
                     return None
                 if element is faces and name == face_list:
+                    if length < 3:
+                        return r, None, length
                     for word in words[at + 1 : at + 1 + length]:
                         if not _WHOLE.fullmatch(word):
                             return None
                         if not 0 <= int(word) < vertices:
-                            return r, int(word)
+                            return r, int(word), -1
                 at += 1 + length
         if element is faces:
             return None
