@@ -4,7 +4,7 @@ cases and their outcomes, and in all the tracebacks (an exception that is not a 
 30 s), memory failures (more than 1 GiB above the worker's start), files opened outside the input's folder and
 native crashes, each failure with its case number, mutations and the innermost kpd frame.
 
-    .venv/bin/python benchmarks/bench_fuzz.py [--cases 12000] [--seed 51] [--work /tmp/fuzz/run] \
+    .venv/bin/python benchmarks/bench_fuzz.py [--cases 12000] [--seed 51] [--workers 2] [--work /tmp/fuzz/run] \
         [--out benchmarks/results/fuzz.json]
 
 A case is rebuilt alone with ``fuzzing.make_case(root, seed, index)`` (``root``: the ``--work`` folder, whose seeds
@@ -20,6 +20,7 @@ import platform
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -36,6 +37,7 @@ def main(argv=None) -> None:
     parser.add_argument("--cases", type=int, default=12000)
     parser.add_argument("--seed", type=int, default=51)
     parser.add_argument("--work", type=Path, default=None, help="folder for the seeds, cases and failing cases")
+    parser.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix="kpd-fuzz-"))
@@ -44,14 +46,21 @@ def main(argv=None) -> None:
     if not (work / "seeds").is_dir():
         fuzzing.make_seeds(work, DATA if (DATA / "modelnet10").is_dir() else None)
     results = []
-    with fuzzing.Runner(work, args.seed, keep=True) as runner:
-        for index in range(args.cases):
-            results.append(runner.run(index))
-            if (index + 1) % 500 == 0:
-                counts = fuzzing.summary(results)
-                print(f"{index + 1} cases, {time.perf_counter() - started:.0f} s: "
-                      + ", ".join(f"{k} {counts[k]}" for k in ("tracebacks", "hangs", "memorys", "outsides",
-                                                               "crashs")), file=sys.stderr, flush=True)
+
+    def run(first: int) -> None:  # every --workers-th case from `first`, in a worker process of its own
+        with fuzzing.Runner(work, args.seed, keep=True) as runner:
+            for index in range(first, args.cases, args.workers):
+                results.append(runner.run(index))
+                if len(results) % 500 == 0:
+                    counts = fuzzing.summary(list(results))
+                    print(f"{len(results)} cases, {time.perf_counter() - started:.0f} s: "
+                          + ", ".join(f"{k} {counts[k]}" for k in ("tracebacks", "hangs", "memorys", "outsides",
+                                                                   "crashs")), file=sys.stderr, flush=True)
+
+    with ThreadPoolExecutor(args.workers) as pool:
+        for done in [pool.submit(run, w) for w in range(args.workers)]:
+            done.result()
+    results.sort(key=lambda r: r.index)
     counts = fuzzing.summary(results)
     seconds = [r.seconds for r in results]
     result = {
@@ -63,7 +72,7 @@ def main(argv=None) -> None:
         "peak_above_start_mib_max": round(counts["peak_bytes_max"] / 2**20, 1),
         "case_seconds_max": round(max(seconds, default=0.0), 3),
         "per_format": counts["per_format"], "failures": counts["failures"],
-        "limits": {"seconds": fuzzing.TIMEOUT, "memory_mib": fuzzing.MEMORY_LIMIT >> 20},
+        "limits": {"seconds": fuzzing.TIMEOUT, "memory_mib": fuzzing.MEMORY_LIMIT >> 20}, "workers": args.workers,
         "machine": platform.machine(), "machine_cpu": machine_cpu(), "cpus": os.cpu_count(),
         "load": os.getloadavg()[0], "seconds": round(time.perf_counter() - started, 1),
     }

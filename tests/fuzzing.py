@@ -205,8 +205,8 @@ def make_case(seeds_root: Path, seed: int, index: int) -> Case:
     for _ in range(1 + int(rng.integers(3)) if rng.random() < 0.5 else 1):
         try:
             mutations.append(_MUTATORS[fmt](rng, files, Path(seeds_root)))
-        except (ValueError, KeyError, IndexError, TypeError, StopIteration, zipfile.BadZipFile, struct.error,
-                EOFError, OSError, RecursionError):  # an earlier mutation broke the structure: bytes then
+        except (ValueError, KeyError, IndexError, TypeError, AttributeError, StopIteration, zipfile.BadZipFile,
+                struct.error, EOFError, OSError, RecursionError):  # an earlier mutation broke the structure: bytes then
             mutations.append(_bytes_mutation(rng, files, MAIN[fmt] if fmt != "bundle_dir" else None))
     return Case(index, fmt, reader, mutations, files, MAIN[fmt])
 
@@ -873,7 +873,7 @@ class Runner:
     def _start(self) -> None:
         context = multiprocessing.get_context("spawn")
         self._conn, child = context.Pipe()
-        self._hang_file = str(self.root / f"hang.{os.getpid()}.txt")
+        self._hang_file = str(self.root / f"hang.{os.getpid()}.{id(self)}.txt")
         self._process = context.Process(target=_worker, args=(child, self._hang_file), daemon=True)
         self._process.start()
         child.close()
