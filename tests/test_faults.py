@@ -742,6 +742,19 @@ def test_face_of_fewer_than_three_corners_or_a_partial_normal_in_a_file_open3d_r
     assert snapshot(tmp_path, inputs) == before
 
 
+def test_off_with_bytes_that_are_not_text(tmp_path):
+    """A header kpd leaves to Open3D, with bytes that are not UTF-8: Open3D's message quoting it ended in a
+    UnicodeDecodeError."""
+    from kpd.io import read_mesh, read_points
+
+    write_mesh(tmp_path / "m.off", Mesh(vertices=np.eye(3), triangles=[[0, 1, 2]]))
+    data = (tmp_path / "m.off").read_bytes()
+    (tmp_path / "bad.off").write_bytes(b"CNOF\xfe\xff\xff\xff" + data[data.index(b"\n"):])
+    for read in (read_mesh, read_points):
+        with pytest.raises(InputError, match="not a text OFF file"):
+            read(tmp_path / "bad.off")
+
+
 def test_npz_member_declaring_a_huge_array_or_inflating_like_a_bomb(inputs, tmp_path, capfd):
     from kpd.io import read_points
     from kpd.rig import Rig
