@@ -205,8 +205,7 @@ def make_case(seeds_root: Path, seed: int, index: int) -> Case:
     for _ in range(1 + int(rng.integers(3)) if rng.random() < 0.5 else 1):
         try:
             mutations.append(_MUTATORS[fmt](rng, files, Path(seeds_root)))
-        except (ValueError, KeyError, IndexError, TypeError, AttributeError, StopIteration, zipfile.BadZipFile,
-                struct.error, EOFError, OSError, RecursionError):  # an earlier mutation broke the structure: bytes then
+        except Exception:  # noqa: BLE001 - an earlier mutation broke the structure the mutator parses: bytes then
             mutations.append(_bytes_mutation(rng, files, MAIN[fmt] if fmt != "bundle_dir" else None))
     return Case(index, fmt, reader, mutations, files, MAIN[fmt])
 
@@ -218,6 +217,11 @@ def _data(files: dict, name: str) -> bytes:
     if value[0] == "hardlink":
         return Path(value[1]).read_bytes()
     return b""
+
+
+def _pristine(files: dict, name: str) -> bool:
+    """Whether ``name`` is still the seed's file, unmutated."""
+    return isinstance(files.get(name), tuple) and files[name][0] == "hardlink"
 
 
 def _pick_file(rng, files: dict, prefer: str | None = None) -> str:
@@ -537,6 +541,8 @@ def _mutate_rig(rng, files: dict, root: Path) -> str:
 
     name = MAIN["rig"]
     choice = rng.random()
+    if not _pristine(files, name):  # a mutated archive is not parsed here: it may declare or inflate to GiBs
+        return _bytes_mutation(rng, files, name)
     if choice < 0.12:
         files[name] = _zip_with(_data(files, name), root / "bombs" / "extra.npy.zip")
         return "bomb member"
@@ -586,7 +592,7 @@ def _mutate_bundle_members(rng, files: dict, root: Path, folder: str) -> str:
         return _bytes_mutation(rng, files, manifest_name if rng.random() < 0.5 else None)
     if choice < 0.6:
         manifest, what = _mutate_json(rng, manifest)
-    elif choice < 0.8:
+    elif choice < 0.8 and _pristine(files, members["template.npy"]):
         array = np.load(io.BytesIO(_data(files, members["template.npy"])), allow_pickle=False)
         buf = io.BytesIO()
         new, what = _mutate_array(rng, array)
@@ -632,7 +638,7 @@ def _mutate_bundle_zip(rng, files: dict, root: Path) -> str:
     name = MAIN["bundle_zip"]
     data = _data(files, name)
     choice = rng.random()
-    if choice < 0.35:
+    if choice < 0.35 or not _pristine(files, name):  # a mutated archive is not parsed here (a bomb's GiBs)
         return _bytes_mutation(rng, files, name)
     if choice < 0.45:
         files[name] = _zip_with(data, root / "bombs" / "extra.bin.zip")
