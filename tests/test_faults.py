@@ -742,6 +742,19 @@ def test_face_of_fewer_than_three_corners_or_a_partial_normal_in_a_file_open3d_r
     assert snapshot(tmp_path, inputs) == before
 
 
+def test_pcd_header_without_data_line_or_point_count(tmp_path):
+    """Open3D's reader sized the cloud by a count it never set: garbage points, or std::bad_alloc."""
+    from kpd.io import read_points
+
+    write_points(tmp_path / "p.pcd", np.eye(4, 3))
+    data = (tmp_path / "p.pcd").read_bytes()
+    (tmp_path / "no_data.pcd").write_bytes(data[: data.index(b"DATA")] + b"COU F F F\n" * 20)
+    (tmp_path / "no_count.pcd").write_bytes(re.sub(rb"(?m)^(POINTS|WIDTH) .*\n", b"", data))
+    for name, message in (("no_data", "no DATA line"), ("no_count", "declares no POINTS")):
+        with pytest.raises(InputError, match=message):
+            read_points(tmp_path / f"{name}.pcd")
+
+
 def test_off_with_bytes_that_are_not_text(tmp_path):
     """A header kpd leaves to Open3D, with bytes that are not UTF-8: Open3D's message quoting it ended in a
     UnicodeDecodeError."""
