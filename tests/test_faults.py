@@ -807,12 +807,16 @@ def test_rig_with_arrays_of_another_shape_and_its_hash_recomputed(inputs, tmp_pa
             Rig.load(tmp_path / "r.npz")
 
 
-def test_keypoint_json_nested_too_deeply(tmp_path):
+def test_keypoint_json_nested_too_deeply_or_with_a_huge_number(tmp_path):
     from kpd.io import read_keypoints
 
     (tmp_path / "k.json").write_text('{"keypoints": ' + "[" * 100_000 + "]" * 100_000 + "}")
     with pytest.raises(InputError, match="nests lists or objects too deeply"):
         read_keypoints(tmp_path / "k.json")
+    for digits in (25, 400, 5000):  # beyond float64; beyond Python's int-from-text limit
+        (tmp_path / "k.json").write_text('{"keypoints": [[0, 0, 1' + "0" * digits + "]]}")
+        with pytest.raises(InputError, match="k.json: 1 keypoint has (coordinates beyond 1e|NaN or inf coordinates)"):
+            read_keypoints(tmp_path / "k.json")
 
 
 def test_damaged_bundle_zip(inputs, tmp_path, capfd):
