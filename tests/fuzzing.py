@@ -917,7 +917,8 @@ class Runner:
             if self.keep and result.outcome in FAILURES:
                 kept = self.root / "failures" / str(index)
                 shutil.rmtree(kept, ignore_errors=True)
-                shutil.copytree(folder, kept, symlinks=True, ignore=_no_specials)
+                # hard links: no byte copied (a case may hold a sparse file of 1.5 GiB)
+                shutil.copytree(folder, kept, symlinks=True, ignore=_no_specials, copy_function=os.link)
         finally:
             shutil.rmtree(folder, ignore_errors=True)
         return result
