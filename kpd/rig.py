@@ -404,6 +404,10 @@ class Rig:
                 rig._straightened = bool(arrays.get("straightened", False))
         except KeyError as exc:
             raise InputError(f"{path}: rig file lacks {exc.args[0]!r}") from exc
+        except InputError:
+            raise
+        except (TypeError, ValueError, IndexError) as exc:  # arrays of another type or shape than save writes
+            raise InputError(f"{path}: not a valid kpd rig ({exc})") from exc
         return rig
 
     @classmethod

@@ -20,8 +20,10 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import io
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -577,6 +579,29 @@ def test_resume_removes_temporaries_of_a_killed_run(inputs, tiny_run, tmp_path, 
     assert not [p for p in run.iterdir() if ".kpd-tmp-" in p.name]
 
 
+# --- the whole of stderr: one line, nothing before it -----------------------------------------------------------
+
+
+@pytest.mark.parametrize("case", ["sample", "bench"])
+def test_full_disk_leaves_no_progress_bar_on_stderr(case, inputs, full_disk, capfd):
+    """stderr as a pipe gets it (error_lines reduces a bar's redraws, which a log file keeps)."""
+    argv = _full_disk_cases(inputs, full_disk, full_disk)[case]
+    before = snapshot(full_disk, inputs)
+    code, _, err = kpd(capfd, *argv)
+    assert code == 2 and err.count("\n") == 1 and "\r" not in err and err.startswith("kpd "), repr(err)
+    assert "disk is full" in err
+    assert snapshot(full_disk, inputs) == before
+
+
+def test_bench_of_a_mesh_whose_points_coincide_prints_one_line(inputs, tmp_path, capfd):
+    write_mesh(tmp_path / "point.ply", Mesh(vertices=np.ones((4, 3)), triangles=[[0, 1, 2], [0, 2, 3]]))
+    before = snapshot(tmp_path, inputs)
+    code, _, err = kpd(capfd, "bench", inputs / "toy.kpd", "--mesh", tmp_path / "point.ply", "--repeats", "1",
+                       "--out", tmp_path / "b.json")
+    assert code == 2 and err.count("\n") == 1 and "\r" not in err and err.startswith("kpd "), repr(err)
+    assert snapshot(tmp_path, inputs) == before
+
+
 # --- integrity: hashes and damaged files --------------------------------------------------------------------------
 
 
@@ -664,6 +689,134 @@ def test_damaged_npz_points_and_rigs(damage, message, inputs, tmp_path, capfd):
     assert "pickle" not in line
     assert_fault(kpd(capfd, "deform", "--rig", path, "--out", tmp_path / "d.ply"), before, tmp_path,
                  match="" if damage != "text" else "a text file")
+
+
+# --- files made to harm the reader (found by tests/test_fuzz.py) ----------------------------------------------------
+
+
+def _polygon_ply(path: Path, *, binary: bool, corner: int) -> None:
+    """Four vertices and one quad whose last corner is ``corner``: kpd leaves polygons to Open3D's reader."""
+    head = (f"ply\nformat {'binary_little_endian' if binary else 'ascii'} 1.0\nelement vertex 4\n"
+            "property float x\nproperty float y\nproperty float z\nelement face 1\n"
+            "property list uchar int vertex_indices\nend_header\n").encode()
+    corners = [0, 1, 2, corner]
+    if binary:
+        body = np.eye(4, 3, dtype="<f4").tobytes() + bytes([4]) + np.array(corners, "<i4").tobytes()
+    else:
+        body = b"".join(b"%g %g %g\n" % tuple(row) for row in np.eye(4, 3)) + b"4 %d %d %d %d\n" % tuple(corners)
+    path.write_bytes(head + body)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_polygon_with_a_corner_beyond_the_vertices(binary, inputs, tmp_path):
+    """Open3D's PLY reader ends the process on such a corner (a segmentation fault): a process of its own here."""
+    _polygon_ply(tmp_path / "bad.ply", binary=binary, corner=2**31 - 7)
+    before = snapshot(tmp_path, inputs)
+    done = subprocess.run([KPD, "keypoints", str(inputs / "toy.kpd"), str(tmp_path / "bad.ply"), "--out",
+                           str(tmp_path / "kp.json")], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 2, done.stderr
+    assert error_lines(done.stderr) == [done.stderr.strip()] and "face 0 has the corner 2147483641" in done.stderr
+    assert snapshot(tmp_path, inputs) == before
+    _polygon_ply(tmp_path / "good.ply", binary=binary, corner=3)  # within the vertices: Open3D reads it as before
+    from kpd.io import read_mesh
+
+    assert read_mesh(tmp_path / "good.ply").triangles.shape == (2, 3)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_face_of_fewer_than_three_corners_or_a_partial_normal_in_a_file_open3d_reads(binary, inputs, tmp_path):
+    """Open3D's PLY reader reads on after a face of 0 to 2 corners (garbage or a segmentation fault later), its PCD
+    reader ends the process on a normal of one or two fields: each is one line, exit 2."""
+    _polygon_ply(tmp_path / "short.ply", binary=binary, corner=3)
+    data = (tmp_path / "short.ply").read_bytes()
+    (tmp_path / "short.ply").write_bytes(data[:-17] + bytes([2]) + data[-16:] if binary else
+                                         data.replace(b"4 0 1 2 3", b"2 0 1"))
+    write_points(tmp_path / "p.pcd", np.eye(4, 3), normals=np.eye(4, 3))
+    (tmp_path / "n.pcd").write_bytes((tmp_path / "p.pcd").read_bytes().replace(b"normal_x", b"normal_q", 1))
+    before = snapshot(tmp_path, inputs)
+    for path, message in ((tmp_path / "short.ply", "face 0 has 2 corners"), (tmp_path / "n.pcd", "without normal_x")):
+        done = subprocess.run([KPD, "keypoints", str(inputs / "toy.kpd"), str(path), "--out",
+                               str(tmp_path / "kp.json")], capture_output=True, text=True, timeout=600)
+        assert done.returncode == 2 and error_lines(done.stderr) == [done.stderr.strip()], done.stderr
+        assert message in done.stderr
+    assert snapshot(tmp_path, inputs) == before
+
+
+def test_pcd_header_without_data_line_or_point_count(tmp_path):
+    """Open3D's reader sized the cloud by a count it never set: garbage points, or std::bad_alloc."""
+    from kpd.io import read_points
+
+    write_points(tmp_path / "p.pcd", np.eye(4, 3))
+    data = (tmp_path / "p.pcd").read_bytes()
+    (tmp_path / "no_data.pcd").write_bytes(data[: data.index(b"DATA")] + b"COU F F F\n" * 20)
+    (tmp_path / "no_count.pcd").write_bytes(re.sub(rb"(?m)^(POINTS|WIDTH) .*\n", b"", data))
+    for name, message in (("no_data", "no DATA line"), ("no_count", "declares no POINTS")):
+        with pytest.raises(InputError, match=message):
+            read_points(tmp_path / f"{name}.pcd")
+
+
+def test_off_with_bytes_that_are_not_text(tmp_path):
+    """A header kpd leaves to Open3D, with bytes that are not UTF-8: Open3D's message quoting it ended in a
+    UnicodeDecodeError."""
+    from kpd.io import read_mesh, read_points
+
+    write_mesh(tmp_path / "m.off", Mesh(vertices=np.eye(3), triangles=[[0, 1, 2]]))
+    data = (tmp_path / "m.off").read_bytes()
+    (tmp_path / "bad.off").write_bytes(b"CNOF\xfe\xff\xff\xff" + data[data.index(b"\n"):])
+    for read in (read_mesh, read_points):
+        with pytest.raises(InputError, match="not a text OFF file"):
+            read(tmp_path / "bad.off")
+
+
+def test_npz_member_declaring_a_huge_array_or_inflating_like_a_bomb(inputs, tmp_path, capfd):
+    from kpd.io import read_points
+    from kpd.rig import Rig
+
+    lying = tmp_path / "lying.npz"  # the header of points.npy declares 2^28 x 3 doubles (6 GiB); 24 bytes follow
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": "<f8", "fortran_order": False, "shape": (2**28, 3)})
+    with zipfile.ZipFile(lying, "w") as archive:
+        archive.writestr("points.npy", buf.getvalue() + bytes(24))
+    bomb = tmp_path / "bomb.npz"  # 64 MiB of zeros deflated to 64 kB
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as archive:
+        with archive.open("points.npy", "w", force_zip64=True) as fh:
+            np.lib.format.write_array(fh, np.zeros((1 << 23, 1)))
+    for path, message in ((lying, "declares a float64 array of shape (268435456, 3)"), (bomb, "more than 100 times")):
+        for read in (read_points, Rig.load):
+            with pytest.raises(InputError, match=re.escape(message)):
+                read(path)
+        before = snapshot(tmp_path)
+        assert_fault(kpd(capfd, "deform", "--rig", path, "--out", tmp_path / "d.ply"), before, tmp_path,
+                     match=message)
+
+
+def test_rig_with_arrays_of_another_shape_and_its_hash_recomputed(inputs, tmp_path):
+    from kpd.io.integrity import HASH_KEY, content_hash
+    from kpd.rig import Rig
+
+    with np.load(inputs / "rig.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    for key, value in (("straightened", np.zeros(7, bool)), ("mesh_vertices", None), ("cage_faces", np.eye(3)),
+                       ("normalizer_center", np.zeros(7))):
+        changed = {k: v for k, v in arrays.items() if k != key}
+        if value is not None:
+            changed[key] = value
+        changed[HASH_KEY] = np.array(content_hash(changed))
+        np.savez(tmp_path / "r.npz", **changed)
+        with pytest.raises(InputError, match="r.npz"):
+            Rig.load(tmp_path / "r.npz")
+
+
+def test_keypoint_json_nested_too_deeply_or_with_a_huge_number(tmp_path):
+    from kpd.io import read_keypoints
+
+    (tmp_path / "k.json").write_text('{"keypoints": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    with pytest.raises(InputError, match="nests lists or objects too deeply"):
+        read_keypoints(tmp_path / "k.json")
+    for digits in (25, 400, 5000):  # beyond float64; beyond Python's int-from-text limit
+        (tmp_path / "k.json").write_text('{"keypoints": [[0, 0, 1' + "0" * digits + "]]}")
+        with pytest.raises(InputError, match="k.json: 1 keypoint has (coordinates beyond 1e|NaN or inf coordinates)"):
+            read_keypoints(tmp_path / "k.json")
 
 
 def test_damaged_bundle_zip(inputs, tmp_path, capfd):

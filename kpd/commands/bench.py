@@ -68,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
         "meshes": [],
     }
     meshes = list(_meshes(args))
-    for name, mesh in tqdm(meshes, desc="meshes", unit="mesh", leave=False):
+    # on a terminal only (disable=None): a pipe or a log would keep the bar's redraws before an error's one line
+    for name, mesh in tqdm(meshes, desc="meshes", unit="mesh", leave=False, disable=None):
         start = time.perf_counter()
         prediction = model.predict(mesh, seed=args.seed)
         predict_ms = 1000 * (time.perf_counter() - start)

@@ -78,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
         staging.mkdir()
         names = [f"variant_{i:03d}{suffix}" for i in range(len(keypoint_sets))]
 
-        bar = tqdm(total=len(names), desc="variants written", unit="variant", leave=False)  # seconds each at scale
+        # seconds each at scale; on a terminal only (disable=None): a pipe or a log keeps a bar's redraws
+        bar = tqdm(total=len(names), desc="variants written", unit="variant", leave=False, disable=None)
 
         def write_variants() -> None:
             for i, name in enumerate(names):

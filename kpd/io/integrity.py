@@ -12,6 +12,7 @@ import hashlib
 import json
 import math
 import os
+import struct
 import zipfile
 import zlib
 from pathlib import Path
@@ -108,8 +109,14 @@ def load_numpy(path: str | os.PathLike, what: str = "numpy file") -> Any:
     if head.startswith(_ZIP_MAGIC):
         try:
             with np.load(p, allow_pickle=False) as data:
+                for info in data.zip.infolist():
+                    _check_member(p, data.zip, info)
                 return _members(data)
-        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, KeyError) as exc:
+        except InputError:
+            raise
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, KeyError, struct.error) as exc:
+            raise InputError(f"{p}: damaged .npz (zip) file: {_reason(exc)}") from exc
+        except (NotImplementedError, RuntimeError) as exc:  # a compression method or an encryption zipfile lacks
             raise InputError(f"{p}: damaged .npz (zip) file: {_reason(exc)}") from exc
         except ValueError as exc:
             if "pickle" in str(exc):
@@ -117,7 +124,11 @@ def load_numpy(path: str | os.PathLike, what: str = "numpy file") -> Any:
             raise InputError(f"{p}: damaged .npz file: {exc}") from exc
     if head.startswith(_NPY_MAGIC):
         try:
+            with open(p, "rb") as fh:
+                _check_declared(p, fh, p.stat().st_size, "the file")
             return np.load(p, allow_pickle=False)
+        except InputError:
+            raise
         except ValueError as exc:
             if "pickle" in str(exc):
                 raise InputError(f"{p}: the .npy holds pickled objects, which kpd never reads") from exc
@@ -131,6 +142,43 @@ def load_numpy(path: str | os.PathLike, what: str = "numpy file") -> Any:
 
 
 _PARALLEL_BYTES = 16 << 20
+# a member this large that inflates more than _RATIO times is refused unread: kpd's own arrays (floats stored, indices
+# and images deflated) stay far below, a member of zeros made to exhaust memory (a zip bomb) reaches about 1000
+_RATIO, _RATIO_FLOOR = 100, 16 << 20
+
+
+def _check_member(p: Path, archive: zipfile.ZipFile, info: zipfile.ZipInfo) -> None:
+    """Refuse an .npz member before it is inflated: one that inflates more than :data:`_RATIO` times (beyond
+    :data:`_RATIO_FLOOR` bytes), or whose .npy header declares another size than the member holds (numpy would take
+    the memory the header declares first)."""
+    if info.file_size > _RATIO_FLOOR and info.file_size > _RATIO * max(info.compress_size, 1):
+        raise InputError(f"{p}: the member {info.filename} inflates {info.compress_size} bytes to {info.file_size}, "
+                         f"more than {_RATIO} times (as a zip bomb does); it is not read")
+    if not info.filename.endswith(".npy"):
+        return
+    with archive.open(info) as fh:
+        _check_declared(p, fh, info.file_size, f"the member {info.filename}")
+
+
+def _check_declared(p: Path, fh, size: int, what: str) -> None:
+    """Raise unless the .npy at ``fh`` (its header next) declares an array of ``size`` bytes with its header."""
+    try:
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:
+            raise InputError(f"{p}: {what} is an .npy of version {version[0]}.{version[1]}, which kpd does not read")
+    except (ValueError, EOFError) as exc:
+        raise InputError(f"{p}: {what} has a damaged .npy header ({exc})") from exc
+    if dtype.hasobject:
+        return  # pickled objects: numpy refuses them, and load_numpy says so
+    declared = math.prod(shape) * dtype.itemsize + fh.tell()
+    if declared != size:
+        raise InputError(f"{p}: {what} declares a {dtype} array of shape {tuple(shape)} ({declared} bytes with its "
+                         f"header) but holds {size} bytes")
+
 
 
 def _members(data) -> dict:

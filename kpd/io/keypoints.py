@@ -69,9 +69,12 @@ def read_keypoints(path: str | os.PathLike) -> np.ndarray:
             raise InputError(f"{p}: rows must be 'x y z' or '%03d x y z'; got {table.shape[1]} columns")
         return _vertex_array(table, f"{p}: ", "keypoints", "keypoints")
     try:
-        data = json.loads(p.read_text(encoding="utf-8"))
+        # whole numbers as floats: one of 400 digits is inf (refused as not finite), not an int numpy cannot convert
+        data = json.loads(p.read_text(encoding="utf-8"), parse_int=float)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"{p}: not valid JSON ({exc})") from exc
+    except RecursionError as exc:  # Python's JSON parser recurses once per nested list or object
+        raise InputError(f"{p}: not keypoints: its JSON nests lists or objects too deeply") from exc
     if isinstance(data, dict):
         if "keypoints" not in data:
             raise InputError(f"{p}: expected the key 'keypoints'; found {sorted(data)}")

@@ -38,6 +38,7 @@ of it the mesh as read).
 
 from __future__ import annotations
 
+import codecs
 import math
 import os
 import re
@@ -96,6 +97,7 @@ def read_mesh(p: Path, name: str | None = None, *, points: bool = False) -> Mesh
         head = fh.read(_HEAD)
         header = _header(p, head, complete=len(head) < _HEAD)
         if header is None:
+            _check_text(p)
             return None
         normals, colors, V, F, start, line = header
         rows = _Rows(p, normals, colors, V, F, os.fstat(fh.fileno()).st_size - start)
@@ -104,7 +106,27 @@ def read_mesh(p: Path, name: str | None = None, *, points: bool = False) -> Mesh
             if rows.read(block, ends, line):
                 break
             line += len(ends)
-    return rows.shape(name if name is not None else os.fspath(p), points)
+    shape = rows.shape(name if name is not None else os.fspath(p), points)
+    if shape is None:
+        _check_text(p)
+    return shape
+
+
+def _check_text(p: Path) -> None:
+    """Raise unless the file is UTF-8 text, before Open3D reads it: Open3D refuses binary OFF, and its message,
+    which quotes the file's words, cannot be given to Python (a UnicodeDecodeError out of its reader)."""
+    decoder = codecs.getincrementaldecoder("utf-8")()
+    at = 0
+    with open(p, "rb") as fh:
+        while True:
+            chunk = fh.read(_BLOCK)
+            try:
+                decoder.decode(chunk, final=not chunk)
+            except UnicodeDecodeError as exc:
+                raise InputError(f"{p}: not a text OFF file (byte {at + exc.start} is not UTF-8 text)") from None
+            if not chunk:
+                return
+            at += len(chunk)
 
 
 def _significant_lines(data: bytes, complete: bool) -> Iterator[tuple[int, bytes, int]]:

@@ -1,4 +1,6 @@
-"""PCD: the completeness check Open3D leaves out (it pads a truncated file with zeros)."""
+"""PCD: the checks Open3D leaves out: completeness (it pads a truncated file with zeros), the normal's three fields
+(a file naming some of them ends the process in Open3D's reader), the DATA line and the number of points (without
+them Open3D's reader allocates by a number it never set)."""
 
 from __future__ import annotations
 
@@ -10,19 +12,31 @@ from kpd.io.common import count_lines
 
 __all__ = ["check_complete"]
 
+_NORMALS = ("normal_x", "normal_y", "normal_z")
+
 
 def check_complete(p: Path) -> None:
-    """Raise if a PCD file holds fewer points than its header declares (Open3D pads such files with zeros)."""
+    """Raise if a PCD file holds fewer points than its header declares (Open3D pads such files with zeros), if its
+    ``FIELDS`` name some but not all of ``normal_x normal_y normal_z`` (Open3D's reader then reads the missing ones
+    from nowhere: a segmentation fault), or if its header lacks the ``DATA`` line or the number of points (``POINTS``,
+    or ``WIDTH`` and ``HEIGHT``): Open3D's reader then sizes the cloud by a number it never set (garbage points, or
+    an allocation of any size)."""
     with open(p, "rb") as fh:
         head = fh.read(1 << 16)
     end = re.search(rb"^DATA[ \t]+(\w+)[ \t]*\r?\n", head, re.M)
     if not end:
-        return
+        raise InputError(f"{p}: not a PCD file: no DATA line in its first 64 KiB")
     header = {}
     for s in head[: end.start()].decode("ascii", errors="replace").splitlines():
         tokens = s.split()
         if tokens and not tokens[0].startswith("#"):
             header[tokens[0].upper()] = tokens[1:]
+    normals = [name for name in _NORMALS if name in header.get("FIELDS", [])]
+    if normals and len(normals) < 3:
+        missing = " ".join(name for name in _NORMALS if name not in normals)
+        raise InputError(f"{p}: its FIELDS name {' '.join(normals)} without {missing}; a normal takes all three")
+    if "POINTS" not in header and not {"WIDTH", "HEIGHT"} <= set(header):
+        raise InputError(f"{p}: its header declares no POINTS (nor WIDTH and HEIGHT): how many points is not said")
     try:
         n = int(header["POINTS"][0])
         sizes = [int(x) for x in header["SIZE"]]

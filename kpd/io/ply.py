@@ -48,7 +48,7 @@ from kpd._compiled import compiled_on_first_call
 from kpd.errors import InputError
 from kpd.io.common import count_lines
 
-__all__ = ["check_complete", "read_header", "read_mesh", "read_vertices", "write_mesh", "Header", "Element"]
+__all__ = ["check_complete", "check_corners", "read_header", "read_mesh", "read_vertices", "write_mesh", "Header", "Element"]
 
 _PLY_TYPE_SIZES = {
     "char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
@@ -528,9 +528,257 @@ def read_mesh(p: Path, name: str | None = None):
 
     data = _read(p, faces=True)
     if data is None:
+        check_corners(p)
         return None
     points, normals, colors = _vertex_arrays(data)
     return Mesh(vertices=points, triangles=data.triangles, vertex_normals=normals, vertex_colors=colors, path=name)
+
+
+# --- what Open3D is given -----------------------------------------------------------------------------------------
+
+
+def check_corners(p: Path) -> None:
+    """Raise if a face of a PLY that Open3D is to read (:func:`read_mesh` gave None) has a corner outside the
+    vertices or fewer than three corners: Open3D's reader cuts a polygon by ear clipping on its corners' positions
+    without checking their indices or their number, and ends the process (a segmentation fault) on such a face.
+    Files whose face lists cannot be walked (a header beyond :func:`read_header`, lists of a floating type, data that
+    ends early) are left to Open3D, which refuses them.
+
+    Raises
+    ------
+    InputError
+        Naming the first such face (its number, from 0) and its corner or its number of corners.
+    """
+    header = read_header(p)
+    if not header.known or header.format not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        return
+    vertices = next((e.count for e in header.elements if e.name == "vertex"), 0)
+    faces = next((e for e in header.elements if e.name == "face"), None)
+    if faces is None or not any(name in _FACE_LISTS and isinstance(kind, tuple) for name, kind in faces.properties):
+        return
+    if any(_PLY_NUMPY[kind[1]][0] == "f" or _PLY_NUMPY[kind[0]][0] == "f"
+           for e in header.elements for _, kind in e.properties if isinstance(kind, tuple)):
+        return
+    face_list = next(name for name in _FACE_LISTS if any(n == name for n, _ in faces.properties))
+    if header.format == "ascii":
+        found = _ascii_corner_outside(p, header, faces, face_list, vertices)
+    else:
+        found = _binary_corner_outside(p, header, faces, face_list, vertices)
+    if found is not None:
+        face, corner, corners = found
+        if corner is None:
+            raise InputError(f"{p}: face {face} has {corners} corners; a face has 3 or more")
+        raise InputError(f"{p}: face {face} has the corner {corner}, outside the {vertices} vertices [0, {vertices})")
+
+
+def _layout(element: Element, face_list: str | None) -> tuple[np.ndarray, ...]:
+    """Per property of ``element``: 1 for a list, its (count) size and signedness, the list's item size and
+    signedness, and 1 for the face list whose items are checked."""
+    rows = []
+    for name, kind in element.properties:
+        if isinstance(kind, tuple):
+            rows.append((1, _PLY_TYPE_SIZES[kind[0]], _PLY_NUMPY[kind[0]][0] == "i", _PLY_TYPE_SIZES[kind[1]],
+                         _PLY_NUMPY[kind[1]][0] == "i", name == face_list))
+        else:
+            rows.append((0, _PLY_TYPE_SIZES[kind], 0, 0, 0, 0))
+    table = np.array(rows, np.int64).reshape(-1, 6)
+    return tuple(table[:, k].copy() for k in range(6))
+
+
+def _binary_corner_outside(p: Path, header: Header, faces: Element, face_list: str, vertices: int):
+    raw = np.fromfile(p, dtype=np.uint8, offset=header.data_start)
+    big = header.format == "binary_big_endian"
+    at = 0
+    found = np.full(3, -1, np.int64)  # the face, its corner outside, or its number of corners when fewer than 3
+    for element in header.elements:
+        layout = _layout(element, face_list if element is faces else None)
+        at = _walk(raw, at, element.count, *layout, big, vertices, found)
+        if at < 0:
+            return None  # the data ends early: Open3D refuses the file
+        if element is faces:
+            return None if found[0] < 0 else (int(found[0]), int(found[1]) if found[2] < 0 else None,
+                                               int(found[2]))
+    return None
+
+
+@compiled_on_first_call
+def _walk(raw, at, count, is_list, size, signed, item_size, item_signed, checked, big, vertices,
+          found):  # pragma: no cover - compiled
+    """Walk ``count`` records of one element from byte ``at`` of ``raw``; the first record with a checked corner
+    outside [0, vertices) is put in ``found`` (record, corner). The byte after the records, or -1 when the data
+    ends first."""
+    n = len(raw)
+    for r in range(count):
+        for k in range(len(is_list)):
+            if at + size[k] > n:
+                return -1
+            if is_list[k] == 0:
+                at += size[k]
+                continue
+            length = 0
+            for j in range(size[k]):  # the count, an integer of size[k] bytes in the file's byte order
+                length = length * 256 + np.int64(raw[at + (j if big else size[k] - 1 - j)])
+            if signed[k] and length >= np.int64(1) << (8 * size[k] - 1):
+                length -= np.int64(1) << (8 * size[k])
+            at += size[k]
+            if length < 0 or at + length * item_size[k] > n:
+                return -1
+            if checked[k] and found[0] < 0:
+                if length < 3:
+                    found[0], found[1], found[2] = r, -1, length
+                    return at
+                for j in range(length):
+                    corner = 0
+                    w = item_size[k]
+                    for i in range(w):
+                        corner = corner * 256 + np.int64(raw[at + j * w + (i if big else w - 1 - i)])
+                    if item_signed[k] and corner >= np.int64(1) << (8 * w - 1):
+                        corner -= np.int64(1) << (8 * w)
+                    if corner < 0 or corner >= vertices:
+                        found[0], found[1] = r, corner
+                        return at
+            at += length * item_size[k]
+    return at
+
+
+def _ascii_corner_outside(p: Path, header: Header, faces: Element, face_list: str, vertices: int):
+    """As :func:`_binary_corner_outside`, for an ASCII PLY read one row per line (as :func:`_read_ascii` reads it),
+    in blocks of whole lines by a compiled pass; from the first face row that is not its properties' words (its
+    count and corners whole numbers) on, the words are read as rply reads them
+    (:func:`_ascii_stream_corner_outside`)."""
+    from kpd.io.off import _blocks
+
+    is_list, _, _, _, _, checked = _layout(faces, face_list)
+    before = sum(e.count for e in header.elements[: header.elements.index(faces)])  # the rows before the faces
+    passed = done = 0
+    found = np.full(3, -1, np.int64)
+    with open(p, "rb") as fh:
+        fh.seek(header.data_start)
+        for block, ends in _blocks(fh):
+            begin = np.empty_like(ends)
+            begin[0], begin[1:] = 0, ends[:-1] + 1
+            filled = np.empty(len(ends), np.bool_)
+            _filled(0, len(ends), block, begin, ends, filled)
+            rows = np.flatnonzero(filled)  # (R,) the block's lines that hold a row
+            skip = min(len(rows), before - passed)
+            passed += skip
+            these = rows[skip : skip + faces.count - done]
+            if len(these):
+                _face_rows(block, begin[these], ends[these], is_list, checked, vertices, done, found)
+                done += len(these)
+            if found[0] >= 0 or done == faces.count:
+                break
+    if found[2] == -2:  # a face row that is not one face: the words as rply streams them
+        return _ascii_stream_corner_outside(p, header, faces, face_list, vertices)
+    return None if found[0] < 0 else (int(found[0]), int(found[1]) if found[2] == -1 else None, int(found[2]))
+
+
+def _ascii_stream_corner_outside(p: Path, header: Header, faces: Element, face_list: str, vertices: int):
+    """As :func:`_ascii_corner_outside`, over the words as one stream, the way rply reads them (a face may span
+    lines): numpy reads them all as float64 (slower; for files whose rows are not one face a line)."""
+    with open(p, "rb") as fh:
+        fh.seek(header.data_start)
+        try:
+            values = np.fromfile(fh, dtype=np.float64, sep=" ")
+        except ValueError:
+            return None  # a word that is not a number: rply refuses the file
+    at = 0
+    found = np.full(3, -1, np.int64)
+    for element in header.elements:
+        is_list, _, _, _, _, checked = _layout(element, face_list if element is faces else None)
+        at = _walk_values(values, at, element.count, is_list, checked, vertices, found)
+        if at < 0:
+            return None
+        if element is faces:
+            break
+    return None if found[0] < 0 else (int(found[0]), int(found[1]) if found[2] < 0 else None, int(found[2]))
+
+
+@compiled_on_first_call
+def _walk_values(values, at, count, is_list, checked, vertices, found):  # pragma: no cover - compiled
+    """:func:`_walk` over an ASCII PLY's words, one value each: the value after the records, -1 when the values end
+    first or a list's count or a checked corner is not a whole number."""
+    n = len(values)
+    for r in range(count):
+        for k in range(len(is_list)):
+            if at >= n:
+                return -1
+            if is_list[k] == 0:
+                at += 1
+                continue
+            length = values[at]
+            if length != np.floor(length) or length < 0 or at + 1 + length > n:
+                return -1
+            at += 1
+            if checked[k] and found[0] < 0:
+                if length < 3:
+                    found[0], found[1], found[2] = r, -1, np.int64(length)
+                    return at
+                for j in range(np.int64(length)):
+                    corner = values[at + j]
+                    if corner != np.floor(corner):
+                        return -1
+                    if corner < 0 or corner >= vertices:
+                        found[0], found[1] = r, np.int64(corner)
+                        return at
+            at += np.int64(length)
+    return at
+
+
+@compiled_on_first_call
+def _face_rows(block, begin, stop, is_list, checked, vertices, first, found):  # pragma: no cover - compiled
+    """Face rows ``block[begin[r]:stop[r]]``, their words split at spaces, tabs and carriage returns: the first
+    (``first + r``) with a checked list of fewer than 3 corners or a corner outside [0, vertices), or whose words
+    are not its properties' (a list's count and corners whole numbers, no word missing or left over), is put in
+    ``found``: (row, corner, -1), (row, -1, corners) or (row, -1, -2)."""
+    for r in range(len(begin)):
+        i, end = begin[r], stop[r]
+        for k in range(len(is_list)):
+            while i < end and (block[i] == _SPACE or block[i] == _TAB or block[i] == _RETURN):
+                i += 1
+            if i == end:
+                found[0], found[1], found[2] = first + r, -1, -2
+                return
+            if is_list[k] == 0:
+                while i < end and not (block[i] == _SPACE or block[i] == _TAB or block[i] == _RETURN):
+                    i += 1
+                continue
+            length = -1
+            items = 0  # the count, then each corner
+            while items <= length or length < 0:
+                while i < end and (block[i] == _SPACE or block[i] == _TAB or block[i] == _RETURN):
+                    i += 1
+                negative = i < end and block[i] == 45
+                if i < end and (block[i] == 43 or block[i] == 45):
+                    i += 1
+                start, value = i, np.int64(0)
+                while i < end and 48 <= block[i] <= 57 and i - start < 18:
+                    value = value * 10 + np.int64(block[i]) - 48
+                    i += 1
+                if i == start or i < end and not (block[i] == _SPACE or block[i] == _TAB or block[i] == _RETURN):
+                    found[0], found[1], found[2] = first + r, -1, -2
+                    return
+                if negative:
+                    value = -value
+                if length < 0:
+                    if value < 0:
+                        found[0], found[1], found[2] = first + r, -1, -2
+                        return
+                    length = value
+                    if checked[k] and length < 3:
+                        found[0], found[1], found[2] = first + r, -1, length
+                        return
+                elif checked[k] and (value < 0 or value >= vertices):
+                    found[0], found[1], found[2] = first + r, value, -1
+                    return
+                items += 1
+                if length == 0:
+                    break
+        while i < end and (block[i] == _SPACE or block[i] == _TAB or block[i] == _RETURN):
+            i += 1
+        if i < end:
+            found[0], found[1], found[2] = first + r, -1, -2
+            return
 
 
 # --- writing -------------------------------------------------------------------------------------------------------
