@@ -16,7 +16,7 @@ WEB_STAMP := viewer/web/vendor/.kpd-installed
 THREE_FILES := LICENSE build/three.module.js build/three.core.js examples/jsm/loaders/GLTFLoader.js \
 	examples/jsm/utils/BufferGeometryUtils.js examples/jsm/utils/SkeletonUtils.js examples/jsm/controls/OrbitControls.js
 
-.PHONY: demo test docs bench system venv web blender clean
+.PHONY: demo test docs bench dist system venv web blender clean
 
 # System packages: installed when missing and we are root (open3d needs libusb; rendering needs vulkan/mesa, and
 # EGL + Mesa GL for the OpenGL pictures; the editor's panel needs Tk;
@@ -77,5 +77,12 @@ bench: venv web blender
 	@mkdir -p benchmarks/results; for b in benchmarks/bench_*.py; do n=$$(basename $$b .py); n=$${n#bench_}; \
 	  echo "== $$b -> benchmarks/results/$$n.json"; $(PY) $$b > benchmarks/results/$$n.json.tmp && mv benchmarks/results/$$n.json.tmp benchmarks/results/$$n.json; done
 
+# The release, into dist/: the sdist, then the wheel built from that sdist (python -m build, as pip builds a wheel
+# from an sdist: a file the sdist lacks is missing from the wheel too), each with the shipped bundles, the browser page
+# and the three.js files that make web takes from the npm lock (never committed).
+dist: venv web
+	rm -f dist/kpd-*.tar.gz dist/kpd-*.whl
+	$(PY) -m build --outdir dist .
+
 clean:
-	rm -rf $(VENV) $(BLENDER_VENV) node_modules viewer/web/vendor demo-output docs/_build docs/api/_generated .pytest_cache .hypothesis build *.egg-info
+	rm -rf $(VENV) $(BLENDER_VENV) node_modules viewer/web/vendor demo-output docs/_build docs/api/_generated .pytest_cache .hypothesis build dist *.egg-info

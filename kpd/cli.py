@@ -14,7 +14,7 @@ import threading
 
 from kpd import __version__, _signals
 from kpd._compiled import announce_compiling
-from kpd.commands import COMMANDS, run_checks
+from kpd.commands import COMMANDS, TRAIN_EXTRA, run_checks, train_extra_missing
 from kpd.errors import KpdError
 from kpd.io.atomic import describe_os_error
 
@@ -109,6 +109,13 @@ def _main(argv: list[str] | None) -> int:
         _close_progress_bars()
         print(f"kpd {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
+    except ModuleNotFoundError as exc:  # a module of the train extra, imported where no command checked for it first
+        missing = _missing_extra(exc)
+        if missing is None:
+            raise
+        _close_progress_bars()
+        print(f"kpd {args.command}: error: {train_extra_missing(missing)}", file=sys.stderr)
+        return 2
     except OSError as exc:  # the environment failed (a disk, a folder's permissions) where kpd did not expect it
         _close_progress_bars()
         print(f"kpd {args.command}: error: {_one_line(describe_os_error(exc, exc.filename or 'a file'))}",
@@ -137,6 +144,17 @@ def _main(argv: list[str] | None) -> int:
         return _stopped(args.command, signal.SIGINT)
     except _signals.Terminated as exc:
         return _stopped(args.command, exc.signum)
+
+
+def _missing_extra(exc: ModuleNotFoundError) -> str | None:
+    """The module of the train extra that ``exc`` says is missing and that is indeed not installed, else None (a
+    module missing inside an installed torch is a broken installation, shown as it is)."""
+    top = (exc.name or "").partition(".")[0]
+    if top not in TRAIN_EXTRA:
+        return None
+    import importlib.util
+
+    return top if importlib.util.find_spec(top) is None else None
 
 
 def _note(line: str) -> None:

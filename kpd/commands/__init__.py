@@ -8,11 +8,12 @@ inside ``run`` so that ``kpd --help`` stays fast and torch is loaded only by ``t
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import os
 from pathlib import Path
 
-from kpd.errors import InputError
+from kpd.errors import InputError, KpdError
 
 # name -> module, in the order shown by `kpd --help`.
 COMMANDS = {
@@ -120,3 +121,23 @@ def shipped_names() -> str:
     from kpd.bundle import shipped_bundles
 
     return ", ".join(shipped_bundles()) or "none"
+
+
+# --- the train extra (pyproject.toml): torch and the ONNX exporter, which kpd's runtime never needs ----------------
+
+TRAIN_EXTRA = ("torch", "onnx", "onnxscript")  # the modules of `pip install "kpd[train]"` the commands import
+
+
+def train_extra_missing(module: str) -> str:
+    """The one line that says a module of the train extra is not installed, and how to get it (torch's default build
+    on Linux brings CUDA's libraries, gigabytes that a CPU has no use for: its CPU-only build comes first)."""
+    return (f"{module} is not installed: this command needs kpd's train extra, pip install \"kpd[train]\" (for "
+            f"torch's CPU-only build, first: pip install torch --index-url https://download.pytorch.org/whl/cpu)")
+
+
+def require_train_extra(*modules: str) -> None:
+    """Refuse a command before any work when a module of the train extra it needs is not installed
+    (:class:`~kpd.errors.KpdError`, one line naming the extra); ``modules`` default to all of :data:`TRAIN_EXTRA`."""
+    for module in modules or TRAIN_EXTRA:
+        if importlib.util.find_spec(module) is None:
+            raise KpdError(train_extra_missing(module))

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from kpd.commands import existing, folder, integer, number
+from kpd.commands import existing, folder, integer, number, require_train_extra
 from kpd.errors import InputError
 
 HELP = "evaluate trained runs: alignment chamfer (paper Fig. 7) and label-free keypoint quality"
@@ -64,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.task in _PROTOCOLS:
         return _run_protocol(args)
+    require_train_extra("torch")  # a run's checkpoint (the protocols and `eval chamfer` take a bundle, torch-free)
     inputs = (args.run, getattr(args, "baseline", None), args.data, args.cache)
     with Outputs(force=args.force, inputs=inputs) as outputs:
         out = outputs.file(args.out, "--out", formats=(".json",), what="result (JSON)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from kpd.commands import folder, integer
+from kpd.commands import folder, integer, require_train_extra
 
 HELP = "export a trained model to a bundle (ONNX graphs + manifest) that runs without torch"
 EXAMPLE = ("kpd export runs/chair --out chair.kpd    "
@@ -63,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--rig-cage-distance must lie in (0, 1.4) (the [-1, 1] box); got {args.rig_cage_distance}")
     if is_bundle:
         return _rewrite_bundle(args, source)
+    require_train_extra()  # a bundle is written again without torch; a checkpoint needs torch and the exporter
     if args.up is not None and args.up.strip().lower().lstrip("+-") not in ("x", "y", "z"):
         raise InputError(f"--up must be one of x, y, z, +x, -y...; got {args.up!r}")
     out = check_output(args.out, force=args.force, inputs=(source, args.data, args.cache),

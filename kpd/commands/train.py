@@ -8,7 +8,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from kpd.commands import existing, folder, integer, number
+from kpd.commands import existing, folder, integer, number, require_train_extra
 from kpd.errors import InputError
 
 HELP = "train KeypointDeformer on a shape category (PyTorch; cuda when available)"
@@ -109,6 +109,7 @@ MIN_VAL, FEW_VAL = 2, 5
 
 
 def run(args: argparse.Namespace) -> int:
+    require_train_extra("torch")
     out = Path(args.out)
     if args.resume and args.force:
         raise InputError("--resume and --force contradict each other; choose one")
