@@ -288,6 +288,9 @@ def prepare_output(out: str | os.PathLike, settings: Settings, *, force: bool = 
         raise InputError(f"--out {out} lies inside the collection {settings.folder}; choose a folder outside it")
     if resolved in folder.parents:
         raise InputError(f"--out {out} holds the collection {settings.folder}; choose another folder")
+    model = Path(settings.model)
+    if model.exists() and (model.resolve() == resolved or resolved in model.resolve().parents):
+        raise InputError(f"--out {out} holds the model {settings.model}; choose another folder")
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} is a file; kpd amplify writes a folder")
     check_folder_writable(out.parent, f"--out {out}")

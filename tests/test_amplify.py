@@ -214,14 +214,23 @@ def test_the_same_command_again_does_nothing_and_another_is_refused(collection, 
                                                              "two_000_two_0.png"]
 
 
-@pytest.mark.parametrize("where", ["inside", "holds", "same"])
-def test_out_never_touches_the_collection(collection, tmp_path, where, capfd):
-    out = {"inside": collection / "a" / "variants", "holds": collection.parent, "same": collection}[where]
-    before = _files(collection)
-    assert kpd("amplify", "chair", collection, "--out", out, "--force") == 2
+@pytest.mark.parametrize("where", ["inside", "holds", "same", "model"])
+def test_out_never_touches_an_input(collection, tmp_path, where, capfd):
+    import shutil
+
+    from kpd.bundle import resolve_bundle
+
+    model = "chair"
+    out = {"inside": collection / "a" / "variants", "holds": collection.parent, "same": collection,
+           "model": tmp_path / "models"}[where]
+    if where == "model":  # a bundle inside the folder --force would empty
+        model = tmp_path / "models" / "chair.kpd"
+        shutil.copytree(resolve_bundle("chair"), model)
+    before = _files(collection), _files(tmp_path)
+    assert kpd("amplify", model, collection, "--out", out, "--force") == 2
     err = capfd.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "collection" in err[0]
-    assert _files(collection) == before
+    assert len(err) == 1 and ("model" if where == "model" else "collection") in err[0]
+    assert (_files(collection), _files(tmp_path)) == before
 
 
 def test_ray_missing_is_one_line(collection, tmp_path, monkeypatch, capfd):

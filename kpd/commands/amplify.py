@@ -128,8 +128,8 @@ def render_collection_sheet(out: Path, manifest, settings, rows: int, up: str | 
     meshes = _Lazy(paths, read_mesh)
     up_axis = file_up(paths[0]) or up or "z"
     render_sheet(meshes, out / SHEET, titles=titles, keypoints=keypoints, columns=1 + max(len(f) for _, f, _ in picked),
-                 up=up_axis, cell=2.0, title=f"{len(manifest.records)} sources x {settings.variants} variants "
-                                           f"(scale {settings.scale:g}): the first {len(picked)}, each with its variants")
+                 up=up_axis, cell=2.0, title=f"{len(picked)} of the sources, each with {len(picked[0][1])} of its "
+                                           f"{settings.variants} variants (scale {settings.scale:g})")
 
 
 class _Lazy:
