@@ -155,8 +155,8 @@ def variant_seed(seed: int, source: str, index: int) -> int:
 
 
 def folded_fraction(source: np.ndarray, variant: np.ndarray, triangles: np.ndarray) -> float:
-    """The fraction of the source's non-degenerate triangles whose normal points against its source's normal after
-    the edit (a fold of the surface).
+    """The fraction of the source's non-degenerate triangles whose normal points against its own normal before the
+    edit (a fold of the surface).
 
     Parameters
     ----------
@@ -563,13 +563,15 @@ class Summary(NamedTuple):
 
 
 def amplify(settings: Settings, out: str | os.PathLike, *, engine: str = "local", processes: int = 1,
-            ray_address: str | None = None, force: bool = False,
+            ray_address: str | None = None, force: bool = False, model: Any = None,
             on_start: Callable[[int, int], None] | None = None,
             on_result: Callable[[ShapeResult], None] | None = None) -> Summary:
     """Amplify the collection of ``settings`` into ``out`` (see the module notes), continuing an earlier run there.
 
     Parameters
     ----------
+    model : the settings' model already loaded with ``threads=1``, for the work done in this process (else it is
+        loaded where the work runs).
     on_start : called with (shapes to do, shapes already done) before the work.
     on_result : called with each shape's result once its records are in the manifest.
     """
@@ -582,6 +584,9 @@ def amplify(settings: Settings, out: str | os.PathLike, *, engine: str = "local"
 
         raise InputError(f"no mesh files ({' '.join(MESH_FORMATS)}) under {settings.folder}")
     out = prepare_output(out, settings, force=force)
+    if model is not None:
+        _MODELS.clear()
+        _MODELS[(settings.model, settings.model_sha256)] = model
     names = output_names(sources, settings.variants, settings.format)
     manifest = Manifest(out, settings.variants)
     done = manifest.done()

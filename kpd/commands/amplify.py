@@ -64,6 +64,9 @@ def run(args: argparse.Namespace) -> int:
         suffix = (suffix if suffix.startswith(".") else "." + suffix).lower()
         if suffix not in MESH_FORMATS:
             raise InputError(f"--format must be one of {' '.join(MESH_FORMATS)}; got {args.format!r}")
+    if args.threads is not None:
+        raise InputError("kpd amplify runs onnxruntime on one thread per worker, so that the variants are the same "
+                         "bytes on any machine; drop --threads and give --processes")
     args.threads = 1
     model = load_model(args)
     if model.prior is None:
@@ -94,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         summary = amplify(settings, args.out, engine=args.engine, processes=args.processes,
-                          ray_address=args.ray_address, force=args.force, on_start=start, on_result=result)
+                          ray_address=args.ray_address, force=args.force, model=model, on_start=start,
+                          on_result=result)
     finally:
         if bar is not None:
             bar.close()
