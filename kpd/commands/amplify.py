@@ -118,35 +118,45 @@ def run(args: argparse.Namespace) -> int:
 
 def render_collection_sheet(out: Path, manifest, settings, rows: int, up: str | None) -> None:
     """``contact_sheet.png`` in ``out``: a row per source (the first ``rows`` amplified), the source then four of its
-    variants, read back from their files (:func:`kpd.viewer.pictures.render_sheet`)."""
+    variants, read back from their files (:func:`kpd.viewer.pictures.render_sheet`). Each row is shown in its
+    source's box scaled to one size: a collection's shapes come in any units (ModelNet's chairs differ twentyfold)."""
+    import numpy as np
+
     from kpd.amplify import SHEET, sheet_rows
     from kpd.io import file_up, read_mesh
     from kpd.viewer.pictures import render_sheet
 
     picked = sheet_rows(out, manifest, rows=rows, columns=5)
-    paths, titles, keypoints = [], [], []
+    paths, titles, keypoints, frames = [], [], [], []
     for source, files, kps in picked:
+        vertices = read_mesh(Path(settings.folder) / source).vertices
+        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+        frame = ((lo + hi) / 2, float(np.max(hi - lo)) or 1.0)  # the row's centre and size
         paths += [Path(settings.folder) / source, *(out / f for f in files)]
         titles += [source, *(f"{Path(f).stem[-3:]}" for f in files)]
-        keypoints += [None, *kps]
-    meshes = _Lazy(paths, read_mesh)
-    up_axis = file_up(paths[0]) or up or "z"
+        keypoints += [None, *((k - frame[0]) / frame[1] for k in kps)]
+        frames += [frame] * (1 + len(files))
+    meshes = _Lazy(paths, frames, read_mesh)
     render_sheet(meshes, out / SHEET, titles=titles, keypoints=keypoints, columns=1 + max(len(f) for _, f, _ in picked),
-                 up=up_axis, cell=2.0, title=f"{len(picked)} of the sources, each with {len(picked[0][1])} of its "
-                                           f"{settings.variants} variants (scale {settings.scale:g})")
+                 up=file_up(paths[0]) or up or "z", cell=2.0,
+                 title=f"{len(picked)} of the sources, each with {len(picked[0][1])} of its {settings.variants} "
+                       f"variants (scale {settings.scale:g})")
 
 
 class _Lazy:
-    """A sequence of meshes read when asked for (the sheet asks for each one at a time)."""
+    """Meshes read when asked for (the sheet asks for each one at a time), each moved and scaled by its frame
+    ``(centre (3,), size)`` for the picture only."""
 
-    def __init__(self, paths, read) -> None:
-        self.paths, self.read = paths, read
+    def __init__(self, paths, frames, read) -> None:
+        self.paths, self.frames, self.read = paths, frames, read
 
     def __len__(self) -> int:
         return len(self.paths)
 
     def __getitem__(self, i: int):
-        return self.read(self.paths[i])
+        mesh = self.read(self.paths[i])
+        centre, size = self.frames[i]
+        return mesh.with_vertices((mesh.vertices - centre) / size)
 
     def __iter__(self):
-        return (self.read(p) for p in self.paths)
+        return (self[i] for i in range(len(self)))
