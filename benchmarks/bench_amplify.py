@@ -4,8 +4,9 @@
 
 - **Throughput**: the first ``--shapes`` (100) training chairs x ``--variants`` (10), through :func:`kpd.amplify.amplify`
   in a fresh process each time: one local process, two local processes, and Ray tasks on a local cluster of two
-  workers (the cluster's start timed apart from the work: a cluster outlives one run). Shapes per minute from the
-  median of ``--repeats`` runs; the Ray overhead is its time against the two local processes'.
+  workers (the cluster's start timed apart from the work: a cluster outlives one run). ``--repeats`` rounds run each
+  configuration once in turn; shapes per minute from the median, the Ray overhead as the median of each round's
+  ratio to the two local processes, and the local runs' processor time beside their wall time.
 - **Growth**: one local process on the first 10, 30 and 100 chairs: a line fitted through the times (a fixed start
   plus seconds per shape) and its largest relative residual.
 - **The command**: ``kpd amplify`` itself (one process, with its contact sheet) once: wall time and peak memory.
@@ -55,6 +56,16 @@ def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def _resident() -> dict:
+    """Resident memory now: private (anonymous) and mapped from files (the cache's pages, shared by every process
+    that maps them and given back by the kernel under pressure)."""
+    fields = {}
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(("RssAnon:", "RssFile:")):
+            fields[line.split(":")[0]] = round(int(line.split()[1]) / 1024, 1)
+    return {"private_mb": fields.get("RssAnon"), "file_mapped_mb": fields.get("RssFile")}
+
+
 def worker(spec: dict) -> dict:
     """One amplify run in this fresh process: its seconds (and the Ray cluster's start apart)."""
     from kpd.amplify import Settings, amplify
@@ -81,7 +92,9 @@ def worker(spec: dict) -> dict:
         import ray
 
         ray.shutdown()
-    return {"seconds": seconds, "cluster_start_s": cluster, "shapes": summary.shapes, "failed": summary.failed,
+    cpu = sum(getattr(resource.getrusage(who), f) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+              for f in ("ru_utime", "ru_stime"))
+    return {"seconds": seconds, "cluster_start_s": cluster, "cpu_s": cpu, "shapes": summary.shapes, "failed": summary.failed,
             "typical": summary.typical, "folded_ok": summary.folded_ok, "folded_max": summary.folded_max,
             "peak_mb": _peak_mb()}
 
@@ -94,13 +107,36 @@ def run_worker(spec: dict) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def throughput(root: Path, folder: Path, variants: int, engine: str, processes: int, repeats: int) -> dict:
-    runs = []
+CONFIGS = (("local_1", "local", 1), ("local_2", "local", 2), ("ray_2", "ray", 2))
+
+
+def rounds(root: Path, shapes: int, variants: int, repeats: int) -> tuple[dict, dict]:
+    """``repeats`` rounds, each running every configuration once in turn (and one process on 10 and 30 shapes), so
+    that the other sessions' load, which drifts over minutes, weighs on all of them alike."""
+    folders = {count: _collection(root, count) for count in (10, 30, shapes)}
+    plan = [(name, engine, processes, shapes) for name, engine, processes in CONFIGS]
+    plan += [(f"local_1_{count}", "local", 1, count) for count in (10, 30)]
+    runs: dict[str, list[dict]] = {name: [] for name, *_ in plan}
+    loads = []
     for i in range(repeats):
-        out = root / f"out_{folder.name}_{engine}{processes}_{i}"
-        runs.append(run_worker({"folder": str(folder), "variants": variants, "engine": engine,
-                                "processes": processes, "out": str(out)}))
-        subprocess.run(["rm", "-rf", str(out)], check=True)
+        loads.append(round(os.getloadavg()[0], 2))
+        for name, engine, processes, count in plan:
+            out = root / f"out_{name}_{i}"
+            runs[name].append(run_worker({"folder": str(folders[count]), "variants": variants, "engine": engine,
+                                          "processes": processes, "out": str(out)}))
+            subprocess.run(["rm", "-rf", str(out)], check=True)
+    summary = {name: _summarise(runs[name], engine, processes, variants) for name, engine, processes, _ in plan}
+    ratios = [r["seconds"] / l["seconds"] for r, l in zip(runs["ray_2"], runs["local_2"])]
+    with_start = [(r["seconds"] + r["cluster_start_s"]) / l["seconds"] for r, l in zip(runs["ray_2"], runs["local_2"])]
+    summary["ray_overhead_vs_local_2"] = {
+        "median_of_rounds": round(statistics.median(ratios) - 1, 3), "rounds": [round(x - 1, 3) for x in ratios],
+        "with_cluster_start_median": round(statistics.median(with_start) - 1, 3)}
+    summary["load_average_at_round_start"] = loads
+    return summary, {count: summary[f"local_1_{count}"] if count != shapes else summary["local_1"]
+                     for count in (10, 30, shapes)}
+
+
+def _summarise(runs: list[dict], engine: str, processes: int, variants: int) -> dict:
     seconds = statistics.median(r["seconds"] for r in runs)
     shapes = runs[0]["shapes"]
     result = {"engine": engine, "processes": processes, "shapes": shapes, "variants": variants,
@@ -111,6 +147,10 @@ def throughput(root: Path, folder: Path, variants: int, engine: str, processes: 
               "folded_worst": round(runs[0]["folded_max"], 5)}
     if engine == "ray":
         result["cluster_start_s_median"] = round(statistics.median(r["cluster_start_s"] for r in runs), 2)
+    else:  # the processor time of the run and its workers: what the load of other sessions does not inflate
+        cpu = statistics.median(r["cpu_s"] for r in runs)
+        result["cpu_seconds_median"] = round(cpu, 2)
+        result["shapes_per_cpu_minute"] = round(60 * shapes / cpu, 1)
     return result
 
 
@@ -141,9 +181,11 @@ def augment_worker(spec: dict) -> dict:
         with threadpool_limits(1):
             for i in range(len(aug)):
                 aug.points(i, seed=i)
+            points = {"peak_mb": round(_peak_mb(), 1), **_resident()}
+            for i in range(len(aug)):
                 aug.mesh(i, seed=i)
-        return {"rigs": len(aug), "peak_mb": round(_peak_mb(), 1),
-                "peak_mb_after_imports": round(base, 1)}
+        return {"rigs": len(aug), "peak_mb_after_imports": round(base, 1), "after_point_draws": points,
+                "after_mesh_draws": {"peak_mb": round(_peak_mb(), 1), **_resident()}}
     aug = Augmenter(spec["cache"])
     big = aug.sources.index(spec["big"])
     seeds = iter(range(10**9))
@@ -225,14 +267,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="kpd-bench-amplify-") as tmp:
         root = Path(tmp)
         folder = _collection(root, args.shapes)
-        runs = {name: throughput(root, folder, args.variants, engine, processes, args.repeats)
-                for name, engine, processes in (("local_1", "local", 1), ("local_2", "local", 2), ("ray_2", "ray", 2))}
-        ray_work = runs["ray_2"]["seconds_median"]
-        local = runs["local_2"]["seconds_median"]
-        growth = {}
-        for count in (10, 30):
-            growth[count] = throughput(root, _collection(root, count), args.variants, "local", 1, args.repeats)
-        growth[args.shapes] = runs["local_1"]
+        runs, growth = rounds(root, args.shapes, args.variants, args.repeats)
         counts = sorted(growth)
         times = [growth[c]["seconds_median"] for c in counts]
         slope, intercept = (float(v) for v in __import__("numpy").polyfit(counts, times, 1))
@@ -245,9 +280,6 @@ def main() -> None:
             "collection": f"ModelNet10 chair/train, first {args.shapes}",
             "variants": args.variants,
             "runs": runs,
-            "ray_overhead_vs_local_2": round(ray_work / local - 1, 3),
-            "ray_overhead_vs_local_2_with_cluster_start": round(
-                (ray_work + runs["ray_2"]["cluster_start_s_median"]) / local - 1, 3),
             "growth": {"shapes": counts, "seconds": times, "fixed_s": round(intercept, 2),
                        "seconds_per_shape": round(slope, 3), "largest_relative_residual": round(residual, 3)},
             "command": command_run(root, folder, args.variants),
