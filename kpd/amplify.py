@@ -24,6 +24,7 @@ turned over against the source's); per shape that failed: ``source`` and ``error
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -31,7 +32,7 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -269,10 +270,12 @@ def _one_line(exc: BaseException) -> str:
 # --- the output folder ---------------------------------------------------------------------------------------------
 
 
-def prepare_output(out: str | os.PathLike, settings: Settings, *, force: bool = False) -> Path:
+def prepare_output(out: str | os.PathLike, settings: Settings, *, force: bool = False, check_only: bool = False
+                   ) -> Path:
     """Check the output folder and make it ready: a new folder, or the folder of an earlier run of the same settings
     (continued); another run's folder or any other folder only with ``force`` (then emptied). It may neither hold the
-    collection nor lie inside it. Temporaries of killed runs are removed.
+    collection nor lie inside it. Temporaries of killed runs are removed. ``check_only``: refuse what would be refused,
+    change nothing.
 
     Returns
     -------
@@ -305,8 +308,10 @@ def prepare_output(out: str | os.PathLike, settings: Settings, *, force: bool = 
             differ = sorted(k for k in wanted if found.get(k) != wanted[k])
             raise InputError(f"--out {out} holds a run with other settings ({', '.join(differ)}); run the same "
                              "command to continue it, or pass --force to replace it")
-        if force:
+        if force and not check_only:
             _empty(out)
+    if check_only:
+        return out
     out.mkdir(exist_ok=True)
     check_folder_writable(out, f"--out {out}")
     for where, dirs, _ in os.walk(out):
@@ -487,23 +492,48 @@ def _ray_shape(settings: Settings, job: Job) -> ShapeResult:
     return amplify_shape(settings, job)
 
 
-def _run_ray(settings: Settings, jobs: Sequence[Job], on_result, processes: int, address: str | None) -> None:
+@contextlib.contextmanager
+def ray_cluster(processes: int = 1, address: str | None = None) -> Iterator[Any]:
+    """Ray ready for tasks (yields the ``ray`` module): connected to the cluster at ``address`` or, without one, a
+    local cluster of ``processes`` workers, shut down after; a Ray this process already started is used as it is.
+    A missing Ray or an unreachable cluster is one :class:`~kpd.errors.InputError`."""
     try:
         import ray
     except ImportError:
         raise InputError(ray_missing_message()) from None
-    started = not ray.is_initialized()
-    if started:
-        try:
-            if address:
-                ray.init(address=address, logging_level=logging.ERROR, log_to_driver=False)
-            else:
-                ray.init(num_cpus=processes, include_dashboard=False, logging_level=logging.ERROR,
-                         log_to_driver=False)
-        except (ConnectionError, RuntimeError, ValueError) as exc:
-            where = address or "a local cluster"
-            raise InputError(f"cannot start Ray on {where}: {_one_line(exc)}") from exc
+    if ray.is_initialized():
+        yield ray
+        return
     try:
+        if address:
+            _check_reachable(address)
+            ray.init(address=address, logging_level=logging.ERROR, log_to_driver=False)
+        else:
+            ray.init(num_cpus=processes, include_dashboard=False, logging_level=logging.ERROR, log_to_driver=False)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        raise InputError(f"cannot start Ray on {address or 'a local cluster'}: {_one_line(exc)}") from exc
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+def _check_reachable(address: str) -> None:
+    """Fail at once when a ``HOST:PORT`` (or ``ray://HOST:PORT``) cluster does not answer: ``ray.init`` would retry
+    for minutes."""
+    import socket
+
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        return  # "auto", or an address Ray resolves itself
+    try:
+        socket.create_connection((host, int(port)), timeout=10).close()
+    except OSError as exc:
+        raise InputError(f"cannot reach the Ray cluster at {address}: {exc.strerror or exc}") from exc
+
+
+def _run_ray(settings: Settings, jobs: Sequence[Job], on_result, processes: int, address: str | None) -> None:
+    with ray_cluster(processes, address) as ray:
         # a task whose worker dies (a node lost, a process killed) is run again; its shape's files are placed by
         # the task and its records appended here, so that a retry replaces nothing finished
         task = ray.remote(num_cpus=1, max_retries=3)(_ray_shape)
@@ -528,9 +558,6 @@ def _run_ray(settings: Settings, jobs: Sequence[Job], on_result, processes: int,
                     result = ShapeResult(job.source, [{"source": job.source, "error": _ray_error(exc)}])
                 on_result(result)
                 submit()
-    finally:
-        if started:
-            ray.shutdown()
 
 
 def _ray_error(exc: BaseException) -> str:
@@ -575,14 +602,22 @@ def amplify(settings: Settings, out: str | os.PathLike, *, engine: str = "local"
     on_start : called with (shapes to do, shapes already done) before the work.
     on_result : called with each shape's result once its records are in the manifest.
     """
-    from kpd.io.atomic import remove_stale_temporaries
-
     start = time.perf_counter()
     sources = find_meshes(settings.folder)
     if not sources:
         from kpd.io import MESH_FORMATS
 
         raise InputError(f"no mesh files ({' '.join(MESH_FORMATS)}) under {settings.folder}")
+    prepare_output(out, settings, force=force, check_only=True)
+    # Ray before the output folder is made: a cluster that cannot be reached leaves none behind
+    with ray_cluster(processes, ray_address) if engine == "ray" else contextlib.nullcontext():
+        return _amplify(settings, out, sources, engine, processes, ray_address, force, model, on_start, on_result,
+                        start)
+
+
+def _amplify(settings, out, sources, engine, processes, ray_address, force, model, on_start, on_result, start):
+    from kpd.io.atomic import remove_stale_temporaries
+
     out = prepare_output(out, settings, force=force)
     if model is not None:
         _MODELS.clear()

@@ -243,3 +243,17 @@ def test_ray_missing_is_one_line(collection, tmp_path, monkeypatch, capfd):
 
 def test_find_meshes_is_recursive_and_sorted(collection):
     assert find_meshes(collection) == ["a/one.ply", "a/two.obj", "b/broken.ply", "b/c/three.off"]
+
+
+def test_an_unreachable_cluster_is_one_line_and_leaves_nothing(collection, tmp_path, capfd):
+    pytest.importorskip("ray")
+    import socket
+
+    with socket.socket() as closed:  # a port nothing listens on
+        closed.bind(("127.0.0.1", 0))
+        port = closed.getsockname()[1]
+    assert kpd("amplify", "chair", collection, "--out", tmp_path / "r", "--engine", "ray", "--ray-address",
+               f"127.0.0.1:{port}") == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"cannot reach the Ray cluster at 127.0.0.1:{port}" in err[0]
+    assert not (tmp_path / "r").exists()
