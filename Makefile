@@ -35,7 +35,7 @@ $(PY):
 # torch first, at the exact version that this machine has as a CPU build; then the project with its extras.
 $(STAMP): pyproject.toml | $(PY)
 	$(PIP) install -q $(TORCH)
-	$(PIP) install -q -e '.[train,dev]'
+	$(PIP) install -q -e '.[train,dev,cluster]'
 	touch $(STAMP)
 
 # The package's bytecode compiled, as pip does when it installs a wheel: an editable install leaves it to the first

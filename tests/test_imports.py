@@ -14,7 +14,7 @@ TORCH_FREE = [
     "kpd", "kpd.errors", "kpd.geometry", "kpd.io", "kpd.cage", "kpd.mvc", "kpd.rig", "kpd.cli", "kpd.prior",
     "kpd.bundle", "kpd.runtime", "kpd.onnx_contract", "kpd.scan", "kpd.metrics", "kpd.annotations", "kpd.data",
     "kpd.collection", "kpd.frame", "kpd.morph", "kpd.mesh", "kpd.grouping", "kpd.triangles", "kpd.procedural", "kpd.benchmark",
-    "kpd.viewer", "kpd.viewer.session", "kpd.viewer.render", "kpd.viewer.app", "kpd.viewer.figures", "kpd.viewer.browser",
+    "kpd.augment", "kpd.amplify", "kpd.viewer", "kpd.viewer.session", "kpd.viewer.render", "kpd.viewer.app", "kpd.viewer.figures", "kpd.viewer.browser",
     *(module for name, module in COMMANDS.items() if name not in ("train", "export")),
 ]
 
@@ -111,7 +111,7 @@ def _minimal_args(name: str) -> list[str]:
         "deform": ["chair", "s.ply", "--out", "o.ply"], "align": ["chair", "a.ply", "b.ply", "--out", "o.ply"],
         "sample": ["chair", "s.ply", "--out", "d"], "scan": ["s.ply", "--out", "a.ply", "--report", "r.json"], "view": ["chair", "s.ply"],
         "render": ["chair", "s.ply", "--out", "v.png"], "eval": ["alignment", ".", "--out", "a.json"], "bench": ["chair"],
-        "rig": ["chair", "s.ply", "--out", "s.glb"],
+        "rig": ["chair", "s.ply", "--out", "s.glb"], "amplify": ["chair", ".", "--out", "d"],
     }[name]
 
 

@@ -24,6 +24,7 @@ COMMANDS = {
     "deform": "kpd.commands.deform",
     "align": "kpd.commands.align",
     "sample": "kpd.commands.sample",
+    "amplify": "kpd.commands.amplify",
     "scan": "kpd.commands.scan",
     "rig": "kpd.commands.rig",
     "view": "kpd.commands.view",

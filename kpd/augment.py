@@ -1,0 +1,274 @@
+"""Variants of a collection's shapes drawn inside a training loop, without torch: :class:`Augmenter`.
+
+A collection is bound once (:meth:`Augmenter.build`: each mesh's rig, and a fixed sample of points on its surface) into
+a cache folder of plain ``.npy`` arrays, which :class:`Augmenter` maps into memory (``np.load(mmap_mode="r")``): a
+thousand cached rigs cost the pages a loop touches, shared by every data-loader worker on the machine. Each draw takes
+keypoints from the model's category prior around the shape's own (as :meth:`kpd.runtime.Model.sample_keypoints` does)
+and moves the points or the mesh vertices with the rig's linear edit basis, ``rest + basis @ (keypoints - rest
+keypoints)``: microseconds of arithmetic. A draw is seeded per call by ``(seed, index)``, so that the same call in any
+worker, in any order, gives the same variant.
+
+The cache folder holds ``index.json`` (the format, the model's checksum, the prior, the settings and one entry per
+bound shape) and a folder per shape with ``vertices.npy`` (V, 3), ``triangles.npy`` (T, 3), ``basis.npy`` (V, K),
+``keypoints.npy`` (K, 3, the model frame), ``faces.npy`` (N,), ``barycentric.npy`` (N, 3), ``points.npy`` (N, 3) and
+``points_basis.npy`` (N, K). A point on a triangle moves with the triangle's corners: its basis row is the barycentric
+mix of theirs, so a drawn point set lies exactly on the drawn mesh.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from kpd.errors import InputError, KpdError
+from kpd.prior import KeypointPrior
+
+__all__ = ["Augmenter", "Variant", "CACHE_FORMAT"]
+
+log = logging.getLogger("kpd.augment")
+
+CACHE_FORMAT = "kpd-augment/1"
+INDEX = "index.json"
+_ARRAYS = ("vertices", "triangles", "basis", "keypoints", "faces", "barycentric", "points", "points_basis")
+
+
+class Variant(NamedTuple):
+    """One draw.
+
+    points : (N, 3) float64 surface points, or (V, 3) mesh vertices (:meth:`Augmenter.mesh`), in the shape's units.
+    keypoints : (K, 3) float64, the variant's keypoints in the shape's units (its labels).
+    coefficients : (M,) float64, the variant's keypoints in the prior's components.
+    """
+
+    points: np.ndarray
+    keypoints: np.ndarray
+    coefficients: np.ndarray
+
+
+class Augmenter:
+    """Random plausible variants of the shapes of a bound collection (see the module notes).
+
+    Parameters
+    ----------
+    cache : a folder written by :meth:`build`.
+    scale : standard deviations of the prior's components in a draw (0.5: as ``kpd sample`` and ``kpd amplify``).
+
+    Example
+    -------
+    >>> aug = Augmenter.build("chair", sorted(Path("chairs").glob("*.off")), "chairs.cache")   # doctest: +SKIP
+    >>> variant = aug.points(3, seed=(epoch, 3))     # (2048, 3) points, (K, 3) keypoints   # doctest: +SKIP
+    """
+
+    def __init__(self, cache: str | os.PathLike, *, scale: float = 0.5) -> None:
+        if not (np.isfinite(scale) and scale >= 0):
+            raise InputError(f"scale must be a non-negative number; got {scale!r}")
+        self.cache = Path(cache)
+        self.scale = float(scale)
+        index = _read_index(self.cache)
+        if index is None:
+            raise InputError(f"{self.cache}: not an augmenter cache (no {INDEX} of {CACHE_FORMAT}; make one with "
+                             "Augmenter.build)")
+        self._index = index
+        self.prior = KeypointPrior.from_dict(index["prior"])
+        self._entries = index["shapes"]
+        self._open: dict[int, dict[str, np.ndarray]] = {}
+
+    # --- building -------------------------------------------------------------------------------------------------
+
+    @classmethod
+    def build(cls, model: Any, shapes: Iterable[str | os.PathLike], cache: str | os.PathLike, *, points: int = 2048,
+              seed: int = 0, scale: float = 0.5, progress: Any = None) -> "Augmenter":
+        """Bind every shape once and cache what draws need; a cache of the same model, shapes and settings is
+        reused as it is.
+
+        Parameters
+        ----------
+        model : a :class:`kpd.runtime.Model` with a prior, or a bundle path or shipped name.
+        shapes : mesh files; one that cannot be read or bound is left out with a logged warning.
+        cache : the folder to write (created; an existing cache of other shapes or settings is replaced).
+        points : surface points per shape for :meth:`points`.
+        seed : the binding's and the surface sample's seed.
+        progress : optional callable ``progress(path, error_or_None)`` after each shape.
+        """
+        from kpd.bundle import manifest_checksum
+        from kpd.geometry import sample_surface
+        from kpd.io import atomic_files, atomic_output, read_mesh
+        from kpd.runtime import Model
+
+        if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 1:
+            raise InputError(f"points must be a positive integer; got {points!r}")
+        model = model if isinstance(model, Model) else Model.load(model)
+        if model.prior is None:
+            raise InputError("this model has no category prior to draw variants from")
+        cache = Path(cache)
+        sources = [str(p) for p in shapes]
+        settings = {"format": CACHE_FORMAT, "model": manifest_checksum(model.bundle.manifest), "points": int(points),
+                    "seed": int(seed), "sources": sources}
+        index = _read_index(cache)
+        if index is not None and {k: index.get(k) for k in settings} == settings:
+            return cls(cache, scale=scale)
+        if cache.exists():
+            if index is None and any(cache.iterdir()):
+                raise InputError(f"{cache} exists and is not an augmenter cache; choose another folder")
+            shutil.rmtree(cache)
+        cache.mkdir(parents=True)
+        entries, failed = [], []
+        for source in sources:
+            try:
+                mesh = read_mesh(source)
+                rig = model.rig(mesh, seed=seed)
+                sample = sample_surface(mesh.vertices, mesh.triangles, int(points), seed=seed)
+            except (KpdError, OSError, ValueError) as exc:
+                log.warning("%s: left out of the augmenter: %s", source, " ".join(str(exc).split()))
+                failed.append({"source": source, "error": " ".join(str(exc).split())})
+                if progress is not None:
+                    progress(source, str(exc))
+                continue
+            key = f"{len(entries):06d}"
+            folder = cache / key
+            folder.mkdir()
+            triangles = np.asarray(mesh.triangles)
+            corners = triangles[sample.faces]  # (N, 3) vertex indices
+            weights = _barycentric(sample.points, mesh.vertices[corners])  # (N, 3)
+            basis = np.ascontiguousarray(rig.basis)  # (V, K)
+            arrays = {
+                "vertices": np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+                "triangles": triangles.astype(np.int32 if len(mesh.vertices) < 2**31 else np.int64),
+                "basis": basis,
+                "keypoints": rig.normalizer.apply(rig.keypoints),
+                "faces": sample.faces.astype(np.int64),
+                "barycentric": weights,
+                "points": np.einsum("nj,njd->nd", weights, mesh.vertices[corners]),
+                "points_basis": np.einsum("nj,njk->nk", weights, basis[corners].astype(np.float64)),
+            }
+            with atomic_files(folder / "vertices.npy") as staged:  # a shape's arrays appear together
+                for name, value in arrays.items():
+                    np.save(staged.parent / f"{name}.npy", value, allow_pickle=False)
+            entries.append({"source": source, "key": key, "center": rig.normalizer.center_.tolist(),
+                            "scale": float(rig.normalizer.scale_), "vertices": len(mesh.vertices),
+                            "triangles": len(triangles)})
+            if progress is not None:
+                progress(source, None)
+        if not entries:
+            raise InputError("no shape could be bound for the augmenter (see the warnings)")
+        index = {**settings, "prior": model.prior.to_dict(), "shapes": entries, "failed": failed}
+        with atomic_output(cache / INDEX) as tmp:  # last: its presence says the cache is whole
+            tmp.write_text(json.dumps(index) + "\n")
+        return cls(cache, scale=scale)
+
+    # --- drawing --------------------------------------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    @property
+    def sources(self) -> list[str]:
+        """The bound shapes' paths, in index order."""
+        return [e["source"] for e in self._entries]
+
+    @property
+    def failed(self) -> list[dict]:
+        """The shapes left out (``source``, ``error``)."""
+        return list(self._index.get("failed", []))
+
+    def arrays(self, index: int) -> dict[str, np.ndarray]:
+        """Shape ``index``'s cached arrays (read-only, memory-mapped): see the module notes."""
+        index = self._check_index(index)
+        arrays = self._open.get(index)
+        if arrays is None:
+            folder = self.cache / self._entries[index]["key"]
+            try:
+                arrays = {name: np.load(folder / f"{name}.npy", mmap_mode="r", allow_pickle=False) for name in _ARRAYS}
+            except (OSError, ValueError) as exc:
+                raise InputError(f"{folder}: a damaged augmenter cache entry ({exc}); build the cache again") from exc
+            self._open[index] = arrays
+        return arrays
+
+    def triangles(self, index: int) -> np.ndarray:
+        """(T, 3) int: shape ``index``'s triangles (those of :meth:`mesh`'s vertices)."""
+        return self.arrays(index)["triangles"]
+
+    def draw_keypoints(self, index: int, seed: int | Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+        """``(keypoints (K, 3), coefficients (M,))`` of the draw ``(seed, index)``, in shape ``index``'s units: the
+        keypoints :meth:`points` and :meth:`mesh` move to."""
+        index = self._check_index(index)
+        entry = self._entries[index]
+        rng = np.random.default_rng([*_seed_words(seed), index])
+        base = self.arrays(index)["keypoints"]  # (K, 3) model frame
+        drawn = self.prior.sample(1, seed=rng, scale=self.scale, base=np.asarray(base))[0]  # (K, 3)
+        keypoints = drawn * entry["scale"] + np.asarray(entry["center"])  # the normaliser's inverse
+        return keypoints, self.prior.coefficients(drawn)
+
+    def points(self, index: int, seed: int | Sequence[int]) -> Variant:
+        """A variant of shape ``index``'s cached surface points (N, 3), drawn with ``(seed, index)``."""
+        return self._draw(index, seed, "points", "points_basis")
+
+    def mesh(self, index: int, seed: int | Sequence[int]) -> Variant:
+        """A variant of shape ``index``'s mesh vertices (V, 3) (triangles: :meth:`triangles`), drawn with
+        ``(seed, index)``: the vertices ``Rig.deform`` gives for its keypoints."""
+        return self._draw(index, seed, "vertices", "basis")
+
+    def _draw(self, index: int, seed: int | Sequence[int], rest: str, basis: str) -> Variant:
+        keypoints, coefficients = self.draw_keypoints(index, seed)
+        arrays = self.arrays(index)
+        entry = self._entries[index]
+        rest_keypoints = np.asarray(arrays["keypoints"]) * entry["scale"] + np.asarray(entry["center"])  # (K, 3)
+        offsets = keypoints - rest_keypoints  # (K, 3)
+        moved = arrays[basis] @ offsets  # (P, 3) float64 (a float32 basis is widened)
+        moved += arrays[rest]
+        return Variant(moved, keypoints, coefficients)
+
+    def _check_index(self, index: int) -> int:
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not -len(self) <= index < len(self):
+            raise InputError(f"shape index must be an integer in [0, {len(self)}); got {index!r}")
+        return int(index) % len(self)
+
+    # --- pickling (data-loader workers) ---------------------------------------------------------------------------
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_open"] = {}  # each worker maps the files itself
+        return state
+
+    def __repr__(self) -> str:
+        return f"Augmenter({len(self)} shapes, K={self.prior.num_keypoints}, scale={self.scale:g}, cache={self.cache})"
+
+
+def _read_index(cache: Path) -> dict | None:
+    try:
+        index = json.loads((cache / INDEX).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(index, dict) or index.get("format") != CACHE_FORMAT or not isinstance(index.get("shapes"), list):
+        return None
+    return index
+
+
+def _seed_words(seed: int | Sequence[int]) -> list[int]:
+    words = [seed] if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool) else list(seed)
+    if not words or any(isinstance(w, bool) or not isinstance(w, (int, np.integer)) or w < 0 for w in words):
+        raise InputError(f"seed must be a non-negative integer or a sequence of them; got {seed!r}")
+    return [int(w) for w in words]
+
+
+def _barycentric(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """(N, 3) barycentric weights of points (N, 3) on their triangles' corners (N, 3, 3)."""
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    v0, v1, v2 = b - a, c - a, points - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(den > 0, den, 1.0)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    return np.stack([1.0 - v - w, v, w], axis=1)

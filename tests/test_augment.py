@@ -1,0 +1,124 @@
+"""kpd.augment: variants drawn from cached, memory-mapped rigs: reproducible per (seed, index), equal to Rig.deform."""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kpd.augment import Augmenter
+from kpd.errors import InputError
+from kpd.io import read_mesh, write_mesh
+from kpd.runtime import Model
+
+
+@pytest.fixture(scope="module")
+def model() -> Model:
+    return Model.load("chair", threads=1)
+
+
+@pytest.fixture(scope="module")
+def shapes(tmp_path_factory) -> list[Path]:
+    from kpd.procedural import procedural_chair
+
+    root = tmp_path_factory.mktemp("shapes")
+    paths = []
+    for i, stretch in enumerate([(1.0, 1.0, 1.0), (1.3, 0.9, 1.1)]):
+        mesh = procedural_chair()
+        path = root / f"chair{i}.ply"
+        write_mesh(path, mesh.with_vertices(mesh.vertices * np.asarray(stretch)))
+        paths.append(path)
+    broken = root / "broken.off"
+    broken.write_text("OFF\n3 1 0\n0 0 0\n")
+    return [paths[0], broken, paths[1]]
+
+
+@pytest.fixture(scope="module")
+def augmenter(model, shapes, tmp_path_factory) -> Augmenter:
+    return Augmenter.build(model, shapes, tmp_path_factory.mktemp("cache") / "chairs", points=512)
+
+
+def test_bound_once_unreadable_left_out_and_arrays_memory_mapped(augmenter, shapes, model):
+    assert augmenter.sources == [str(shapes[0]), str(shapes[2])]
+    assert [f["source"] for f in augmenter.failed] == [str(shapes[1])]
+    arrays = augmenter.arrays(1)
+    assert all(isinstance(a, np.memmap) and not a.flags.writeable for a in arrays.values())
+    assert arrays["points"].shape == (512, 3) and arrays["basis"].shape[1] == model.num_keypoints
+    index = augmenter.cache / "index.json"
+    stamp = index.stat().st_mtime_ns
+    again = Augmenter.build(model, shapes, augmenter.cache, points=512)  # the same collection: the cache as it is
+    assert index.stat().st_mtime_ns == stamp and len(again) == 2
+
+
+def test_draws_are_reproducible_per_seed_and_index(augmenter):
+    a = augmenter.points(0, seed=7)
+    b = augmenter.points(0, seed=7)
+    assert np.array_equal(a.points, b.points) and np.array_equal(a.keypoints, b.keypoints)
+    assert not np.allclose(a.points, augmenter.points(0, seed=8).points)
+    assert not np.allclose(augmenter.points(1, seed=(3, 1)).keypoints, augmenter.points(1, seed=(3, 2)).keypoints)
+    reopened = Augmenter(augmenter.cache)  # another process opening the cache, say
+    assert np.array_equal(reopened.mesh(1, seed=(5, 9)).points, augmenter.mesh(1, seed=(5, 9)).points)
+    copy = pickle.loads(pickle.dumps(augmenter))  # as a data-loader worker receives it
+    assert np.array_equal(copy.points(1, seed=4).points, augmenter.points(1, seed=4).points)
+
+
+def test_draws_equal_rig_deform_of_the_sampled_keypoints(augmenter, model):
+    for index in range(len(augmenter)):
+        mesh = read_mesh(augmenter.sources[index])
+        rig = model.rig(mesh, seed=0)
+        seed = (11, index)
+        variant = augmenter.mesh(index, seed=seed)
+        # the keypoints are the prior's draw around the shape's own, with the generator of (seed, index)
+        rng = np.random.default_rng([*seed, index])
+        expected = model.sample_keypoints(rig, 1, seed=rng, scale=0.5)[0]
+        np.testing.assert_allclose(variant.keypoints, expected, atol=1e-9 * np.ptp(mesh.vertices))
+        np.testing.assert_allclose(variant.points, rig.deform(variant.keypoints), atol=1e-9 * np.ptp(mesh.vertices))
+        np.testing.assert_array_equal(augmenter.triangles(index), mesh.triangles)
+        assert np.abs(variant.points - mesh.vertices).max() > 1e-3 * np.ptp(mesh.vertices)
+        np.testing.assert_allclose(variant.coefficients, model.prior.coefficients(rig.normalizer.apply(
+            variant.keypoints)), atol=1e-9)
+        # a drawn point set lies on the drawn mesh: each point at its fixed place on its triangle
+        points = augmenter.points(index, seed=seed)
+        np.testing.assert_array_equal(points.keypoints, variant.keypoints)
+        arrays = augmenter.arrays(index)
+        corners = variant.points[np.asarray(mesh.triangles)[arrays["faces"]]]  # (N, 3, 3)
+        np.testing.assert_allclose(points.points, np.einsum("nj,njd->nd", arrays["barycentric"], corners),
+                                   atol=1e-9 * np.ptp(mesh.vertices))
+
+
+def test_bad_calls_name_the_problem(augmenter, tmp_path):
+    with pytest.raises(InputError, match=r"shape index must be an integer in \[0, 2\); got 2"):
+        augmenter.points(2, seed=0)
+    with pytest.raises(InputError, match="seed must be a non-negative integer"):
+        augmenter.points(0, seed=-1)
+    with pytest.raises(InputError, match="not an augmenter cache"):
+        Augmenter(tmp_path)
+
+
+def test_the_documented_data_loader_is_reproducible_across_workers(augmenter):
+    torch = pytest.importorskip("torch")
+    from torch.utils.data import DataLoader, Dataset
+
+    class Variants(Dataset):  # the example of docs/amplify.md
+        def __init__(self, augmenter: Augmenter) -> None:
+            self.augmenter, self.epoch = augmenter, 0
+
+        def __len__(self) -> int:
+            return len(self.augmenter)
+
+        def __getitem__(self, i: int):
+            variant = self.augmenter.points(i, seed=self.epoch)
+            return torch.from_numpy(variant.points).float(), torch.from_numpy(variant.keypoints).float()
+
+    data = Variants(augmenter)
+
+    def epoch(number: int, workers: int) -> list:
+        data.epoch = number
+        loader = DataLoader(data, batch_size=1, shuffle=False, num_workers=workers)
+        return [points.numpy() for points, _ in loader]
+
+    two = epoch(1, 2)
+    assert all(np.array_equal(a, b) for a, b in zip(two, epoch(1, 0)))  # workers draw what this process draws
+    assert not np.allclose(two[0], epoch(2, 2)[0])  # another epoch, other variants
