@@ -77,8 +77,8 @@ def machine_speed(*, repeats: int = 5) -> dict:
 
 
 def machine_cpu(cpuinfo: str = "/proc/cpuinfo") -> dict:
-    """Which processor this is, for telling runs of different days apart (the project's virtual machine has been
-    given different host processors: an AMD Zen 3 without AVX-512 and a Zen 4, family 25 model 17, with it): ``model``
+    """Which processor this is, for telling runs of different days apart (a virtual machine may be given
+    different host processors from one day to the next): ``model``
     (the name the processor gives), ``family`` and ``model_number`` (x86's numbers), and ``vectors``, the widest
     vector instructions it offers (``avx512f``, ``avx2``, ``avx``, ``sse2`` or ``unknown``). Empty strings where
     the file or a line is missing (not Linux, another architecture)."""

@@ -45,9 +45,8 @@ LIMIT_QUANTILE = 0.99  # the score limit: this quantile of the training shapes' 
 LIMIT_FACTOR = 1.25
 # a lighter search than kpd scan's (no FPFH candidates, smaller subsets, fewer refined hypotheses): the check runs on
 # every command without --scan, on the point_count points the model sees; a few times faster, same decisions on the
-# shapes measured in bench_frame.py. On one thread: on two, its small fits wait on each other for the GIL (on a chair,
-# 0.9-1.1 s of CPU against 0.7 s, in about the same time), and in the commands it runs beside the binding, which has the
-# cores' work to do
+# shapes measured in bench_frame.py. On one thread: on two, its small fits wait on each other for the GIL (more CPU
+# for no less time), and in the commands it runs beside the binding, which has the cores' work to do
 SEARCH = {"fpfh_runs": 0, "n_points": 500, "coarse_points": 200, "refine_top": 3, "iterations": 15, "threads": 1}
 _AXES = ("x", "y", "z")
 

@@ -37,7 +37,7 @@ def camera_pose(vertices: Any, settings: ViewSettings, *, margin: float = 0.9, c
     in software), still centred.
 
     ``vertices`` may be a list of (N, 3) arrays (a shape and its keypoints, several frames), framed together without
-    joining them. Each array is read twice by a compiled pass (5 and 25 ms for 1.4M vertices).
+    joining them. Each array is read twice by a compiled pass.
 
     The front view (azimuth 0) looks from ``settings.front``, by default the axis that a glTF file with the same up
     axis turns to glTF's front (:func:`kpd.viewer.settings.front_axis`: -y for z up, a ModelNet chair's front; +z

@@ -172,7 +172,7 @@ def render_sheet(meshes: Sequence[Any], path: Any, *, titles: Sequence[str] | No
     settings = ViewSettings(width=pixels, height=pixels, up=axis if axis[0] in "+-" else f"+{axis}", front=front,
                             azimuth=float(azimuth), elevation=18.0)
     # framed on everything, each mesh taken as it comes: ``meshes`` may make them as they are asked for (a shape's
-    # variants, never all held at once: 16 variants of a 1.37M-vertex mesh are 0.5 GB of vertices)
+    # variants, never all held at once: the variants of a dense mesh are gigabytes)
     def everything() -> Iterator[np.ndarray]:
         for mesh in meshes:  # one mesh at a time
             yield np.ascontiguousarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)

@@ -69,9 +69,8 @@ def model_beside_read(load, path, read=None):
     """``(load(), read(path))`` (``read``: :func:`kpd.io.read_mesh` unless given): the shape is read on a worker thread
     (a large file's read and its fresh memory wait mostly outside the interpreter's lock) while this one loads the
     model (``load``, which checks it too), and a third gets the compiled kernels' machinery ready with a first small
-    kernel call (numba's start: 0.3-0.4 s in a fresh process, mostly outside the lock too: beside the model's load,
-    0.2-0.3 s sooner than after it), work the binding or the sampling would otherwise do after the read. The model's
-    errors come first, as before."""
+    kernel call (numba's start, mostly outside the lock too), work the binding or the sampling would otherwise do
+    after the read. The model's errors come first."""
     from concurrent.futures import ThreadPoolExecutor
 
     from kpd.geometry import sample_surface

@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
                                  "targets can be written")
             from tqdm import tqdm
 
-            with tqdm(desc="morph targets written", unit="B", unit_scale=True, leave=False) as bar:  # 1.4 GB at 1.3M
+            with tqdm(desc="morph targets written", unit="B", unit_scale=True, leave=False) as bar:  # GBs at scan sizes
 
                 def progress(written: int, total: int) -> None:
                     bar.total = total

@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         up, front = shape_view(model, args.mesh, scan)
         keypoint_sets = model.sample_keypoints(rig, args.n, seed=args.sample_seed, scale=args.scale)
         # each variant is deformed when it is written or drawn and let go after (an edit: milliseconds), so that the
-        # command's memory does not grow with --n (16 variants of a 1.37M-vertex mesh held were 0.5 GB)
+        # command's memory does not grow with --n
         meshes = _Variants(mesh, rig, keypoint_sets)
         staging = outputs.stage(out)
         staging.mkdir()
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
                 bar.update()
 
         # the variants are written on a thread of their own while the contact sheet is drawn: a file's write waits
-        # mostly on the disk (16 variants of a 1.37M-vertex mesh: 1.7 GB of PLY, 8 s with their fsyncs)
+        # mostly on the disk (the variants of a dense mesh are gigabytes of PLY)
         with ThreadPoolExecutor(1, thread_name_prefix="kpd-write") as pool:
             writing = pool.submit(write_variants)
             try:
