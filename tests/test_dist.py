@@ -41,11 +41,11 @@ def _ok(done: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
     return done
 
 
-def _refused_for_the_train_extra(done: subprocess.CompletedProcess | tuple[int, str]) -> None:
+def _refused_for_the_train_extra(done: subprocess.CompletedProcess | tuple[int, str], module: str = "torch") -> None:
     code, err = (done.returncode, done.stderr) if isinstance(done, subprocess.CompletedProcess) else done
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1, err
-    assert "torch is not installed" in lines[0] and all(hint in lines[0] for hint in TRAIN_EXTRA_HINT), lines[0]
+    assert f"{module} is not installed" in lines[0] and all(hint in lines[0] for hint in TRAIN_EXTRA_HINT), lines[0]
 
 
 # --- without torch, in this process: the check before any work, and the line for a module found missing later ----
@@ -72,6 +72,17 @@ def test_commands_that_need_torch_name_the_train_extra_in_one_line(no_torch, tmp
         code = main([str(a) for a in argv])
         _refused_for_the_train_extra((code, capsys.readouterr().err))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "net_final.pth", "run"]  # nothing written
+
+
+@pytest.mark.parametrize("module", ["onnx", "onnxscript"])
+def test_export_names_the_exporter_s_modules_of_the_train_extra(module, monkeypatch, tmp_path, capsys):
+    from kpd.cli import main
+
+    monkeypatch.setitem(sys.modules, module, None)
+    (tmp_path / "run").mkdir()
+    code = main(["export", str(tmp_path / "run"), "--out", str(tmp_path / "chair.kpd")])
+    _refused_for_the_train_extra((code, capsys.readouterr().err), module)
+    assert not (tmp_path / "chair.kpd").exists()
 
 
 def test_a_train_extra_module_missing_past_the_check_is_the_same_line(tmp_path):
