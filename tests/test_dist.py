@@ -41,11 +41,11 @@ def _ok(done: subprocess.CompletedProcess) -> subprocess.CompletedProcess:
     return done
 
 
-def _refused_for_the_train_extra(done: subprocess.CompletedProcess | tuple[int, str]) -> None:
+def _refused_for_the_train_extra(done: subprocess.CompletedProcess | tuple[int, str], module: str = "torch") -> None:
     code, err = (done.returncode, done.stderr) if isinstance(done, subprocess.CompletedProcess) else done
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1, err
-    assert "torch is not installed" in lines[0] and all(hint in lines[0] for hint in TRAIN_EXTRA_HINT), lines[0]
+    assert f"{module} is not installed" in lines[0] and all(hint in lines[0] for hint in TRAIN_EXTRA_HINT), lines[0]
 
 
 # --- without torch, in this process: the check before any work, and the line for a module found missing later ----
@@ -72,6 +72,17 @@ def test_commands_that_need_torch_name_the_train_extra_in_one_line(no_torch, tmp
         code = main([str(a) for a in argv])
         _refused_for_the_train_extra((code, capsys.readouterr().err))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "net_final.pth", "run"]  # nothing written
+
+
+@pytest.mark.parametrize("module", ["onnx", "onnxscript"])
+def test_export_names_the_exporter_s_modules_of_the_train_extra(module, monkeypatch, tmp_path, capsys):
+    from kpd.cli import main
+
+    monkeypatch.setitem(sys.modules, module, None)
+    (tmp_path / "run").mkdir()
+    code = main(["export", str(tmp_path / "run"), "--out", str(tmp_path / "chair.kpd")])
+    _refused_for_the_train_extra((code, capsys.readouterr().err), module)
+    assert not (tmp_path / "chair.kpd").exists()
 
 
 def test_a_train_extra_module_missing_past_the_check_is_the_same_line(tmp_path):
@@ -279,23 +290,36 @@ def test_the_wheel_without_torch_runs_every_runtime_command_from_an_empty_folder
 
     run("demo", "--out", "demo")
     assert {"demo.png", "rig.npz", "deformed.ply"} <= {p.name for p in (work / "demo").iterdir()}
+    original = read_mesh(chair)
+    low, high = original.vertices.min(axis=0), original.vertices.max(axis=0)
     run("keypoints", "chair", chair, "--scan", "--up", "y", "--out", "chair_keypoints.json")
-    assert np.array(json.loads((work / "chair_keypoints.json").read_text())["keypoints"]).shape == (12, 3)
+    keypoints = np.array(json.loads((work / "chair_keypoints.json").read_text())["keypoints"])
+    assert keypoints.shape == (12, 3)
+    margin = 0.1 * (high - low)
+    assert ((keypoints > low - margin) & (keypoints < high + margin)).all()  # in the file's own frame and units
     run("deform", "chair", chair, "--scan", "--up", "y", "--move", "8:0,0.05,0", "--out", "chair_taller.obj")
     run("align", "chair", chair, other_chair, "--out", "chair_aligned.obj")
-    triangles = len(read_mesh(chair).triangles)
-    assert len(read_mesh(work / "chair_taller.obj").triangles) == len(read_mesh(work / "chair_aligned.obj").triangles)
-    assert len(read_mesh(work / "chair_taller.obj").triangles) == triangles
+    for name in ("chair_taller.obj", "chair_aligned.obj"):
+        edited = read_mesh(work / name)
+        assert len(edited.triangles) == len(original.triangles)
+        assert np.abs(edited.vertices - original.vertices).max() > 1e-3 * np.linalg.norm(high - low)
     run("sample", "chair", chair, "--n", "2", "--out", "chair_variants")
     assert {"variant_000.obj", "variant_001.obj", "contact_sheet.png"} <= set(os.listdir(work / "chair_variants"))
+    variants = [read_mesh(work / "chair_variants" / f"variant_00{i}.obj").vertices for i in (0, 1)]
+    assert np.abs(variants[0] - variants[1]).max() > 0
     run("render", "chair", chair, "--scan", "--up", "y", "--out", "chair.png")
     assert (work / "chair.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     run("rig", "shoe", shoe, "--out", "shoe.glb")
     assert (work / "shoe.glb").read_bytes()[:4] == b"glTF"
     run("scan", shoe, "--model", "shoe", "--out", "shoe_aligned.ply", "--report", "shoe_report.json")
-    assert len(read_mesh(work / "shoe_aligned.ply").vertices) > 0
+    aligned = read_mesh(work / "shoe_aligned.ply").vertices
+    assert np.abs(aligned).max() <= 1 + 1e-6  # normalised to the [-1, 1] box
+    assert np.array(json.loads((work / "shoe_report.json").read_text())["transform"]).shape == (4, 4)
     run("eval", "chamfer", my_shoes, "--model", "shoe", "--pairs", "2", "--out", "shoe_chamfer.json", "--quiet")
-    assert json.loads((work / "shoe_chamfer.json").read_text())
+    scores = json.loads((work / "shoe_chamfer.json").read_text())
+    assert scores["data"]["test_shapes"] == len(shoes) and scores["settings"]["pairs"] == 2
+    chamfer = scores["results"]["chamfer_x1e3"]
+    assert chamfer["model"]["mean"] < chamfer["no_deformation"]["mean"]  # the model brings a shoe nearer another
     run("bench", "chair", "--vertices", "2000", "--repeats", "1", "--out", "bench.json")
     assert json.loads((work / "bench.json").read_text())["meshes"]
     _check_window(kpd, work, env, chair)
