@@ -37,6 +37,7 @@ import re
 import shutil
 import struct
 import sys
+import time
 import zipfile
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -160,8 +161,8 @@ def make_seeds(root: Path, data_dir: Path | None = None) -> Path:
 
 
 def _write_bombs(folder: Path) -> None:
-    """``member.npy`` and ``member.bin``: zip members (deflated, level 1) of :data:`BOMB_BYTES` zeros, kept as the
-    raw local entries that :func:`_zip_with` splices into a case's archive."""
+    """``extra.npy.zip`` and ``extra.bin.zip``: archives of one member (deflated, level 1) of :data:`BOMB_BYTES`
+    zeros (the ``.npy`` with its header), which :func:`_zip_with` splices into a case's archive."""
     for name in ("extra.npy", "extra.bin"):
         out = folder / (name + ".zip")
         if out.exists():
@@ -518,9 +519,8 @@ def _zip_with(zip_bytes: bytes, bomb: Path) -> bytes:
         for info in src.infolist():
             dst.writestr(info, src.read(info.filename))
         info = extra.infolist()[0]
-        # the member's compressed bytes copied as they are: no 1.5 GiB inflated here
-        with extra.open(info) as _:
-            pass
+        # the member's local entry and compressed bytes copied as they are (zipfile has no public call for that):
+        # no 1.5 GiB inflated here
         dst.fp.seek(dst.start_dir)
         header_offset = dst.start_dir
         extra.fp.seek(info.header_offset)
@@ -763,8 +763,6 @@ def _probe(kind: str, path: Path) -> None:
     elif kind == "memory":
         np.ones(3 << 28)  # 6 GiB
     elif kind == "hang":
-        import time
-
         time.sleep(3600)
     elif kind == "crash":
         import ctypes
@@ -824,14 +822,12 @@ def _worker(conn, hang_file: str) -> None:  # pragma: no cover - runs in the wor
             return
         index, fmt, reader, mutations, path = message
         path = Path(path)
-        folder = os.path.realpath(path.parent if fmt != "bundle_dir" else path.parent)
+        folder = os.path.realpath(path.parent)  # the input's folder (a bundle folder's parent: its members inside)
         resource.setrlimit(resource.RLIMIT_AS, (_status("VmSize") + MEMORY_LIMIT, hard))
         with open("/proc/self/clear_refs", "w") as fh:
             fh.write("5")
         base = _status("VmRSS")
         faulthandler.dump_traceback_later(TIMEOUT * 0.9, file=hang_fh)
-        import time
-
         start = time.perf_counter()
         state["outside"], state["folder"] = [], folder
         try:
