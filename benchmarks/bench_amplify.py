@@ -248,7 +248,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shapes", type=int, default=100)
     parser.add_argument("--variants", type=int, default=10)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--draws", type=int, default=2000)
     parser.add_argument("--cache-limit", type=int, default=0, help="bind only this many chairs for the 1,000-rig "
                                                                      "cache (0: all; for a quick check)")
@@ -264,31 +264,31 @@ def main() -> None:
         return
     from kpd.benchmark import machine_cpu, machine_speed, write_json
 
+    result = {"benchmark": "amplify", "complete": False, "machine_cpu": machine_cpu(), "machine_speed": machine_speed(),
+              "cpus": os.cpu_count(), "collection": f"ModelNet10 chair/train, first {args.shapes}",
+              "variants": args.variants}
+
+    def save() -> None:  # after each part, so that a failure late in a long run keeps what was measured
+        if args.out:
+            write_json(args.out, result)
+
     with tempfile.TemporaryDirectory(prefix="kpd-bench-amplify-") as tmp:
         root = Path(tmp)
         folder = _collection(root, args.shapes)
-        runs, growth = rounds(root, args.shapes, args.variants, args.repeats)
+        result["runs"], growth = rounds(root, args.shapes, args.variants, args.repeats)
         counts = sorted(growth)
         times = [growth[c]["seconds_median"] for c in counts]
         slope, intercept = (float(v) for v in __import__("numpy").polyfit(counts, times, 1))
         residual = max(abs(t - (intercept + slope * c)) / t for c, t in zip(counts, times))
-        result = {
-            "benchmark": "amplify",
-            "machine_cpu": machine_cpu(),
-            "machine_speed": machine_speed(),
-            "cpus": os.cpu_count(),
-            "collection": f"ModelNet10 chair/train, first {args.shapes}",
-            "variants": args.variants,
-            "runs": runs,
-            "growth": {"shapes": counts, "seconds": times, "fixed_s": round(intercept, 2),
-                       "seconds_per_shape": round(slope, 3), "largest_relative_residual": round(residual, 3)},
-            "command": command_run(root, folder, args.variants),
-            "augmenter": augmenter(root, args.draws, args.cache_limit),
-        }
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.out:
-        write_json(args.out, result)
+        result["growth"] = {"shapes": counts, "seconds": times, "fixed_s": round(intercept, 2),
+                            "seconds_per_shape": round(slope, 3), "largest_relative_residual": round(residual, 3)}
+        save()
+        result["command"] = command_run(root, folder, args.variants)
+        save()
+        result["augmenter"] = augmenter(root, args.draws, args.cache_limit)
+    result["complete"] = True
+    print(json.dumps(result, indent=2))
+    save()
 
 
 if __name__ == "__main__":

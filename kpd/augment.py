@@ -98,8 +98,7 @@ class Augmenter:
         progress : optional callable ``progress(path, error_or_None)`` after each shape.
         """
         from kpd.bundle import manifest_checksum
-        from kpd.geometry import sample_surface
-        from kpd.io import atomic_files, atomic_output, read_mesh
+        from kpd.io import atomic_output
         from kpd.runtime import Model
 
         if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 1:
@@ -119,12 +118,31 @@ class Augmenter:
                 raise InputError(f"{cache} exists and is not an augmenter cache; choose another folder")
             shutil.rmtree(cache)
         cache.mkdir(parents=True)
+        try:
+            entries, failed = cls._bind_all(model, sources, cache, int(points), int(seed), progress)
+            if not entries:
+                raise InputError("no shape could be bound for the augmenter (see the warnings)")
+            index = {**settings, "prior": model.prior.to_dict(), "shapes": entries, "failed": failed}
+            with atomic_output(cache / INDEX) as tmp:  # last: its presence says the cache is whole
+                tmp.write_text(json.dumps(index) + "\n")
+        except BaseException:
+            shutil.rmtree(cache, ignore_errors=True)  # a cache cut short is no cache: nothing half-written stays
+            raise
+        return cls(cache, scale=scale)
+
+    @staticmethod
+    def _bind_all(model: Any, sources: list[str], cache: Path, points: int, seed: int, progress: Any
+                  ) -> tuple[list[dict], list[dict]]:
+        """Bind and cache every source (see :meth:`build`); returns the entries of the index and the failures."""
+        from kpd.geometry import sample_surface
+        from kpd.io import atomic_files, read_mesh
+
         entries, failed = [], []
         for source in sources:
             try:
                 mesh = read_mesh(source)
                 rig = model.rig(mesh, seed=seed)
-                sample = sample_surface(mesh.vertices, mesh.triangles, int(points), seed=seed)
+                sample = sample_surface(mesh.vertices, mesh.triangles, points, seed=seed)
             except (KpdError, OSError, ValueError) as exc:
                 log.warning("%s: left out of the augmenter: %s", source, " ".join(str(exc).split()))
                 failed.append({"source": source, "error": " ".join(str(exc).split())})
@@ -156,12 +174,7 @@ class Augmenter:
                             "triangles": len(triangles)})
             if progress is not None:
                 progress(source, None)
-        if not entries:
-            raise InputError("no shape could be bound for the augmenter (see the warnings)")
-        index = {**settings, "prior": model.prior.to_dict(), "shapes": entries, "failed": failed}
-        with atomic_output(cache / INDEX) as tmp:  # last: its presence says the cache is whole
-            tmp.write_text(json.dumps(index) + "\n")
-        return cls(cache, scale=scale)
+        return entries, failed
 
     # --- drawing --------------------------------------------------------------------------------------------------
 

@@ -122,3 +122,20 @@ def test_the_documented_data_loader_is_reproducible_across_workers(augmenter):
     two = epoch(1, 2)
     assert all(np.array_equal(a, b) for a, b in zip(two, epoch(1, 0)))  # workers draw what this process draws
     assert not np.allclose(two[0], epoch(2, 2)[0])  # another epoch, other variants
+
+
+def test_a_build_that_fails_leaves_no_cache(model, shapes, tmp_path, monkeypatch):
+    calls = []
+
+    def full_disk(path, *args, **kwargs):
+        calls.append(path)
+        if len(calls) > 8:  # the second shape's first array
+            raise OSError(28, "No space left on device", str(path))
+        return real(path, *args, **kwargs)
+
+    real = np.save
+    monkeypatch.setattr(np, "save", full_disk)
+    cache = tmp_path / "cache"
+    with pytest.raises(Exception, match="no space left on device"):
+        Augmenter.build(model, shapes, cache, points=64)
+    assert not cache.exists()

@@ -18,6 +18,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from kpd.commands.keypoints import add_model_arguments, add_scan_arguments
 
     add_model_arguments(parser)
+    for action in parser._actions:  # the shared model options, as this command uses them
+        if action.dest == "seed":
+            action.help = "seed of the binding's surface sample and of the draws (default 0)"
+        elif action.dest == "threads":  # one onnxruntime thread per worker: the same bytes on any machine
+            action.help = argparse.SUPPRESS
     parser.add_argument("folder", metavar="FOLDER", type=folder, help="the collection: every mesh under it, in "
                                                                      "every sub-folder")
     parser.add_argument("--variants", type=integer(1, 10000), default=10, help="variants per shape (default 10)")
