@@ -13,9 +13,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from test_bundle import make_toy_bundle
+from helpers import kpd, make_toy_bundle
 
-from kpd.cli import build_parser, main
+from kpd.cli import build_parser
 from kpd.commands._shared import category_azimuth, warn_moves
 from kpd.commands.view import page_azimuth
 from kpd.frame import FrameCheck, ambiguity_advice
@@ -27,10 +27,6 @@ from kpd.viewer.settings import ViewSettings, front_axis, up_axis
 FRAME_COMMANDS = ("keypoints", "deform", "align", "sample", "render", "rig", "view", "demo")
 MOVE_COMMANDS = ("deform", "render")
 AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
-
-
-def kpd(*argv) -> int:
-    return main([str(a) for a in argv])
 
 
 def _options() -> dict[str, set[str]]:
