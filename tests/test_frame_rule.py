@@ -210,7 +210,8 @@ def test_rigs_stand_up_in_the_shapes_own_frame(data_dir, tmp_path):
 
 
 def test_rig_with_scan_takes_the_recovered_up_axis(data_dir, tmp_path):
-    chair = data_dir / "keypointnet" / "models" / "03001627" / "88382b877be91b2a572f8e1c1caad99e" / "model_normalized.obj"
+    chair = (data_dir / "keypointnet" / "models" / "03001627" / "88382b877be91b2a572f8e1c1caad99e"
+             / "model_normalized.obj")
     assert kpd("rig", "chair", chair, "--scan", "--targets", "keypoint", "--out", tmp_path / "y.glb") == 0
     assert _gltf_root_rotation(tmp_path / "y.glb") is None  # ShapeNet: y up, found by --scan
 
