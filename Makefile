@@ -66,6 +66,7 @@ demo: venv
 test: venv web blender
 	$(PY) -m pytest -n 2 -q
 	$(VENV)/bin/lint-imports
+	$(VENV)/bin/ruff check kpd viewer export tests benchmarks docs/conf.py docs/pictures.py
 
 # The documentation: docs/*.md and the API reference from the docstrings, into docs/_build/html; any Sphinx warning
 # fails the build. The per-module pages are generated afresh (docs/api/_generated), so a moved module leaves none.

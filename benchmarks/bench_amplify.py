@@ -2,7 +2,8 @@
 
     .venv/bin/python benchmarks/bench_amplify.py --out benchmarks/results/amplify.json
 
-- **Throughput**: the first ``--shapes`` (100) training chairs x ``--variants`` (10), through :func:`kpd.amplify.amplify`
+- **Throughput**: the first ``--shapes`` (100) training chairs x ``--variants`` (10), through
+  :func:`kpd.amplify.amplify`
   in a fresh process each time: one local process, two local processes, and Ray tasks on a local cluster of two
   workers (the cluster's start timed apart from the work: a cluster outlives one run). ``--repeats`` rounds run each
   configuration once in turn; shapes per minute from the median, the Ray overhead as the median of each round's
@@ -94,7 +95,8 @@ def worker(spec: dict) -> dict:
         ray.shutdown()
     cpu = sum(getattr(resource.getrusage(who), f) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
               for f in ("ru_utime", "ru_stime"))
-    return {"seconds": seconds, "cluster_start_s": cluster, "cpu_s": cpu, "shapes": summary.shapes, "failed": summary.failed,
+    return {"seconds": seconds, "cluster_start_s": cluster, "cpu_s": cpu, "shapes": summary.shapes,
+            "failed": summary.failed,
             "typical": summary.typical, "folded_ok": summary.folded_ok, "folded_max": summary.folded_max,
             "peak_mb": _peak_mb()}
 
@@ -126,8 +128,9 @@ def rounds(root: Path, shapes: int, variants: int, repeats: int) -> tuple[dict, 
                                           "processes": processes, "out": str(out)}))
             subprocess.run(["rm", "-rf", str(out)], check=True)
     summary = {name: _summarise(runs[name], engine, processes, variants) for name, engine, processes, _ in plan}
-    ratios = [r["seconds"] / l["seconds"] for r, l in zip(runs["ray_2"], runs["local_2"])]
-    with_start = [(r["seconds"] + r["cluster_start_s"]) / l["seconds"] for r, l in zip(runs["ray_2"], runs["local_2"])]
+    ratios = [ray["seconds"] / local["seconds"] for ray, local in zip(runs["ray_2"], runs["local_2"])]
+    with_start = [(ray["seconds"] + ray["cluster_start_s"]) / local["seconds"]
+                  for ray, local in zip(runs["ray_2"], runs["local_2"])]
     summary["ray_overhead_vs_local_2"] = {
         "median_of_rounds": round(statistics.median(ratios) - 1, 3), "rounds": [round(x - 1, 3) for x in ratios],
         "with_cluster_start_median": round(statistics.median(with_start) - 1, 3)}

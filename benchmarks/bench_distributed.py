@@ -99,9 +99,11 @@ def compare(one: dict, two: dict) -> dict:
     v1, v2 = one["history"]["val"].numpy()[-1, 1], two["history"]["val"].numpy()[-1, 1]
     return {
         "loss_curve_relative_difference": curve,
-        "val_chamfer": {"one_process": float(v1), "two_gloo_ranks": float(v2), "relative_difference": float(abs(v2 - v1) / v1)},
+        "val_chamfer": {"one_process": float(v1), "two_gloo_ranks": float(v2),
+                        "relative_difference": float(abs(v2 - v1) / v1)},
         "weights_difference_over_motion_max": {g: max(v for k, v in weights.items() if k.startswith(g))
-                                               for g in ("keypoint_predictor", "influence_predictor", "influence_param")},
+                                               for g in ("keypoint_predictor", "influence_predictor",
+                                                         "influence_param")},
         "weights_difference_over_motion": weights,
     }
 

@@ -214,7 +214,8 @@ def run_category(category: str, bundles: dict[str, str], args: argparse.Namespac
         acc: dict = {key: [] for key in ("leakage", "single_folded", "single_edge", "single_dihedral")}
         anchor: dict = {key: [] for key in acc}
         anchor_failed = 0
-        samples = {scale: {"folded": [], "folded_area": [], "intersecting": [], "distance": []} for scale in SAMPLE_SCALES}
+        samples = {scale: {"folded": [], "folded_area": [], "intersecting": [], "distance": []}
+                   for scale in SAMPLE_SCALES}
         test_sets = []
         for mesh in tqdm(meshes, desc=f"{category} {label}", leave=False):
             rig = model.rig(mesh, straighten=label not in args.no_straighten)
@@ -311,7 +312,8 @@ def main(argv: list[str] | None = None) -> int:
         "benchmark": "edits",
         "settings": {"variants": variants, "rig_cage_distance": args.distances,
                      "no_straighten": args.no_straighten, "shapes": args.shapes,
-                     "train_shapes": args.train_shapes, "move": args.move, "samples": args.samples, "sample_scales": list(SAMPLE_SCALES), "frame": "model [-1, 1] box"},
+                     "train_shapes": args.train_shapes, "move": args.move, "samples": args.samples,
+                     "sample_scales": list(SAMPLE_SCALES), "frame": "model [-1, 1] box"},
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "load": os.getloadavg()},
         "categories": {},
     }

@@ -2,10 +2,10 @@
 
 Figures (docs/formats.md):
 
-* ``shapenet``: over the 38 ShapeNetCore.v2 models of the shared data (``shapenetcore_obj``), per reader (kpd,
-  Open3D 0.20's legacy and tensor readers = Assimp, and trimesh when importable), how many models come back with the file's vertices (one per
-  ``v`` line, in order), with texture coordinates on every face that has them (the 16 that mix faces with and
-  without), with every used material (its colour or its map), and with the maps' images; for kpd also how many
+* ``shapenet``: over the 38 ShapeNetCore.v2 models of the shared data (``shapenetcore_obj``), per reader (kpd, Open3D
+  0.20's legacy and tensor readers = Assimp, and trimesh when importable), how many models come back with the file's
+  vertices (one per ``v`` line, in order), with texture coordinates on every face that has them (the 16 that mix faces
+  with and without), with every used material (its colour or its map), and with the maps' images; for kpd also how many
   deformed outputs (``write_mesh`` after ``with_vertices``) are the input's text with only ``v``/``vn`` lines changed
   and its maps copied byte for byte.
 * ``scale``: an OBJ of about 1M vertices and 2M triangles with one UV per vertex and a material, read by kpd and by
@@ -78,7 +78,8 @@ def kpd_keeps(path: Path, f: dict, out: Path) -> dict:
     moved = mesh.with_vertices(mesh.vertices * [1.0, 1.1, 0.9])
     write_mesh(out, moved)
     a, b = path.read_text().splitlines(), out.read_text().splitlines()
-    same_text = len(a) == len(b) and all(x == y for x, y in zip(a, b) if x.split()[:1] not in (["v"], ["vn"], ["mtllib"]))
+    same_text = len(a) == len(b) and all(
+        x == y for x, y in zip(a, b) if x.split()[:1] not in (["v"], ["vn"], ["mtllib"]))
     copied = [p for p in out.parent.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png")]
     maps_bytes = sum(1 for p in copied if any(p.read_bytes() == q.read_bytes()
                                               for q in (path.parent / "../images").glob("*")))
@@ -250,7 +251,7 @@ def formats(runs: int) -> dict:
                       triangles=len(mesh.triangles))
         del mesh
         samples: dict = {}
-        for r in range(runs):
+        for _ in range(runs):
             for ext in FORMATS:
                 for library in ("kpd", "open3d"):  # interleaved: the machine's load falls on both alike
                     written = folder / f"{library}{ext}"

@@ -15,8 +15,10 @@ more bundles on the same held-out shapes, the same seeded pairs and the same tar
     .venv/bin/python benchmarks/bench_outer.py --chamfer runs/data/shoe \
         --split-file benchmarks/results/shoe_split_shipped.txt \
         --model outer-0=shoe --model plain-0=runs/shoe-plain/shoe-plain.kpd \
-        --model outer-1=runs/shoe-plain/seeds/outer-1/outer-1.kpd --model plain-1=runs/shoe-plain/seeds/plain-1/plain-1.kpd \
-        --model outer-2=runs/shoe-plain/seeds/outer-2/outer-2.kpd --model plain-2=runs/shoe-plain/seeds/plain-2/plain-2.kpd \
+        --model outer-1=runs/shoe-plain/seeds/outer-1/outer-1.kpd \
+        --model plain-1=runs/shoe-plain/seeds/plain-1/plain-1.kpd \
+        --model outer-2=runs/shoe-plain/seeds/outer-2/outer-2.kpd \
+        --model plain-2=runs/shoe-plain/seeds/plain-2/plain-2.kpd \
         --out benchmarks/results/outer_training.json
 
 (``shoe`` is the shipped bundle, trained with ``--outer-surface``; the others are ``kpd train runs/data/shoe

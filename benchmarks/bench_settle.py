@@ -4,13 +4,13 @@
         --split-file benchmarks/results/shoe_split_shipped.txt --every 5 --poses 4 --out benchmarks/results/settle.json
 
 Every ``--every``-th shoe of the model's *train* split (never the held-out test shoes, which bench_shoes scores) is
-turned by ``--poses`` seeded random rotations (seed 100 + its index) and oriented as ``kpd keypoints shoe SHAPE
---scan`` does, with the settling step on (``ScanFrame(settle=True)``). Where the rigid fit to the template is ambiguous, every candidate rotation
-(kpd.scan.candidate_rotations) is scored by what settle_orientation measures (the chamfer between the scan deformed
-onto the template's keypoints and the template) and by the truth: the mean distance of its keypoints, mapped back
-onto the shoe, to the keypoints the model predicts on the shoe as it was trained (the aligned folder's frame), in %
-of the shoe's size; a candidate within 5% is right. Reported: how often the rigid fit's choice, the settled choice
-and the best candidate (an oracle) are right, and the keypoint spread across poses with and without settling.
+turned by ``--poses`` seeded random rotations (seed 100 + its index) and oriented as ``kpd keypoints shoe SHAPE --scan``
+does, with the settling step on (``ScanFrame(settle=True)``). Where the rigid fit to the template is ambiguous, every
+candidate rotation (kpd.scan.candidate_rotations) is scored by what settle_orientation measures (the chamfer between the
+scan deformed onto the template's keypoints and the template) and by the truth: the mean distance of its keypoints,
+mapped back onto the shoe, to the keypoints the model predicts on the shoe as it was trained (the aligned folder's
+frame), in % of the shoe's size; a candidate within 5% is right. Reported: how often the rigid fit's choice, the settled
+choice and the best candidate (an oracle) are right, and the keypoint spread across poses with and without settling.
 """
 
 from __future__ import annotations

@@ -68,7 +68,8 @@ def main() -> None:
     record = model.bundle.manifest.get("training") or {}
     discover_args = (record.get("data") or {}).get("discover") or {}
     category = discover(args.data, split_file=args.split_file,
-                        val_fraction=float(discover_args.get("val_fraction", 0.1)), seed=int(discover_args.get("seed", 0)))
+                        val_fraction=float(discover_args.get("val_fraction", 0.1)),
+                        seed=int(discover_args.get("seed", 0)))
     recorded = (record.get("data") or {}).get("counts") or {}
     found = {split: len(category.splits[split]) for split in recorded}
     if recorded and found != recorded:

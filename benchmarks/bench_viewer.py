@@ -165,7 +165,8 @@ def bench_editor(case: Case, drags: int, folder: Path, pauses: int = 0) -> dict:
                 xdo("mouseup", 1)
                 sent.append(("release", time.time()))
                 xdo("key", "Right" if drag % 2 == 0 else "Left", kind="key")
-                released = wait_for(lambda: [e for e in read_events(events) if e["event"] == "nudge"][drag:], 60, "a nudge")
+                released = wait_for(lambda: [e for e in read_events(events) if e["event"] == "nudge"][drag:], 60,
+                                    "a nudge")
                 keypoints = np.array(released[0]["keypoints"])
             xdo("key", "u", kind="key")
             xdo("key", "y", kind="key")
@@ -193,7 +194,7 @@ def bench_editor(case: Case, drags: int, folder: Path, pauses: int = 0) -> dict:
     if kinds != [k for k, _ in sent]:
         raise RuntimeError(f"the editor saw {len(kinds)} inputs, {len(sent)} were sent: {kinds[:12]}...")
     latencies, steps = [], []
-    for serial, ((kind, t_sent), record) in enumerate(zip(sent, inputs), 1):
+    for serial, ((kind, t_sent), _) in enumerate(zip(sent, inputs), 1):
         if kind == "release":
             continue  # changes nothing on screen
         shown = next((f for f in frames if f["serial"] >= serial), None)

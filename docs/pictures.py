@@ -149,7 +149,8 @@ def editor_sneaker(tmp: Path) -> None:
     from kpd.bundle import shipped_bundles
 
     if "shoe" in shipped_bundles():
-        _editor_shot(tmp, DOCS / "editor_sneaker.png", ["shoe", SNEAKER, "--scan", "--view-up", "+y", "--azimuth", "-120"])
+        _editor_shot(tmp, DOCS / "editor_sneaker.png",
+                     ["shoe", SNEAKER, "--scan", "--view-up", "+y", "--azimuth", "-120"])
         return
     from kpd.geometry import farthest_point_sampling, sample_surface
     from kpd.io import read_mesh

@@ -22,7 +22,7 @@ from kpd.bundle import build_manifest, write_bundle
 from kpd.cage import Cage
 from kpd.errors import BundleError, DataError, InputError
 from kpd.io import Outputs
-from kpd.export.onnx import Graphs, Parity, export_graphs, parity, torch_outputs
+from kpd.export.onnx import Parity, export_graphs, parity, torch_outputs
 from kpd.prior import KeypointPrior
 from kpd.train.nets import KeypointDeformer, ModelConfig
 

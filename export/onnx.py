@@ -92,7 +92,8 @@ def _export_one(module: nn.Module, spec: contract.GraphSpec, meta: dict[str, str
     with tempfile.TemporaryDirectory(prefix="kpd-onnx-") as tmp:
         path = os.path.join(tmp, spec.file)
         # the exporter prints progress lines and warnings of its own; keep them out of the user's terminal
-        with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), _quiet("torch.onnx", "onnx_ir", "onnxscript"):
+        with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), \
+                _quiet("torch.onnx", "onnx_ir", "onnxscript"):
             warnings.simplefilter("ignore")
             torch.onnx.export(
                 module, (example,), path, input_names=[contract.INPUT_NAME], output_names=[spec.output],

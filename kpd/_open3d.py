@@ -1,7 +1,8 @@
 """Open3D without its plotly/dash helpers at import time.
 
 ``import open3d`` imports ``open3d.visualization.draw_plotly``, which imports dash and plotly: a large part of
-every kpd command's start (``python -X importtime -c "import open3d"``), for functions kpd never calls. :func:`defer_plotly_helpers` puts a stand-in for that one module in ``sys.modules`` before Open3D is imported;
+every kpd command's start (``python -X importtime -c "import open3d"``), for functions kpd never calls.
+:func:`defer_plotly_helpers` puts a stand-in for that one module in ``sys.modules`` before Open3D is imported;
 its three functions import the real module on first call, so Open3D behaves as before for anyone who uses them.
 """
 

@@ -63,10 +63,10 @@ def _end_program(code: int) -> None:
 
     The teardown frees every object one by one and collects the cycles among them (numba's, SciPy's and Open3D's
     modules, a dense mesh's arrays), a noticeable part of a short command, while the operating system frees the
-    process's memory at once anyway. What the interpreter's exit does before it is done here the same way: the threads still
-    at work are waited for (and idle pool workers woken to end: ``threading._shutdown``, which the interpreter calls
-    first), the functions registered with :mod:`atexit` run (logging's flush, multiprocessing's children), and both
-    output streams are flushed. An interpreter without ``threading._shutdown`` ends as usual."""
+    process's memory at once anyway. What the interpreter's exit does before it is done here the same way: the threads
+    still at work are waited for (and idle pool workers woken to end: ``threading._shutdown``, which the interpreter
+    calls first), the functions registered with :mod:`atexit` run (logging's flush, multiprocessing's children), and
+    both output streams are flushed. An interpreter without ``threading._shutdown`` ends as usual."""
     shutdown = getattr(threading, "_shutdown", None)
     if shutdown is None:
         return

@@ -3,13 +3,15 @@
 Layouts (``discover``):
 
 - **ModelNet**: ``ROOT/<class>/{train,test}/*.off|ply`` (the folder split is used).
-- **ShapeNet v1**: ``ROOT/<synset>/<id>/model.obj``; **ShapeNet v2**: ``ROOT/<synset>/<id>/models/model_normalized.obj``.
+- **ShapeNet v1**: ``ROOT/<synset>/<id>/model.obj``; **ShapeNet v2**:
+  ``ROOT/<synset>/<id>/models/model_normalized.obj``.
   The category is a synset id or a common name (``chair``). The split comes from the official ``all.csv``
   (``--split-file``, or ``ROOT/all.csv`` when present).
 - **Flat folder**: mesh files in ``ROOT/<category>/`` (or ``ROOT`` itself), with an optional split file;
   ``train.txt`` / ``val.txt`` / ``test.txt`` beside the meshes are used as the split when no split file is given.
 
-Split files: the ShapeNet csv (columns ``modelId`` and ``split``), JSON ``{"train": [names], "val": [...], "test": [...]}``,
+Split files: the ShapeNet csv (columns ``modelId`` and ``split``),
+JSON ``{"train": [names], "val": [...], "test": [...]}``,
 a folder with ``train.txt`` / ``val.txt`` / ``test.txt`` (one name per line; KeypointNet's ``<synset>-<id>`` works;
 one of those files given by itself stands for its folder),
 or text lines ``name split``. Shapes are named by model id (ShapeNet) or file stem. When there is no validation split it
@@ -183,7 +185,8 @@ def read_split_file(path: str | os.PathLike) -> dict[str, str]:
     return result
 
 
-def _carve(files: list[ShapeFile], fraction: float, rng: np.random.Generator) -> tuple[list[ShapeFile], list[ShapeFile]]:
+def _carve(files: list[ShapeFile], fraction: float,
+           rng: np.random.Generator) -> tuple[list[ShapeFile], list[ShapeFile]]:
     """Split off ``round(fraction * len)`` files (at least one when fraction > 0 and there are two or more)."""
     if fraction <= 0 or len(files) < 2:
         return files, []
@@ -431,7 +434,8 @@ class Ingested(NamedTuple):
     skipped: list[Skipped]
 
 
-def ingest(files: list[ShapeFile], settings: SampleSettings = SampleSettings(), cache_dir: str | os.PathLike | None = None,
+def ingest(files: list[ShapeFile], settings: SampleSettings = SampleSettings(),
+           cache_dir: str | os.PathLike | None = None,
            *, processes: int = 2, progress: bool = True, desc: str = "sampling") -> Ingested:
     """Make sure every mesh has a cache entry; list the ones that cannot be used.
 

@@ -171,7 +171,8 @@ def _check_mesh(vertices: Any, triangles: Any) -> tuple[np.ndarray, np.ndarray]:
     if triangles.ndim != 2 or triangles.shape[1] != 3 or len(triangles) == 0:
         raise InputError(f"triangles must have shape (T, 3) with T >= 1; got {triangles.shape}")
     if triangles.min() < 0 or triangles.max() >= len(vertices):
-        raise InputError(f"triangle indices must lie in [0, {len(vertices)}); got [{triangles.min()}, {triangles.max()}]")
+        raise InputError(f"triangle indices must lie in [0, {len(vertices)}); "
+                         f"got [{triangles.min()}, {triangles.max()}]")
     return vertices, triangles.astype(np.int64, copy=False)
 
 

@@ -302,7 +302,8 @@ def coincident_first(vertices: np.ndarray) -> np.ndarray:
     numbers).
 
     For callers that need which rows coincide and not :func:`merge_coincident`'s sorted positions: one pass through
-    a hash table of the rows' bit patterns (a fifth of the sort's time on a dense scan). float32 rows (an STL's corners) are hashed as they are, 12 bytes a row.
+    a hash table of the rows' bit patterns (a fifth of the sort's time on a dense scan). float32 rows (an STL's
+    corners) are hashed as they are, 12 bytes a row.
 
     Returns
     -------

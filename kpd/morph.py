@@ -481,7 +481,8 @@ def write_glb_to(fh, morph: MorphRig, *, name: str = "kpd_rig", up: str = "+z",
 
     ``basis``: the rig's (V, K) basis as the primitives' own vertex attributes ``_KPD_BASIS_<j>`` (VEC4 float32,
     columns ``4j`` to ``4j + 3``, zeros past K; an application-specific attribute, which glTF viewers ignore), for
-    a page that adds ``sum_i B_i o_i`` itself: K numbers a vertex where the K x 3 keypoint targets are 9 K. Give ``targets=[]`` with it for a file without morph targets.
+    a page that adds ``sum_i B_i o_i`` itself: K numbers a vertex where the K x 3 keypoint targets are 9 K. Give
+    ``targets=[]`` with it for a file without morph targets.
 
     ``stand_in(vertices, triangles)``: for each primitive, (Q, 3) triangles over its own vertices drawn instead of
     its triangles while a keypoint is dragged (a coarse stand-in of a large mesh), or None; kept in the primitive's

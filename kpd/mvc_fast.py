@@ -34,7 +34,7 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-import numba  # before numba.core's modules, which cannot be imported first
+import numba  # noqa: F401  (imported before numba.core's modules, which cannot be imported first)
 import numpy as np
 from numba.core import types
 from numba.extending import intrinsic

@@ -335,7 +335,8 @@ class KeypointPrior:
         try:
             ridge = data["ridge"]
             prior = cls(n_components=int(data["n_components"]), ridge=None if ridge is None else float(ridge),
-                        part_variance=float(data.get("part_variance", 2.0)), mirror_axis=int(data.get("mirror_axis", 0)))
+                        part_variance=float(data.get("part_variance", 2.0)),
+                        mirror_axis=int(data.get("mirror_axis", 0)))
             permutation = data.get("mirror_permutation")
             permutation = None if permutation is None else np.asarray(permutation)
             noise = float(data["noise_variance"])

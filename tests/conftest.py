@@ -61,6 +61,14 @@ def chair(data_dir):
     return read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply")
 
 
+@pytest.fixture(scope="module")
+def banana(data_dir):
+    """The YCB banana scan: a textured OBJ."""
+    from kpd.io import read_mesh
+
+    return read_mesh(data_dir / "scans/ycb/banana/textured_simple_reoriented.obj")
+
+
 # --- annotated datasets (tests/test_annotations_*.py) ---
 
 

@@ -3,6 +3,7 @@ test_demo_format)."""
 
 from __future__ import annotations
 
+import helpers
 import numpy as np
 
 from kpd.geometry import Normalizer, farthest_point_sampling, sample_surface
@@ -11,12 +12,8 @@ from kpd.rig import Rig
 
 
 def box_mesh(size=(2.0, 1.0, 0.5), offset=(10.0, -3.0, 5.0)):
-    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
-    t = np.array(
-        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
-    )
-    return Mesh(vertices=v * size + offset, triangles=t)
+    """The rig tests' box: sides of three lengths, away from the origin."""
+    return helpers.box_mesh(size, offset)
 
 
 def corner_rig(mesh=None):

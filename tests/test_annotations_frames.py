@@ -7,6 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+from helpers import box
 
 from kpd import annotations as ann
 from kpd.errors import InputError
@@ -58,16 +59,9 @@ def test_datasets_agree_on_the_reference_frame(data_dir, kpn_root, part_root):
         assert back[0] < -0.2 and abs(back[2]) < 0.1, back
 
 
-def _box_mesh() -> Mesh:
-    v = np.array([[x, y, z] for x in (-0.2, 0.3) for y in (-0.45, 0.35) for z in (-0.1, 0.2)], dtype=float)
-    t = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6], [0, 2, 6],
-         [0, 6, 4], [1, 5, 7], [1, 7, 3]]
-    return Mesh(v, np.array(t))
-
-
 @pytest.mark.parametrize("candidate", ["keypointnet-to-reference", "identity"])
 def test_fit_annotation_frame_recovers_a_known_map(candidate):
-    mesh = _box_mesh()
+    mesh = Mesh(*box((-0.2, -0.45, -0.1), (0.3, 0.35, 0.2)))
     surface = sample_surface(mesh.vertices, mesh.triangles, 20000, seed=1).points
     rng = np.random.default_rng(3)
     corners = mesh.vertices[[0, 3, 5, 6, 7]]

@@ -12,7 +12,7 @@ import numpy as np
 from kpd.io import read_mesh
 from kpd.runtime import Model
 
-from test_morph import REPO, TOLERANCE, corresponding, kpd, needs
+from helpers import REPO, TOLERANCE, corresponding, kpd, needs
 
 BLENDER_PYTHON = REPO / ".venv-blender" / "bin" / "python"
 

@@ -20,7 +20,7 @@ from kpd.io import read_mesh
 from kpd.morph import MorphRig
 from kpd.runtime import Model
 
-from test_morph import REPO, TOLERANCE, corresponding, needs, validate
+from helpers import REPO, TOLERANCE, corresponding, needs, validate
 
 CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
 # what works here as root without a display; SwiftShader is Chromium's software WebGL

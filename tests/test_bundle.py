@@ -1,7 +1,7 @@
 """Bundles: writing, reading, and refusing tampered, incomplete or foreign ones with a clear message.
 
-``make_toy_bundle`` builds a small bundle without torch (a hand-made PointNet-like ONNX graph pair that follows
-kpd.onnx_contract); test_runtime and test_commands import it. test_export covers bundles exported from torch.
+``helpers.make_toy_bundle`` builds a small bundle without torch (a hand-made PointNet-like ONNX graph pair that
+follows kpd.onnx_contract). test_export covers bundles exported from torch.
 """
 
 from __future__ import annotations
@@ -15,103 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import HIDDEN, make_toy_bundle
 
-from kpd import onnx_contract as contract
-from kpd.bundle import build_manifest, manifest_checksum, read_bundle, resolve_bundle, shipped_bundles, write_bundle
-from kpd.cage import icosphere
+from kpd.bundle import manifest_checksum, read_bundle, resolve_bundle, shipped_bundles, write_bundle
 from kpd.errors import BundleError, InputError
-from kpd.prior import KeypointPrior
-
-HIDDEN = 16
-
-
-def toy_weights(k: int = 4, c: int = 42, seed: int = 0) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    return {
-        "w1": rng.normal(0, 1.0, (3, HIDDEN)).astype(np.float32),
-        "b1": rng.normal(0, 0.1, HIDDEN).astype(np.float32),
-        "w2": rng.normal(0, 0.3, (HIDDEN, 3 * k)).astype(np.float32),
-        "b2": rng.normal(0, 0.1, 3 * k).astype(np.float32),
-        "w3": rng.normal(0, 0.3, (HIDDEN, k * c)).astype(np.float32),
-        "b3": rng.normal(0, 0.1, k * c).astype(np.float32),
-    }
-
-
-def toy_reference(points: np.ndarray, w: dict, k: int, c: int) -> tuple[np.ndarray, np.ndarray]:
-    """numpy twin of the toy graphs: points (B, N, 3) -> keypoints (B, K, 3), influence (B, K, C)."""
-    h = np.maximum(points.astype(np.float64) @ w["w1"] + w["b1"], 0).max(axis=1)  # (B, H)
-    keypoints = np.clip((h @ w["w2"] + w["b2"]).reshape(-1, 3, k).transpose(0, 2, 1), -1, 1)
-    influence = (h @ w["w3"] + w["b3"]).reshape(-1, k, c)
-    return keypoints, influence
-
-
-def _toy_graph(spec: contract.GraphSpec, w: dict, k: int, c: int, meta: dict, edit=None) -> bytes:
-    import onnx
-    from onnx import TensorProto, helper, numpy_helper
-
-    init = [numpy_helper.from_array(w["w1"], "w1"), numpy_helper.from_array(w["b1"], "b1"),
-            numpy_helper.from_array(np.array([1], np.int64), "axis1")]
-    nodes = [helper.make_node("MatMul", ["points", "w1"], ["h0"]), helper.make_node("Add", ["h0", "b1"], ["h1"]),
-             helper.make_node("Relu", ["h1"], ["h2"]),
-             helper.make_node("ReduceMax", ["h2", "axis1"], ["h"], keepdims=0)]
-    if spec is contract.KEYPOINTS_GRAPH:
-        init += [numpy_helper.from_array(w["w2"], "w2"), numpy_helper.from_array(w["b2"], "b2"),
-                 numpy_helper.from_array(np.array([-1, 3, k], np.int64), "shape"),
-                 numpy_helper.from_array(np.array(-1, np.float32), "lo"),
-                 numpy_helper.from_array(np.array(1, np.float32), "hi")]
-        nodes += [helper.make_node("MatMul", ["h", "w2"], ["f0"]), helper.make_node("Add", ["f0", "b2"], ["f1"]),
-                  helper.make_node("Reshape", ["f1", "shape"], ["f2"]),
-                  helper.make_node("Transpose", ["f2"], ["f3"], perm=[0, 2, 1]),
-                  helper.make_node("Clip", ["f3", "lo", "hi"], [spec.output])]
-        out_shape = [contract.BATCH_AXIS, k, 3]
-    else:
-        init += [numpy_helper.from_array(w["w3"], "w3"), numpy_helper.from_array(w["b3"], "b3"),
-                 numpy_helper.from_array(np.array([-1, k, c], np.int64), "shape")]
-        nodes += [helper.make_node("MatMul", ["h", "w3"], ["f0"]), helper.make_node("Add", ["f0", "b3"], ["f1"]),
-                  helper.make_node("Reshape", ["f1", "shape"], [spec.output])]
-        out_shape = [contract.BATCH_AXIS, k, c]
-    graph = helper.make_graph(
-        nodes, spec.key,
-        [helper.make_tensor_value_info(contract.INPUT_NAME, TensorProto.FLOAT,
-                                       [contract.BATCH_AXIS, contract.POINTS_AXIS, 3])],
-        [helper.make_tensor_value_info(spec.output, TensorProto.FLOAT, out_shape)], init)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", contract.OPSET)])
-    model.ir_version = 10
-    for key, value in {**meta, contract.META_GRAPH: spec.key}.items():
-        entry = model.metadata_props.add()
-        entry.key, entry.value = key, value
-    if edit is not None:  # a hostile variant (the tests of self-contained bundles)
-        edit(spec, model)
-        return model.SerializeToString()
-    onnx.checker.check_model(model)
-    return model.SerializeToString()
-
-
-def make_toy_bundle(path, *, k: int = 4, c: int = 42, seed: int = 0, prior: bool = True, template: bool = True,
-                    graph_k: int | None = None, meta_version: str | None = None, up: str | None = "+z",
-                    edit=None) -> Path:
-    """Write a small valid bundle (or, with ``graph_k`` / ``meta_version``, one whose graphs disagree with it; with
-    ``edit(spec, model)``, one whose graphs ``edit`` changed in place, the manifest sealed over them)."""
-    w = toy_weights(graph_k or k, c, seed)
-    meta = {contract.META_FORMAT: contract.FORMAT_NAME,
-            contract.META_FORMAT_VERSION: meta_version or str(contract.FORMAT_VERSION),
-            contract.META_KEYPOINTS: str(graph_k or k), contract.META_CAGE_VERTICES: str(c)}
-    graphs = [_toy_graph(spec, w, graph_k or k, c, meta, edit) for spec in contract.GRAPHS]
-    rng = np.random.default_rng(seed + 1)
-    fitted = None
-    if prior:
-        base = rng.uniform(-0.8, 0.8, (k, 3))
-        fitted = KeypointPrior(n_components=3).fit(base + 0.05 * rng.standard_normal((30, k, 3)))
-    cage = icosphere(1, 1.4) if c == 42 else icosphere(2, 1.4)
-    _, files = build_manifest(
-        category="toy", keypoints_onnx=graphs[0], influence_onnx=graphs[1], cage=cage,
-        shared_influence=rng.uniform(0, 1, (k, c)), m=5, point_count=256,
-        cage_fit={"distance": 0.4, "iterations": 100, "step": 0.01}, prior=fitted,
-        template_points=rng.uniform(-1, 1, (100, 3)) if template else None, template_source="random",
-        up=up, training={"data": "none", "command": "make_toy_bundle", "seed": seed, "iterations": 0, "metrics": {}},
-    )
-    return write_bundle(path, files)
-
 
 @pytest.fixture
 def toy(tmp_path) -> Path:
@@ -351,7 +258,7 @@ def test_a_highly_compressed_member_is_refused_by_its_ratio(tmp_path):
 
 
 def test_the_bomb_through_the_command_is_one_line_and_little_memory(tmp_path, bomb):
-    from test_trust_files import peak_of
+    from helpers import peak_of
 
     toy = make_toy_bundle(tmp_path / "toy.kpd")
     members = {p.name: p.read_bytes() for p in toy.iterdir()}

@@ -1,7 +1,7 @@
 """The deployment commands (keypoints, deform, align, sample, demo): results, and exit 2 with one line on bad input.
 
-They run in-process through ``kpd.cli.main`` with a torch-free toy bundle (test_bundle.make_toy_bundle) on real
-ModelNet meshes; the shipped chair model is used where it exists.
+They run in-process through ``kpd.cli.main`` with a torch-free toy bundle (helpers.make_toy_bundle) on real ModelNet
+meshes; the shipped chair model is used where it exists.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_bundle import make_toy_bundle
+from helpers import kpd, make_toy_bundle
 
 from kpd.cli import build_parser, main
 from kpd.io import Mesh, read_mesh, write_mesh
@@ -37,10 +37,6 @@ def chair_file(data_dir) -> Path:
 @pytest.fixture(scope="module")
 def other_chair(data_dir) -> Path:
     return data_dir / "modelnet10" / "chair" / "test" / "chair_0891.ply"
-
-
-def kpd(*argv) -> int:
-    return main([str(a) for a in argv])
 
 
 def test_keypoints_printed_and_written(toy, chair_file, tmp_path, capsys):

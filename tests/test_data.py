@@ -6,21 +6,14 @@ import json
 
 import numpy as np
 import pytest
+from helpers import box_mesh
 
 from kpd.data import (SampleSettings, ShapeFile, discover, file_digest, ingest, load_samples, prepare,
                       read_split_file)
 from kpd.errors import DataError
-from kpd.io import Mesh, write_mesh
+from kpd.io import write_mesh
 
 TINY = SampleSettings(points=64, samples=2, weights=True)
-
-
-def box_mesh(size=(1.0, 2.0, 0.5), offset=(0.0, 0.0, 0.0)) -> Mesh:
-    sx, sy, sz = size
-    v = np.array([[x, y, z] for x in (0, sx) for y in (0, sy) for z in (0, sz)], dtype=np.float64) + offset
-    t = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], dtype=np.int64)
-    return Mesh(vertices=v, triangles=t)
 
 
 def write_boxes(folder, names, suffix=".ply"):

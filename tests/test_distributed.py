@@ -224,7 +224,8 @@ def test_incomplete_environment_ends_the_command_with_one_line(shapes, tmp_path)
     assert done.returncode == 2
     assert done.stderr.strip().splitlines() == [
         "kpd train: error: incomplete torchrun environment: RANK, WORLD_SIZE set but LOCAL_RANK, LOCAL_WORLD_SIZE, "
-        "MASTER_ADDR, MASTER_PORT missing; start kpd train with torchrun (docs/training.md: Training on more machines) or "
+        "MASTER_ADDR, MASTER_PORT missing; start kpd train with torchrun "
+        "(docs/training.md: Training on more machines) or "
         "unset them"]
     assert not out.exists()
 

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_bundle import make_toy_bundle
+from helpers import make_toy_bundle
 
 from kpd.cli import main
 from kpd.errors import InputError

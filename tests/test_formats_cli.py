@@ -9,14 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_io_formats import make_obj
+from helpers import kpd, make_obj, tall_box, two_sided_box
 
-from kpd.cli import main
-from kpd.io import Mesh, read_mesh, write_mesh
-
-
-def kpd(*argv) -> int:
-    return main([str(a) for a in argv])
+from kpd.io import read_mesh, write_mesh
 
 
 def one_error_line(capsys, command: str) -> str:
@@ -33,16 +28,6 @@ def _silhouette(image: np.ndarray) -> tuple[int, int]:
     drawn = (np.abs(image.astype(int) - image[0, 0].astype(int)).sum(axis=2) > 30)
     rows, cols = np.flatnonzero(drawn.any(axis=1)), np.flatnonzero(drawn.any(axis=0))
     return int(rows[-1] - rows[0]), int(cols[-1] - cols[0])
-
-
-def tall_box(height_axis: int) -> Mesh:
-    """A box three times taller than wide along ``height_axis``."""
-    import open3d as o3d
-
-    box = o3d.geometry.TriangleMesh.create_box(0.3, 0.3, 0.3).subdivide_midpoint(3)  # enough points to scan
-    vertices = np.asarray(box.vertices) - 0.15
-    vertices[:, height_axis] *= 3.0
-    return Mesh(vertices, np.asarray(box.triangles))
 
 
 def test_pictures_show_the_materials_colours_and_maps(tmp_path):
@@ -75,22 +60,6 @@ def test_shapenet_pictures_show_their_materials(data_dir, tmp_path):
     assert ((g > 120) & (g > r + 50) & (g > b + 80)).sum() > 2000  # Kd 0.498 1 0, shaded
     r, g, b = np.moveaxis(read_png(tmp_path / "bench.png").astype(int), 2, 0)
     assert ((r > b + 50) & (g > b + 20) & (r > 120)).sum() > 1500  # the light wood map (a flat bench)
-
-
-def two_sided_box(green_out: bool, green_first: bool) -> Mesh:
-    """``tall_box(2)`` with each face stored twice, once each way round (as ShapeNet stores a cup's label over its
-    inside): green (material 1) on the side facing out when ``green_out`` (else in), white (material 0) on the other;
-    the green copies first in the file when ``green_first``."""
-    box = tall_box(2)
-    t = len(box.triangles)
-    outward = np.cross(*(box.vertices[box.triangles[:, k]] - box.vertices[box.triangles[:, 0]] for k in (1, 2)))
-    out = np.where(((outward * box.vertices[box.triangles].mean(axis=1)).sum(axis=1) > 0)[:, None],
-                   box.triangles, box.triangles[:, ::-1])  # every triangle wound to face out
-    green, white = (out, out[:, ::-1]) if green_out else (out[:, ::-1], out)
-    textures = [np.full((1, 1, 3), 235, np.uint8), np.array([[[40, 200, 40]]], np.uint8)]  # white, green
-    return Mesh(box.vertices, np.vstack([green, white] if green_first else [white, green]),
-                triangle_uvs=np.zeros((6 * t, 2)), textures=textures,
-                triangle_material_ids=np.repeat([1, 0] if green_first else [0, 1], t))
 
 
 def test_a_face_with_two_materials_shows_the_side_that_faces_the_camera(tmp_path):

@@ -13,9 +13,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from test_bundle import make_toy_bundle
+from helpers import kpd, make_toy_bundle
 
-from kpd.cli import build_parser, main
+from kpd.cli import build_parser
 from kpd.commands._shared import category_azimuth, warn_moves
 from kpd.commands.view import page_azimuth
 from kpd.frame import FrameCheck, ambiguity_advice
@@ -27,10 +27,6 @@ from kpd.viewer.settings import ViewSettings, front_axis, up_axis
 FRAME_COMMANDS = ("keypoints", "deform", "align", "sample", "render", "rig", "view", "demo")
 MOVE_COMMANDS = ("deform", "render")
 AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
-
-
-def kpd(*argv) -> int:
-    return main([str(a) for a in argv])
 
 
 def _options() -> dict[str, set[str]]:
@@ -214,7 +210,8 @@ def test_rigs_stand_up_in_the_shapes_own_frame(data_dir, tmp_path):
 
 
 def test_rig_with_scan_takes_the_recovered_up_axis(data_dir, tmp_path):
-    chair = data_dir / "keypointnet" / "models" / "03001627" / "88382b877be91b2a572f8e1c1caad99e" / "model_normalized.obj"
+    chair = (data_dir / "keypointnet" / "models" / "03001627" / "88382b877be91b2a572f8e1c1caad99e"
+             / "model_normalized.obj")
     assert kpd("rig", "chair", chair, "--scan", "--targets", "keypoint", "--out", tmp_path / "y.glb") == 0
     assert _gltf_root_rotation(tmp_path / "y.glb") is None  # ShapeNet: y up, found by --scan
 

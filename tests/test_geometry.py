@@ -3,6 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from helpers import box
 
 from kpd.errors import InputError, NotFittedError
 from kpd.geometry import (
@@ -21,15 +22,6 @@ finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
 
 def clouds(min_size=1, max_size=40):
     return st.integers(min_size, max_size).flatmap(lambda n: arrays(np.float64, (n, 3), elements=finite))
-
-
-def unit_cube():
-    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
-    t = np.array(
-        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
-    )
-    return v, t
 
 
 # --- as_points -------------------------------------------------------------------------------------------------
@@ -96,7 +88,7 @@ def test_normalizer_errors():
 # --- surface sampling ------------------------------------------------------------------------------------------
 
 def test_sample_surface_on_cube_is_on_the_surface_and_uniform():
-    v, t = unit_cube()
+    v, t = box()
     s = sample_surface(v, t, 6000, seed=1)
     assert s.points.shape == (6000, 3) and s.normals.shape == (6000, 3) and s.faces.shape == (6000,)
     on_face = np.isclose(s.points, 0) | np.isclose(s.points, 1)
@@ -109,7 +101,7 @@ def test_sample_surface_on_cube_is_on_the_surface_and_uniform():
 
 
 def test_sample_surface_is_seeded():
-    v, t = unit_cube()
+    v, t = box()
     a, b = sample_surface(v, t, 100, seed=3), sample_surface(v, t, 100, seed=3)
     np.testing.assert_array_equal(a.points, b.points)
     assert not np.array_equal(a.points, sample_surface(v, t, 100, seed=4).points)
@@ -180,7 +172,7 @@ def test_picks_by_area_are_numpys_choice_to_the_bit(count, n, power, zeros, seed
 
 
 def test_sample_surface_errors():
-    v, t = unit_cube()
+    v, t = box()
     with pytest.raises(InputError, match="overflow"):
         sample_surface(v * 1e200, t, 10)
     with pytest.raises(InputError, match="indices"):

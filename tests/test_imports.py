@@ -13,8 +13,9 @@ from kpd.commands import COMMANDS
 TORCH_FREE = [
     "kpd", "kpd.errors", "kpd.geometry", "kpd.io", "kpd.cage", "kpd.mvc", "kpd.rig", "kpd.cli", "kpd.prior",
     "kpd.bundle", "kpd.runtime", "kpd.onnx_contract", "kpd.scan", "kpd.metrics", "kpd.annotations", "kpd.data",
-    "kpd.collection", "kpd.frame", "kpd.morph", "kpd.mesh", "kpd.grouping", "kpd.triangles", "kpd.procedural", "kpd.benchmark",
-    "kpd.augment", "kpd.amplify", "kpd.viewer", "kpd.viewer.session", "kpd.viewer.render", "kpd.viewer.app", "kpd.viewer.figures", "kpd.viewer.browser",
+    "kpd.collection", "kpd.frame", "kpd.morph", "kpd.mesh", "kpd.grouping", "kpd.triangles", "kpd.procedural",
+    "kpd.benchmark", "kpd.augment", "kpd.amplify", "kpd.viewer", "kpd.viewer.session", "kpd.viewer.render",
+    "kpd.viewer.app", "kpd.viewer.figures", "kpd.viewer.browser",
     *(module for name, module in COMMANDS.items() if name not in ("train", "export")),
 ]
 
@@ -107,10 +108,13 @@ def test_every_listed_command_exists(name):
 def _minimal_args(name: str) -> list[str]:
     """Arguments that satisfy each command's parser (nothing runs)."""
     return {
-        "demo": [], "train": [".", "--out", "runs/x"], "export": ["run", "--out", "x.kpd"], "keypoints": ["chair", "s.ply"],
+        "demo": [], "train": [".", "--out", "runs/x"], "export": ["run", "--out", "x.kpd"],
+        "keypoints": ["chair", "s.ply"],
         "deform": ["chair", "s.ply", "--out", "o.ply"], "align": ["chair", "a.ply", "b.ply", "--out", "o.ply"],
-        "sample": ["chair", "s.ply", "--out", "d"], "scan": ["s.ply", "--out", "a.ply", "--report", "r.json"], "view": ["chair", "s.ply"],
-        "render": ["chair", "s.ply", "--out", "v.png"], "eval": ["alignment", ".", "--out", "a.json"], "bench": ["chair"],
+        "sample": ["chair", "s.ply", "--out", "d"], "scan": ["s.ply", "--out", "a.ply", "--report", "r.json"],
+        "view": ["chair", "s.ply"],
+        "render": ["chair", "s.ply", "--out", "v.png"], "eval": ["alignment", ".", "--out", "a.json"],
+        "bench": ["chair"],
         "rig": ["chair", "s.ply", "--out", "s.glb"], "amplify": ["chair", ".", "--out", "d"],
     }[name]
 

@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from helpers import TRIANGLE, corners, finite, sphere_mesh, texels, write_text
 
 import kpd.io.ply
 from kpd.errors import InputError, KpdError
@@ -28,61 +29,7 @@ BANANA = "scans/ycb/banana/textured_simple_reoriented.obj"
 DRILL = "scans/ycb/power_drill/textured_simple_reoriented.obj"
 KEYPOINTNET_PCD = "keypointnet/pcds/03001627/88382b877be91b2a572f8e1c1caad99e.pcd"
 
-finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False, width=64)
-
-
 # --- helpers ---------------------------------------------------------------------------------------------------------
-
-
-def sphere_mesh(seed=0, *, normals=True, colors=True, uvs=False, textures=0, resolution=4):
-    """A closed mesh with irregular coordinates; UVs sit on texel centres so lookups survive float32 rounding."""
-    rng = np.random.default_rng(seed)
-    base = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=resolution)
-    v = np.asarray(base.vertices) * [1.7, 0.9, 1.3] + rng.normal(scale=0.01, size=(len(base.vertices), 3)) + 3.21
-    t = np.asarray(base.triangles).astype(np.int64)
-    mesh_textures, ids, tri_uvs = [], None, None
-    if uvs or textures:
-        h, w = 8, 16
-        texel = rng.integers(0, [w, h], size=(3 * len(t), 2))
-        tri_uvs = (texel + 0.5) / [w, h]
-    if textures:
-        mesh_textures = [rng.integers(0, 256, size=(8, 16, 3), dtype=np.uint8) for _ in range(textures)]
-        ids = np.sort(rng.integers(0, textures, size=len(t)))  # sorted: every writer keeps this triangle order
-        ids[:textures] = np.arange(textures)
-        ids = np.sort(ids)
-    return Mesh(
-        vertices=v,
-        triangles=t,
-        vertex_normals=v / np.linalg.norm(v, axis=1, keepdims=True) if normals else None,
-        vertex_colors=rng.random((len(v), 3)) if colors else None,
-        triangle_uvs=tri_uvs,
-        textures=mesh_textures,
-        triangle_material_ids=ids,
-    )
-
-
-def corners(mesh, name):
-    """Per-triangle-corner values (T, 3, d): independent of vertex order and of vertices split at UV seams."""
-    if name == "uvs":
-        return None if mesh.triangle_uvs is None else mesh.triangle_uvs.reshape(-1, 3, 2)
-    values = {"xyz": mesh.vertices, "normals": mesh.vertex_normals, "colors": mesh.vertex_colors}[name]
-    return None if values is None else values[mesh.triangles]
-
-
-def texels(mesh):
-    """The texel colour at every triangle corner: (3T, C) uint8."""
-    ids = np.zeros(len(mesh.triangles), int) if mesh.triangle_material_ids is None else mesh.triangle_material_ids
-    out = []
-    for corner, (u, v) in enumerate(mesh.triangle_uvs):
-        tex = mesh.textures[ids[corner // 3]]
-        h, w = tex.shape[:2]
-        out.append(tex[int((1 - v) * h), int(u * w)])
-    return np.array(out)
-
-
-def write_text(path, text):
-    path.write_text(text)
-    return path
 
 
 def ply_binary(vertices, faces):
@@ -102,14 +49,6 @@ def ply_ascii(vertices, faces):
     return head + "".join(" ".join(map(str, v)) + "\n" for v in vertices) + "".join(
         f"3 {a} {b} {c}\n" for a, b, c in faces
     )
-
-
-TRIANGLE = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
-
-
-@pytest.fixture(scope="module")
-def banana(data_dir):
-    return read_mesh(data_dir / BANANA)
 
 
 # --- real data -------------------------------------------------------------------------------------------------------

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 import pytest
-from test_io import sphere_mesh, write_text
+from helpers import sphere_mesh, write_text
 
 from kpd.errors import InputError, KpdError
 from kpd.io import atomic_output, write_mesh

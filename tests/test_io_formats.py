@@ -5,7 +5,6 @@ input, and the positions are the deformation's. Files made here, and the ShapeNe
 
 from __future__ import annotations
 
-import io
 import json
 import logging
 import os
@@ -16,76 +15,15 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from PIL import Image
+from helpers import height_field, make_obj
 
 from kpd.io import Mesh, read_mesh, write_mesh
 from kpd.io.gltf import read_gltf_json
-from kpd.io.mtl import MAP_KEYS
 
 SHAPENET = "shapenetcore_obj"
 
 
 # --- files made here ---------------------------------------------------------------------------------------------
-
-
-def _image_bytes(color, size=(16, 8), fmt="JPEG") -> bytes:
-    image = np.zeros((size[1], size[0], 3), np.uint8)
-    image[:] = color
-    image[: size[1] // 2, :, 0] = 255  # top half differs: orientation is visible
-    out = io.BytesIO()
-    Image.fromarray(image).save(out, format=fmt)
-    return out.getvalue()
-
-
-def _grid(n=6):
-    """A bumpy (n x n) height field: vertices (n*n, 3), triangles (2(n-1)^2, 3)."""
-    x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
-    z = 0.1 * np.sin(3 * x) * np.cos(2 * y)
-    vertices = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
-    quads = [(i * n + j, i * n + j + 1, (i + 1) * n + j + 1, (i + 1) * n + j) for i in range(n - 1)
-             for j in range(n - 1)]
-    triangles = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
-    return vertices, triangles
-
-
-def make_obj(folder: Path) -> Path:
-    """An OBJ as exporters write them: two materials with maps in a folder of their own (a JPEG and a PNG), one with a
-    colour only, faces without texture coordinates beside faces with them, groups, smoothing groups, a polyline,
-    comments, CRLF-free text with tabs."""
-    models = folder / "models"
-    maps = models / "images"  # inside the OBJ's folder tree: kpd reads nothing outside it (kpd.io.references)
-    maps.mkdir(parents=True)
-    (maps / "wood.jpg").write_bytes(_image_bytes((120, 80, 40)))
-    (maps / "label.png").write_bytes(_image_bytes((20, 60, 200), fmt="PNG"))
-    (models / "thing.mtl").write_text(
-        "# made by a test\nnewmtl wood\nKd 1 1 1\nKs 0.2 0.2 0.2\nmap_Kd images/wood.jpg\n\n"
-        "newmtl red\nKd 0.9 0.1 0.1\nillum 2\n\nnewmtl label\nKd 1 1 1\nmap_Kd -s 1 1 1 images/label.png\n"
-        "bump images/wood.jpg\n")
-    vertices, triangles = _grid()
-    rng = np.random.default_rng(0)
-    lines = ["# exported by a test", "mtllib thing.mtl", "o thing"]
-    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
-    lines += [f"vt {u:.6f} {v:.6f}" for u, v in rng.random((len(vertices), 2))]
-    face_normals = np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]],
-                            vertices[triangles[:, 2]] - vertices[triangles[:, 0]])
-    face_normals /= np.linalg.norm(face_normals, axis=1, keepdims=True)
-    lines += [f"vn {a:.6f} {b:.6f} {c:.6f}" for a, b, c in face_normals]
-    T = len(triangles)
-    for j, (a, b, c) in enumerate(triangles + 1):
-        if j == 0:
-            lines += ["g seat", "usemtl wood", "s 1"]
-        if j == T // 3:
-            lines += ["g legs", "usemtl red", "s off"]
-        if j == 2 * T // 3:
-            lines += ["g label", "usemtl label"]
-        n = j + 1
-        if T // 3 <= j < 2 * T // 3 or j % 5 == 0:  # no texture coordinates: the red part, and some others
-            lines.append(f"f\t{a}//{n} {b}//{n} {c}//{n}")
-        else:
-            lines.append(f"f {a}/{a}/{n} {b}/{b}/{n} {c}/{c}/{n}")
-    lines.append("l 1 2 3")
-    (models / "thing.obj").write_text("\n".join(lines) + "\n")
-    return models / "thing.obj"
 
 
 def affine(vertices: np.ndarray) -> np.ndarray:
@@ -216,7 +154,7 @@ def test_obj_normals_turn_with_the_surface(tmp_path):
 
 
 def test_obj_vertex_colours_round_trip_in_order(tmp_path):
-    vertices, triangles = _grid(4)
+    vertices, triangles = height_field(4)
     colors = np.random.default_rng(1).random((len(vertices), 3))
     text = "".join(f"v {x!r} {y!r} {z!r} {r:.6f} {g:.6f} {b:.6f}\n" for (x, y, z), (r, g, b) in zip(vertices.tolist(),
                                                                                                     colors.tolist()))
@@ -429,7 +367,7 @@ def test_gltf_is_y_up():
 
 
 def test_ply_colours_and_order_survive_a_deformation(tmp_path):
-    vertices, triangles = _grid(5)
+    vertices, triangles = height_field(5)
     colors = np.random.default_rng(2).integers(0, 256, (len(vertices), 3)) / 255.0
     mesh = Mesh(vertices, triangles, vertex_colors=colors)
     write_mesh(tmp_path / "c.ply", mesh)

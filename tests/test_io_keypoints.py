@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-from test_io import finite, write_text
+from helpers import finite, write_text
 
 from kpd.errors import InputError
 from kpd.io import read_keypoints, write_keypoints

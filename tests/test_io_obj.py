@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import random
 import re
-from decimal import Decimal, localcontext
+from decimal import localcontext
 from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from helpers import random_words
 
 from kpd.errors import InputError
 from kpd.io import numbers, obj, read_mesh
@@ -68,29 +69,6 @@ def test_lines_of_real_files_equal_a_line_by_line_reading(data_dir, monkeypatch,
         data = f.read_bytes()
         for got, want in zip(obj._scan(data), lines_reference(data)):
             np.testing.assert_array_equal(got, want)
-
-
-def random_words(rng: random.Random, n: int) -> list[str]:
-    """Numbers as files write them: every common format, signs, leading zeros, long mantissas, exponents near the
-    ends of float64's range, subnormals, and decimals half-way between two neighbouring float64 values."""
-    formats = ["%.9g", "%.17g", "%.6f", "%e", "%.3f", "%g", "%.20f", "%+.4e", "%.0f", "%.12E", "%.15g", "%.16g", "%r"]
-    words = []
-    for _ in range(n):
-        r = rng.random()
-        if r < 0.05:
-            words.append(rng.choice(["0", "-0", "0.0", "-0.000", "+0", "00012.5000", ".5", "5.", "-.25e1", "1e22",
-                                     "1e23", "9007199254740993", "9007199254740992", "123456789012345678901234",
-                                     "1e-22", "1e-23", "4.9e-324", "2.2250738585072014e-308", "1.7976931348623157e308",
-                                     "1e308", "1e-310", "0.1", "0.30000000000000004", "1.0000000000000002",
-                                     "0.000000000000000000000000001", "1E5", "1e+05", "1e-05", "+3.25"]))
-            continue
-        if r < 0.15:  # the decimal half-way between two float64 values: only exact rounding gets it right
-            x = rng.uniform(-1e6, 1e6) * 10.0 ** rng.randint(-5, 5)
-            words.append(str((Decimal(x) + Decimal(float(np.nextafter(x, np.inf)))) / 2))
-            continue
-        x = rng.uniform(-10, 10) * 10.0 ** rng.randint(-40, 40)
-        words.append((rng.choice(formats) % x) if rng.random() < 0.97 else repr(x))
-    return words
 
 
 @pytest.mark.parametrize("halves", [False, True])

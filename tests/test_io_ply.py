@@ -36,7 +36,7 @@ def _write_ply(path, vertex_props, vertex_columns, face_props=(("list", "uchar",
                faces=None, face_columns=(), endian="<", extra=""):
     """A binary PLY with the given vertex properties [(type, name)] and columns, faces as [count, i, j, k] rows."""
     fmt = "binary_little_endian" if endian == "<" else "binary_big_endian"
-    head = [f"ply", f"format {fmt} 1.0", "comment written by a test", f"element vertex {len(vertex_columns[0])}"]
+    head = ["ply", f"format {fmt} 1.0", "comment written by a test", f"element vertex {len(vertex_columns[0])}"]
     head += [f"property {kind} {name}" for kind, name in vertex_props]
     vertex_type = np.dtype([(name, endian + _SIZES[kind]) for kind, name in vertex_props])
     records = np.empty(len(vertex_columns[0]), dtype=vertex_type)
@@ -219,7 +219,7 @@ def _open3d_cloud(path) -> dict:
 def _word(rng: random.Random, kind: str, low: float, high: float) -> str:
     """A number for a property of type ``kind`` within [low, high], as files write them: signs, leading zeros, long
     mantissas beyond the compiled fast path, exponents."""
-    from test_io_obj import random_words
+    from helpers import random_words
 
     if kind in _WHOLE_TYPES:
         limits = np.iinfo(ply._PLY_NUMPY[kind])

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-from test_io import TRIANGLE, banana, corners, sphere_mesh, texels  # noqa: F401  (banana: a fixture)
+from helpers import TRIANGLE, corners, sphere_mesh
 
 from kpd.errors import InputError
 from kpd.io import read_mesh, write_mesh

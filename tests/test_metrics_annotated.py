@@ -4,22 +4,18 @@ inclusivity) and the ``kpd eval pck|parts|das|coverage|chamfer`` commands."""
 from __future__ import annotations
 
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+from helpers import make_toy_bundle
 
 from kpd.cli import main
 from kpd.errors import InputError
 from kpd.metrics import (dual_alignment_score, fit_keypoint_regressor, keypoint_coverage, keypoint_inclusivity, pck,
                          part_association, part_correspondence, regression_pck)
-
-sys.path.insert(0, str(Path(__file__).parent))
-from test_bundle import make_toy_bundle  # noqa: E402
 
 seeds = st.integers(0, 2**31 - 1)
 

@@ -112,7 +112,8 @@ def test_roles_and_semantic_edits():
     assert roles["bottom"].tolist() == [0, 1, 2, 3]
     assert roles["above_bottom"].tolist() == [4, 5, 6]
     edits = semantic_edits(roles, "chair", 0.2)
-    assert sorted(edits["taller_back"]) == [7, 8] and all(o.tolist() == [0, 0, 0.2] for o in edits["taller_back"].values())
+    assert sorted(edits["taller_back"]) == [7, 8] and all(
+        o.tolist() == [0, 0, 0.2] for o in edits["taller_back"].values())
     assert all(o.tolist() == [0, 0, -0.2] for o in edits["longer_legs"].values())
     # wider seat: the side keypoints outward, the one on the mirror plane stays
     assert {i: o.tolist() for i, o in edits["wider_seat"].items()} == {4: [-0.2, 0, 0], 5: [0.2, 0, 0]}

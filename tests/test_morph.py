@@ -4,36 +4,16 @@ from __future__ import annotations
 
 import io
 import json
-import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
+from helpers import TOLERANCE, corresponding, kpd, validate
 
-from kpd.cli import main
 from kpd import morph
 from kpd.io import Mesh, read_mesh, write_mesh
 from kpd.morph import MorphRig, read_gltf, up_rotation, write_gltf
 from kpd.runtime import Model
-
-REPO = Path(__file__).resolve().parents[1]
-TOLERANCE = 1e-5  # of the box diagonal: float32 positions and displacements
-
-
-def kpd(*argv) -> int:
-    return main([str(a) for a in argv])
-
-
-def needs(path: Path, what: str) -> None:
-    """A consumer installed by the project's set-up (make web / make blender): missing fails under CI."""
-    if not path.exists():
-        message = f"{what} not installed at {path} (run make test, which installs it)"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(message)
-        pytest.skip(message)
-
 
 @pytest.fixture(scope="module")
 def chair_file(data_dir) -> Path:
@@ -51,32 +31,6 @@ def written(chair_file, tmp_path_factory):
     out = tmp_path_factory.mktemp("rig") / "chair.glb"
     assert kpd("rig", "chair", chair_file, "--out", out) == 0
     return out
-
-
-def corresponding(rest_positions: np.ndarray, mesh: Mesh, tolerance: float = 1e-6) -> np.ndarray:
-    """Index of the mesh vertex at each written position (coincident vertices deform alike), which must lie within
-    ``tolerance`` of the box diagonal of it."""
-    distance, index = cKDTree(mesh.vertices).query(rest_positions)
-    assert distance.max() < tolerance * np.linalg.norm(np.ptp(mesh.vertices, axis=0))
-    return index
-
-
-def validate(path: Path) -> dict:
-    """The Khronos glTF Validator's report of a file (resources beside a .gltf are read)."""
-    needs(REPO / "node_modules" / "gltf-validator", "the Khronos glTF Validator (npm gltf-validator)")
-    script = """
-    const validator = require(process.argv[1]);
-    const fs = require('fs'), path = require('path');
-    const file = process.argv[2];
-    validator.validateBytes(new Uint8Array(fs.readFileSync(file)), {uri: path.basename(file), maxIssues: 1000,
-        externalResourceFunction: (uri) => new Promise((resolve, reject) => {
-            try { resolve(new Uint8Array(fs.readFileSync(path.join(path.dirname(file), decodeURIComponent(uri))))); }
-            catch (error) { reject(error.toString()); } })})
-      .then((report) => console.log(JSON.stringify(report)), (error) => { console.error(error); process.exit(1); });
-    """
-    result = subprocess.run(["node", "-e", script, str(REPO / "node_modules" / "gltf-validator"), str(path)],
-                            capture_output=True, text=True, timeout=120, check=True)
-    return json.loads(result.stdout)
 
 
 def test_glb_names_counts_and_exact_edits(written, chair_file, model):

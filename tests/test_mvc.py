@@ -3,6 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from helpers import points_near_the_cage
 
 from kpd.cage import fit_cage, icosphere, points_outside
 from kpd.errors import InputError
@@ -117,24 +118,6 @@ def test_points_on_edges_interpolate_the_edge():
     np.testing.assert_allclose(w[np.arange(100), a], 1 - t, atol=1e-12)
     np.testing.assert_allclose(w[np.arange(100), b], t, atol=1e-12)
     np.testing.assert_allclose(np.abs(w).sum(axis=1), 1.0, atol=1e-12)
-
-
-def points_near_the_cage(v, f, rng, distance, n, *, exact=False):
-    """Points at ``distance`` from ``n`` random vertices, edges and faces of the cage: near a vertex, near an edge,
-    just outside and just inside a face, near a face's plane beyond the face; with ``exact``, also points exactly on
-    vertices, edges and faces."""
-    faces = rng.integers(0, len(f), n)
-    p0, p1, p2 = (v[f[faces, k]] for k in range(3))
-    normal = np.cross(p1 - p0, p2 - p0)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    direction = rng.normal(size=(n, 3))
-    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    t = rng.uniform(0, 1, (n, 1))
-    on_face = np.einsum("nk,nki->ni", rng.dirichlet([1, 1, 1], n), np.stack([p0, p1, p2], axis=1))
-    near = [p0 + distance * direction, t * p0 + (1 - t) * p1 + distance * direction, on_face + distance * normal,
-            on_face - distance * normal, 1.3 * p0 - 0.15 * p1 - 0.15 * p2 + distance * normal]
-    on = [p0[:5], (t * p0 + (1 - t) * p2)[:5], on_face[:5]] if exact else []
-    return np.concatenate(near + on)
 
 
 @pytest.mark.parametrize("distance", [1e-13, 1e-10, 1e-7, 1e-4])

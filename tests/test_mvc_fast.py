@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-from test_mvc import points_near_the_cage
+from helpers import points_near_the_cage
 
 from kpd.cage import icosphere
 from kpd.errors import InputError

@@ -1,23 +1,16 @@
 """kpd.viewer.rigdrawing: a rig's geometries in a view, its stand-in during gestures, its numbers in front."""
 
 import numpy as np
+from helpers import subdivided_box
 
-from kpd.io import Mesh
 from kpd.viewer.settings import Frame, ViewSettings
-
-
-def _box() -> Mesh:
-    import open3d as o3d
-
-    box = o3d.geometry.TriangleMesh.create_box(1.0, 2.0, 1.0).subdivide_midpoint(3)
-    return Mesh(np.asarray(box.vertices) - [0.5, 1.0, 0.5], np.asarray(box.triangles, dtype=np.int64))
 
 
 def test_numbers_behind_the_surface_come_in_front_of_it_along_their_lines_of_sight():
     from kpd.viewer.camera import camera_pose
     from kpd.viewer.rigdrawing import RigDrawing
 
-    mesh = _box()
+    mesh = subdivided_box((1.0, 2.0, 1.0), 3, [0.5, 1.0, 0.5])
     settings = ViewSettings(width=200, height=160)
     drawing = RigDrawing(None, mesh, 2, settings=settings, digits=False)  # nothing drawn: no view needed
     camera = camera_pose(mesh.vertices, settings)
@@ -39,7 +32,7 @@ def test_a_gesture_draws_the_stand_in_and_the_next_frame_the_whole_mesh():
     from kpd.viewer.rigdrawing import RigDrawing
     from kpd.viewer.standins import coarse_stand_in
 
-    mesh = _box()
+    mesh = subdivided_box((1.0, 2.0, 1.0), 3, [0.5, 1.0, 0.5])
     settings = ViewSettings(width=200, height=160)
     camera = camera_pose(mesh.vertices, settings)
     keypoints = mesh.vertices[[0, 10, 20]]

@@ -1,4 +1,4 @@
-"""kpd.runtime.Model on a torch-free toy bundle (test_bundle.make_toy_bundle) and real meshes."""
+"""kpd.runtime.Model on a torch-free toy bundle (helpers.make_toy_bundle) and real meshes."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 import pytest
-from test_bundle import make_toy_bundle, toy_reference, toy_weights
+from helpers import make_toy_bundle, toy_reference, toy_weights
 
 from kpd.errors import BundleError, InputError
 from kpd.io import Mesh, PointSet

@@ -136,7 +136,7 @@ def test_touching_pieces_are_those_with_any_point_near_the_surface_probed_first_
     surface = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])  # a triangle in z = 0
     scene = clean_module._scene(surface, np.array([[0, 1, 2]]))
     gap = 0.05
-    for trial in range(20):
+    for _ in range(20):
         sizes = rng.integers(1, 3000, size=rng.integers(1, 12))
         piece = rng.permutation(np.repeat(np.arange(len(sizes)), sizes))
         points = np.column_stack([rng.uniform(0.05, 0.3, len(piece)), rng.uniform(0.05, 0.3, len(piece)),
@@ -162,7 +162,7 @@ def test_distances_within_the_gap_are_the_same_over_the_near_triangles_alone(cel
     monkeypatch.setattr(clean_module, "_GRID_CELLS", cells)
     rng = np.random.default_rng(cells)
     dropped = 0
-    for trial in range(12):
+    for _ in range(12):
         centres = rng.uniform(-1, 1, size=(400, 3))
         sizes = rng.choice([0.01, 0.1, 1.0], size=(400, 1, 1))
         vertices = (centres[:, None, :] + sizes * rng.normal(size=(400, 3, 3))).reshape(-1, 3)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import box
 
 from kpd.errors import InputError
 from kpd.geometry import interior_mask, mesh_pieces, sample_surface
@@ -16,20 +17,11 @@ SHOES = ("ASICS_GEL1140V_WhiteRoyalSilver", "AMBERLIGHT_UP_W", "11pro_SL_TRX_FG"
          "ASICS_GEL1140V_WhiteBlackSilver", "ASICS_GELBlur33_20_GS_BlackWhiteSafety_Orange")
 
 
-def box(lo, hi, offset=0):
-    """A closed, outward-facing box as (vertices (8, 3), triangles (12, 3)) with indices shifted by ``offset``."""
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    v = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    t = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
-    return v, t + offset
-
-
 def two_boxes(start):
     """Box A [0, 2]^3 and box B [start, 4] x [0, 2]^2: overlapping for start < 2, touching for 2, apart beyond."""
     va, ta = box((0, 0, 0), (2, 2, 2))
-    vb, tb = box((start, 0, 0), (4, 2, 2), offset=8)
-    return np.concatenate([va, vb]), np.concatenate([ta, tb])
+    vb, tb = box((start, 0, 0), (4, 2, 2))
+    return np.concatenate([va, vb]), np.concatenate([ta, tb + 8])
 
 
 @pytest.fixture(scope="module")
@@ -88,7 +80,8 @@ def test_outer_sampling_is_seeded_and_a_single_piece_is_unchanged():
     b = sample_surface(vertices, triangles, 300, seed=3, outer=True)
     assert np.array_equal(a.points, b.points) and np.array_equal(a.faces, b.faces)
     v, t = box((0, 0, 0), (1, 1, 1))
-    assert np.array_equal(sample_surface(v, t, 100, seed=0, outer=True).points, sample_surface(v, t, 100, seed=0).points)
+    assert np.array_equal(sample_surface(v, t, 100, seed=0, outer=True).points, sample_surface(v, t, 100,
+                                                                                               seed=0).points)
     with pytest.raises(InputError, match="faces must be"):
         interior_mask(v, t, np.zeros((2, 3)), np.array([0, 99]))
 

@@ -1,6 +1,7 @@
 """kpd.viewer.shots: pictures of several shots with one window, the triangles of a sheet's variants worked out once."""
 
 import numpy as np
+from helpers import subdivided_box
 
 
 def test_a_sheet_of_variants_draws_each_as_a_new_mesh_would_with_the_triangles_worked_out_once(data_dir, tmp_path,
@@ -54,7 +55,7 @@ def test_a_sheet_holds_one_mesh_at_a_time_of_those_made_as_asked_for(tmp_path):
     from kpd.io import Mesh
     from kpd.viewer.pictures import render_sheet
 
-    base = tall_box()
+    base = subdivided_box((0.3, 0.6, 0.3), 2, 0.15)  # a tall box
     alive, most = set(), [0]
 
     class Made(Sequence):
@@ -77,10 +78,3 @@ def test_a_sheet_holds_one_mesh_at_a_time_of_those_made_as_asked_for(tmp_path):
     assert (tmp_path / "made.png").read_bytes() == (tmp_path / "list.png").read_bytes()
 
 
-def tall_box():
-    import open3d as o3d
-
-    from kpd.io import Mesh
-
-    box = o3d.geometry.TriangleMesh.create_box(0.3, 0.6, 0.3).subdivide_midpoint(2)
-    return Mesh(np.asarray(box.vertices) - 0.15, np.asarray(box.triangles, dtype=np.int64))

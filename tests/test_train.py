@@ -47,9 +47,11 @@ def test_state_dict_layout_is_the_authors():
     states = make_model(k).state_dict()
     expected = {
         "influence_param": (k, c), "template_vertices": (1, 3, c), "template_faces": (1, 80, 3),
-        "keypoint_predictor.0.0.conv1.conv.weight": (64, 3, 1), "keypoint_predictor.0.0.conv2.conv.weight": (128, 64, 1),
+        "keypoint_predictor.0.0.conv1.conv.weight": (64, 3, 1),
+        "keypoint_predictor.0.0.conv2.conv.weight": (128, 64, 1),
         "keypoint_predictor.0.0.conv3.conv.weight": (256, 128, 1), "keypoint_predictor.0.1.linear.weight": (256, 256),
-        "keypoint_predictor.1.layers.0.linear.weight": (512, 256), "keypoint_predictor.1.layers.1.linear.weight": (256, 512),
+        "keypoint_predictor.1.layers.0.linear.weight": (512, 256),
+        "keypoint_predictor.1.layers.1.linear.weight": (256, 512),
         "keypoint_predictor.1.layers.2.linear.weight": (3 * k, 256),
         "influence_predictor.0.0.conv3.conv.weight": (kc, 128, 1), "influence_predictor.0.1.linear.weight": (kc, kc),
         "influence_predictor.1.0.linear.weight": (kc, kc), "influence_predictor.1.1.linear.weight": (kc, kc),
@@ -187,7 +189,7 @@ def chairs(data_dir, tmp_path_factory):
     """A dozen real chairs (train) and four (val), 256 points, 2 samples, cached in a temporary folder."""
     root = tmp_path_factory.mktemp("chairs")
     src = data_dir / "modelnet10" / "chair" / "train"
-    for i, name in enumerate(sorted(src.glob("*.ply"))[:16]):
+    for _, name in enumerate(sorted(src.glob("*.ply"))[:16]):
         shutil.copy(name, root / name.name)
     split = {"train": [f"chair_{i:04d}" for i in range(1, 13)], "val": [f"chair_{i:04d}" for i in range(13, 17)]}
     (root / "split.json").write_text(json.dumps(split))

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
-from test_bundle import make_toy_bundle
+from helpers import make_toy_bundle, peak_of
 
 from kpd.cage import icosphere
 from kpd.errors import InputError
@@ -236,15 +236,6 @@ def tiny_gltf(path: Path, count: int) -> Path:
            "accessors": [{"componentType": 5126, "count": count, "type": "VEC3"}]}
     path.write_text(json.dumps(doc))
     return path
-
-
-def peak_of(argv: list[str]) -> tuple[subprocess.CompletedProcess, float]:
-    """Run ``argv`` under a Python parent that reports the child's peak resident memory (bytes) on stdout."""
-    probe = ("import resource, subprocess, sys; done = subprocess.run(sys.argv[1:], capture_output=True, text=True); "
-             "sys.stderr.write(done.stderr); sys.stdout.write(done.stdout); "
-             "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024); sys.exit(done.returncode)")
-    done = subprocess.run([sys.executable, "-c", probe, *argv], capture_output=True, text=True, timeout=600)
-    return done, float(done.stdout.splitlines()[-1])
 
 
 @pytest.mark.parametrize("power", [26, 28])

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from viewer_helpers import HAS_XVFB, clear_keypoint, drags_with_nudges, editor_window, kpd, last_event, screen_pixels
+from helpers import kpd_process as kpd  # the command in a fresh interpreter, as a user runs it
+from viewer_helpers import HAS_XVFB, clear_keypoint, drags_with_nudges, editor_window, last_event, screen_pixels
 
 from kpd.errors import InputError
 from kpd.viewer.events import read_events, wait_for
@@ -330,7 +331,7 @@ def test_editor_window_shows_the_outer_side_of_faces_with_two_materials(tmp_path
     """A box whose faces are stored twice, wound opposite ways, green on one side and white on the other (as ShapeNet
     stores a cup's label over its inside), green listed first: the editor's window, read from the Xvfb screen, shows
     the side facing out. Which coincident face showed was once the renderer's order of geometries."""
-    from test_formats_cli import two_sided_box
+    from helpers import two_sided_box
 
     from kpd.io import write_mesh
     from kpd.viewer.display import grab_screen

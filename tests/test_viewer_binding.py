@@ -6,7 +6,8 @@ import subprocess
 
 import numpy as np
 import pytest
-from viewer_helpers import HAS_XVFB, editor_window, kpd, last_event
+from helpers import kpd_process as kpd  # the command in a fresh interpreter, as a user runs it
+from viewer_helpers import HAS_XVFB, editor_window, last_event
 
 from kpd.viewer.events import read_events, wait_for
 

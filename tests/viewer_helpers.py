@@ -1,5 +1,5 @@
-"""What the viewer's tests share: the kpd command and an editor window to drive, on a private Xvfb with xdotool (the
-shared fixtures are in ``viewer_fixtures``)."""
+"""What the viewer's tests share: an editor window to drive, on a private Xvfb with xdotool (the shared fixtures
+are in ``viewer_fixtures``, the ``kpd`` command in ``helpers``)."""
 
 import contextlib
 import os
@@ -15,14 +15,7 @@ import numpy as np
 from kpd.viewer.events import read_events, wait_for
 from kpd.viewer.render import project
 
-REPO = Path(__file__).resolve().parents[1]
 HAS_XVFB = shutil.which("Xvfb") is not None and shutil.which("xdotool") is not None
-
-
-def kpd(*argv: str, env: dict | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
-    """``kpd ARGV`` run in a fresh interpreter from the repository's root."""
-    return subprocess.run([sys.executable, "-m", "kpd.cli", *map(str, argv)], capture_output=True, text=True,
-                          env=env, timeout=timeout, cwd=REPO)
 
 
 def last_event(path: Path, name: str, after: int = 0):

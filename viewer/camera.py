@@ -100,7 +100,8 @@ def camera_pose_over(parts: Callable[[], Iterable[np.ndarray]], settings: ViewSe
         distance = 1.0
     distance = max(distance, 1e-3 * radius) / settings.zoom
     eye = center + distance * direction
-    return Camera(center=center, eye=eye, up=up, fov=float(settings.fov), near=max(distance - 3 * radius, distance / 100),
+    return Camera(center=center, eye=eye, up=up, fov=float(settings.fov),
+                  near=max(distance - 3 * radius, distance / 100),
                   far=distance + 3 * radius)
 
 
@@ -225,7 +226,8 @@ def project(points: Any, view: Any, projection: Any, width: float, height: float
     return pixels, -eye[:, 2]
 
 
-def pixel_ray(x: float, y: float, view: Any, projection: Any, width: float, height: float) -> tuple[np.ndarray, np.ndarray]:
+def pixel_ray(x: float, y: float, view: Any, projection: Any, width: float,
+              height: float) -> tuple[np.ndarray, np.ndarray]:
     """The world ray through pixel (x, y) of a perspective camera: origin (3,) at the eye and unit direction (3,).
 
     Works for any near and far planes, including the infinite far plane of Open3D's window cameras (unprojecting

@@ -91,7 +91,8 @@ def render_frames(rig: Any, keypoint_sets: Sequence[Any], *, settings: ViewSetti
     backend = resolve_backend(backend)
     framed = [f.vertices for f in frames] + [f.keypoints for f in frames]  # every frame's shape and keypoints
     camera = camera_pose(framed, settings)
-    log.info("rendering %d frame(s) of %dx%d with the %s backend", len(frames), settings.width, settings.height, backend)
+    log.info("rendering %d frame(s) of %dx%d with the %s backend", len(frames), settings.width, settings.height,
+             backend)
     with gl_display(backend, settings.width, settings.height):
         return _render_gl(rig, frames, settings, camera, on_display=backend != "egl", shaded=shaded)
 

@@ -16,8 +16,8 @@ Everything is scored in one *evaluation frame* per shape: the shape is first put
 the axes of the KeypointDeformer authors' data: KeypointNet coordinates mapped by ``(x, y, z) -> (-z, y, x)``,
 docs/method.md §8, which is also ShapeNetPart's frame), then into the [-1, 1] box of its geometry by a
 :class:`kpd.geometry.Normalizer` (docs/method.md §7: the authors normalise KeypointNet keypoints with the unit box of
-the KeypointNet point cloud). Thresholds such as PCK@0.05 are in these units. A model trained on ModelNet (z up) sees the
-shape rotated into its own frame (``MODELNET_TO_REFERENCE``) and its keypoints are rotated back.
+the KeypointNet point cloud). Thresholds such as PCK@0.05 are in these units. A model trained on ModelNet (z up) sees
+the shape rotated into its own frame (``MODELNET_TO_REFERENCE``) and its keypoints are rotated back.
 
 Protocols
 ---------

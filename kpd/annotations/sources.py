@@ -127,6 +127,6 @@ def _predict(source, shapes: list[EvalShape]) -> tuple[list[EvalShape], np.ndarr
     counts = {len(k) for _, k in kept}
     if len(counts) != 1:
         first = {len(k): s.model_id for s, k in kept}
-        raise DataError(f"every shape needs the same number of keypoints; got "
+        raise DataError("every shape needs the same number of keypoints; got "
                         + ", ".join(f"{n} ({first[n]})" for n in sorted(counts)))
     return [s for s, _ in kept], np.stack([k for _, k in kept]), skipped

@@ -13,7 +13,7 @@ import math
 import os
 from pathlib import Path
 
-from kpd.errors import InputError, KpdError
+from kpd.errors import KpdError
 
 # name -> module, in the order shown by `kpd --help`.
 COMMANDS = {

@@ -37,7 +37,8 @@ def add_model_arguments(parser: argparse.ArgumentParser, default: str | None = N
                                  f"{default})")
     parser.add_argument("--seed", type=integer(0), default=0,
                         help="surface-sampling seed (default 0: same result every run)")
-    parser.add_argument("--threads", type=integer(1), default=None, help="onnxruntime intra-op threads (default: its own)")
+    parser.add_argument("--threads", type=integer(1), default=None,
+                        help="onnxruntime intra-op threads (default: its own)")
 
 
 def add_scan_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,7 +48,8 @@ def add_scan_arguments(parser: argparse.ArgumentParser) -> None:
                         help="treat the input as a real scan: clean it and orient it to the model's template first "
                              "(kpd.scan); results are mapped back onto the scan")
     parser.add_argument("--up", default=None, metavar="AXIS",
-                        help="with --scan: the scan's known up axis (x, y, z, -z...), restricting the orientation search")
+                        help="with --scan: the scan's known up axis (x, y, z, -z...), "
+                             "restricting the orientation search")
 
 
 def check_scan_arguments(args: argparse.Namespace) -> None:

@@ -1,4 +1,5 @@
-"""kpd amplify: variants of every mesh of a collection, drawn from the model's category prior (dataset amplification)."""
+"""kpd amplify: variants of every mesh of a collection, drawn from the model's category prior (dataset
+amplification)."""
 
 from __future__ import annotations
 

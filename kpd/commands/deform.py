@@ -44,7 +44,8 @@ def run(args: argparse.Namespace) -> int:
     if with_model == (args.rig is not None):
         raise InputError("give either MODEL SHAPE or --rig RIG")
     if with_model and (args.model is None or args.shape is None):
-        raise InputError("give both MODEL and SHAPE (for example: kpd deform chair chair.obj --move 0:0,0,1 --out o.obj)")
+        raise InputError("give both MODEL and SHAPE "
+                         "(for example: kpd deform chair chair.obj --move 0:0,0,1 --out o.obj)")
     if args.rig is not None and (args.prior or args.scan):
         raise InputError("--prior and --scan need MODEL SHAPE, not --rig")
     moves = parse_moves(args.move)

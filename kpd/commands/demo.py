@@ -76,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
             rig.save(staging / "rig.npz")
         record = {
             "model": str(args.model), "category": model.category, "input": args.mesh or "procedural chair",
-            "frame": "input", **({"scan": scan.report()} if scan is not None else {}), "moved": leg, "target": target.tolist(), "rest_keypoints": rest.tolist(),
+            "frame": "input", **({"scan": scan.report()} if scan is not None else {}), "moved": leg,
+            "target": target.tolist(), "rest_keypoints": rest.tolist(),
             "moved_alone": alone.tolist(), "moved_with_prior": None if synced is None else synced.tolist(),
         }
         (staging / "keypoints.json").write_text(json.dumps(record, indent=1) + "\n")

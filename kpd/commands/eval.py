@@ -134,7 +134,8 @@ def _add_protocol_parsers(sub) -> None:
     p.add_argument("data", type=folder, help="KeypointNet folder (annotations/, splits/, pcds/ and optionally models/)")
     _source_arguments(p)
     _geometry_argument(p)
-    p.add_argument("--threshold", type=number(positive=True), default=0.05, help="PCK distance in the [-1, 1] box (default 0.05)")
+    p.add_argument("--threshold", type=number(positive=True), default=0.05,
+                   help="PCK distance in the [-1, 1] box (default 0.05)")
     p.add_argument("--ridge", type=number(0), default=1e-3,
                    help="relative ridge strength of the regressor (default 1e-3; 0: least squares)")
     p.add_argument("--min-fraction", type=number(0, 1), default=0.8,
@@ -154,7 +155,8 @@ def _add_protocol_parsers(sub) -> None:
         epilog="example:\n  kpd eval parts ../shared/data/shapenetpart_sample --category chair --split all "
                "--model chair --out chair_parts.json",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("data", type=folder, help="ShapeNetPart folder (synsetoffset2category.txt, <synset>/points, points_label)")
+    p.add_argument("data", type=folder,
+                   help="ShapeNetPart folder (synsetoffset2category.txt, <synset>/points, points_label)")
     _source_arguments(p)
     p.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="split (default test)")
     p.add_argument("--radius", type=number(positive=True), default=0.05, help="association distance in the [-1, 1] box")
@@ -186,7 +188,8 @@ def _add_protocol_parsers(sub) -> None:
     p.add_argument("data", type=folder, help="KeypointNet folder (its pcds/) or ShapeNetPart folder")
     _source_arguments(p)
     p.add_argument("--split", default="all", choices=("train", "val", "test", "all"), help="split (default all)")
-    p.add_argument("--threshold", type=number(positive=True), default=0.05, help="inclusivity distance (default 0.05, as SC3K)")
+    p.add_argument("--threshold", type=number(positive=True), default=0.05,
+                   help="inclusivity distance (default 0.05, as SC3K)")
     _protocol_common(p)
 
     p = sub.add_parser(

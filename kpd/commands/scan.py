@@ -221,7 +221,7 @@ def run_collection(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     loaded, clouds = [], []
-    for name, path in tqdm(shapes, desc="reading", unit="shape"):
+    for _, path in tqdm(shapes, desc="reading", unit="shape"):
         try:
             shape = read_shape(path)
             clouds.append(collection_points(shape, args.points, seed=args.seed, outer=not args.all_surface))

@@ -24,7 +24,8 @@ PAPER = {"alpha_kpt": 1.0, "inf_reg": "paper", "alpha_inf": 1e-6, "warmup": 0, "
 _QUIET_RANK_GRACE = 3.0  # s a rank that stops without a message of its own waits before it ends
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("data", type=folder, help="dataset folder (ModelNet, ShapeNet v1/v2, or a flat folder of meshes)")
+    parser.add_argument("data", type=folder,
+                        help="dataset folder (ModelNet, ShapeNet v1/v2, or a flat folder of meshes)")
     parser.add_argument("--category", help="class folder, ShapeNet synset id or name (e.g. chair)")
     parser.add_argument("--keypoints", type=integer(1), default=12, help="K, keypoints to discover (default 12)")
     parser.add_argument("--out", required=True, help="run folder for checkpoints, curves and the record")
@@ -45,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--points", type=integer(16), default=1024, help="N, surface points per sample (default 1024)")
     g.add_argument("--samples", type=integer(1), default=4, help="independent cached samples per mesh (default 4)")
     g.add_argument("--cache", default=None, help="sample cache folder (default $KPD_CACHE or ~/.cache/kpd)")
-    g.add_argument("--split-file", type=existing, default=None, help="split file (ShapeNet all.csv, JSON, train/val/test.txt)")
+    g.add_argument("--split-file", type=existing, default=None,
+                   help="split file (ShapeNet all.csv, JSON, train/val/test.txt)")
     g.add_argument("--val-fraction", type=number(0, 0.9), default=0.1, help="share of train held out for validation")
     g.add_argument("--processes", type=integer(1), default=2, help="processes for sampling meshes (default 2)")
     g.add_argument("--cage-distance", type=number(positive=True), default=0.4, help="cage stop distance (default 0.4)")
@@ -57,7 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("recipe (defaults: the authors' code; docs/method.md §11)")
     g.add_argument("--keypoint-source", choices=("learned", "fps"), default="learned",
                    help="fps: farthest-point keypoints of each shape, only the deformer is trained (baseline)")
-    g.add_argument("--lr", type=number(positive=True), default=1e-3, help="Adam learning rate of Φ and Γ (default 1e-3)")
+    g.add_argument("--lr", type=number(positive=True), default=1e-3,
+                   help="Adam learning rate of Φ and Γ (default 1e-3)")
     g.add_argument("--wc-lr", type=number(0), default=None, help="learning rate of W_C (code 1e-2; --paper: = --lr)")
     g.add_argument("--alpha-kpt", type=number(0), default=None, help="keypoint regulariser weight (code 2; paper 1)")
     g.add_argument("--inf-reg", choices=("code", "paper"), default=None,

@@ -15,7 +15,8 @@ OBJ's vertices are its ``v`` lines in order, its faces keep their texture coordi
 in ``Mesh.triangle_uv_mask``), every material is kept (its map, or its ``Kd`` colour as a 1x1 texture), and a mesh
 read from an OBJ or glTF file is written back in that file's own structure with only the positions (and the normals,
 turned with the surface) changed, its material library and images copied beside the output under the output's
-name (only files kpd read inside the input's folder tree: :mod:`kpd.io.references`). PLY (binary and ASCII), text OFF and binary STL are read (and PLY and OFF written) by kpd too, by numpy or
+name (only files kpd read inside the input's folder tree: :mod:`kpd.io.references`). PLY (binary and ASCII), text OFF
+and binary STL are read (and PLY and OFF written) by kpd too, by numpy or
 compiled passes that give Open3D's mesh (OFF's decimals read exactly, not as float32), fast at the size of a scan
 (docs/scale.md); other PLY, OFF and STL files and point clouds go through Open3D, with the checks Open3D leaves
 out: Open3D returns an empty or half-read geometry with a console warning for a missing, broken or truncated file,
@@ -35,8 +36,8 @@ text readers, :mod:`kpd.io.references` decides which files a file may name (insi
 Conventions
 -----------
 - OBJ faces of more than three corners are read as fans of triangles (and written back as the polygons they are, in
-  the file's own structure). STL vertices are welded back by position (STL stores no shared vertices). glTF files are y up
-  (:func:`file_up`).
+  the file's own structure). STL vertices are welded back by position (STL stores no shared vertices). glTF files are y
+  up (:func:`file_up`).
 - Precision: PLY keeps float64, PCD and glTF float32, OBJ and OFF nine significant digits (float32-exact), and
   the text formats kpd writes (``.xyz``, ``.pts``) nine significant digits (float32-exact).
 

@@ -38,7 +38,8 @@ from typing import Callable, Iterable, Iterator
 from kpd import _signals
 from kpd.errors import InputError, WriteError
 
-__all__ = ["TEMP_MARK", "Outputs", "user_path", "atomic_output", "atomic_files", "check_output", "remove_stale_temporaries",
+__all__ = ["TEMP_MARK", "Outputs", "user_path", "atomic_output", "atomic_files", "check_output",
+           "remove_stale_temporaries",
            "describe_os_error", "disk_full", "incomplete"]
 
 log = logging.getLogger(__name__)

@@ -796,7 +796,7 @@ def write_from_source(target: Path, mesh: Mesh, source: GltfSource) -> None:
         uri = buffer.get("uri")
         if uri is not None and uri.startswith("data:"):
             buffer["uri"] = "data:application/octet-stream;base64," + base64.b64encode(bytes(buffers[i])).decode()
-    for (kind, i), (uri, name) in source_companions(target, source).items():
+    for (kind, i), (_, name) in source_companions(target, source).items():
         doc[kind][i]["uri"] = urllib.parse.quote(name)
         data = bytes(buffers[i]) if kind == "buffers" else source.image_files[i][0]
         (target.parent / name).write_bytes(data)

@@ -48,7 +48,8 @@ from kpd._compiled import compiled_on_first_call
 from kpd.errors import InputError
 from kpd.io.common import count_lines
 
-__all__ = ["check_complete", "check_corners", "read_header", "read_mesh", "read_vertices", "write_mesh", "Header", "Element"]
+__all__ = ["check_complete", "check_corners", "read_header", "read_mesh", "read_vertices", "write_mesh", "Header",
+           "Element"]
 
 _PLY_TYPE_SIZES = {
     "char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
@@ -198,7 +199,7 @@ def _read_binary(p: Path, header: Header, faces: bool) -> _Data | None:
     face_type = None
     if faces:
         fields = []
-        for i, (name, kind) in enumerate(header.elements[1].properties):
+        for i, (_, kind) in enumerate(header.elements[1].properties):
             if isinstance(kind, tuple):  # a triangle: its count, then three corners
                 fields += [("count", order + _PLY_NUMPY[kind[0]]), ("corners", order + _PLY_NUMPY[kind[1]], (3,))]
             else:

@@ -38,7 +38,7 @@ import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 
-import numba  # before numba.core's modules, which cannot be imported first
+import numba  # noqa: F401  (imported before numba.core's modules, which cannot be imported first)
 import numpy as np
 from llvmlite import ir
 from numba.core import types
@@ -451,7 +451,9 @@ def _rows(values, precision, prefix: bytes, suffix: bytes, tails: list | None,
     constants = (precisions, 10**precisions, scales, _decades(), tie, np.frombuffer(prefix, np.uint8),
                  np.frombuffer(suffix, np.uint8), tail_text)
 
-    def part(lo, hi, at, fixes=joined([])):
+    no_fixes = joined([])
+
+    def part(lo, hi, at, fixes=no_fixes):
         """Rows [lo, hi) into ``out[at:]``, their offsets counted from there."""
         return _float_rows(values[lo:hi], *constants, tail_ends[lo : hi + 1], *fixes, out[at:], offsets[lo : hi + 1])
 

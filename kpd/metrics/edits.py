@@ -277,7 +277,8 @@ def prior_response(before: Any, after: Any, index: int, partner: int, move: Any,
     delta = kp1 - kp0  # (K, 3)
     others = np.delete(np.linalg.norm(delta, axis=1), [index, partner])
     size = float(np.linalg.norm(d))
-    return PriorResponse(float(delta[partner] @ mirrored / size**2), float(others.mean() / size) if len(others) else 0.0)
+    return PriorResponse(float(delta[partner] @ mirrored / size**2),
+                         float(others.mean() / size) if len(others) else 0.0)
 
 
 def _segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:

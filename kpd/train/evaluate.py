@@ -47,7 +47,8 @@ def run_data(predictor: CheckpointPredictor, run: str | os.PathLike, *, splits: 
 
 
 def fixed_pairs(n: int, count: int, seed: int = 0) -> np.ndarray:
-    """Up to ``count`` seeded distinct (source, target) index pairs, source != target: :func:`kpd.annotations.alignment_pairs`."""
+    """Up to ``count`` seeded distinct (source, target) index pairs, source != target:
+    :func:`kpd.annotations.alignment_pairs`."""
     if n < 2:
         raise InputError(f"alignment needs at least 2 shapes; got {n}")
     return alignment_pairs(n, count, seed)

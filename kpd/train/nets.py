@@ -72,7 +72,8 @@ class ModelConfig:
 
 
 class PointConv(nn.Module):
-    """A shared per-point linear layer stored as ``Conv1d(k=1)`` (weight ``(out, in, 1)``), applied to ``(B, N, in)``."""
+    """A shared per-point linear layer stored as ``Conv1d(k=1)`` (weight ``(out, in, 1)``), applied to
+    ``(B, N, in)``."""
 
     def __init__(self, in_channels: int, out_channels: int, activation: str | None) -> None:
         super().__init__()
@@ -191,7 +192,8 @@ class KeypointDeformer(nn.Module):
         self.influence_predictor = InfluencePredictor(k, c)
         xavier_init(self.influence_predictor, generator)
         self.influence_param = nn.Parameter(torch.zeros(k, c))
-        self.register_buffer("template_vertices", torch.as_tensor(template_vertices, dtype=torch.float32).T[None].clone())
+        self.register_buffer("template_vertices",
+                             torch.as_tensor(template_vertices, dtype=torch.float32).T[None].clone())
         self.register_buffer("template_faces", torch.as_tensor(template_faces, dtype=torch.int64)[None].clone())
 
     def keypoints(self, points: torch.Tensor) -> torch.Tensor:

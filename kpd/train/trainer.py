@@ -4,9 +4,10 @@ The recipe is :mod:`kpd.train.config`, the checkpoint files :mod:`kpd.train.chec
 :mod:`kpd.train.objective`; their names stay importable from here.
 
 Defaults are the authors' code; every paper value of docs/method.md §11 is a :class:`TrainConfig` option. Each
-iteration's randomness (source order, targets, which cached sample, FPS starts) is drawn from ``numpy.random.default_rng`` seeded
-by ``(seed, iteration)``, so a run resumed from a checkpoint continues with exactly the numbers an uninterrupted run
-would have used; the checkpoint holds the weights, both optimisers' states and the loss history.
+iteration's randomness (source order, targets, which cached sample, FPS starts) is drawn from
+``numpy.random.default_rng`` seeded by ``(seed, iteration)``, so a run resumed from a checkpoint continues with exactly
+the numbers an uninterrupted run would have used; the checkpoint holds the weights, both optimisers' states and the loss
+history.
 
 Under ``torchrun`` (:mod:`kpd.train.distributed`) each rank takes its slice of every iteration's global batch from
 the same ``(seed, iteration)`` schedule and DistributedDataParallel averages the gradients, so W ranks follow the
@@ -125,7 +126,8 @@ class Trainer:
             {"params": [self.model.influence_param], "lr": config.wc_lr},
         ], fused=True)
         learned = self.model_config.keypoint_source == "learned"
-        self.objectives = {warm: Objective(self.model, config, warm) for warm in ((True, False) if learned else (False,))}
+        self.objectives = {warm: Objective(self.model, config, warm)
+                           for warm in ((True, False) if learned else (False,))}
         self._ddp: tuple[bool, nn.Module] | None = None  # (warm, the DDP wrapper of that objective)
         self.iteration = 0
         self.history: list[list[float]] = []
