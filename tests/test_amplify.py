@@ -85,7 +85,8 @@ def test_every_mesh_is_amplified_in_its_format_with_its_labels(collection, refer
         np.testing.assert_array_equal(variant.triangles, source.triangles)
         assert r["seed"] == variant_seed(0, r["source"], r["variant"])
         keypoints = np.asarray(r["keypoints"])
-        assert keypoints.shape == (model.num_keypoints, 3) and len(r["coefficients"]) == model.prior.components_.shape[0]
+        assert keypoints.shape == (model.num_keypoints, 3)
+        assert len(r["coefficients"]) == model.prior.components_.shape[0]
         # the labels travel with the variant: its vertices are the source's rig deformed to them
         rig = model.rig(source, seed=0)
         np.testing.assert_allclose(variant.vertices, rig.deform(keypoints), atol=1e-5 * np.ptp(source.vertices))

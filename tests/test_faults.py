@@ -187,8 +187,8 @@ def inputs(tmp_path_factory) -> Path:
     return root
 
 
-TINY_TRAIN = ("--category", "chair", "--keypoints", "4", "--iterations", "2", "--batch", "2", "--points", "64", "--samples", "1",
-              "--save-every", "1", "--val-pairs", "0", "--processes", "1", "--threads", "1", "--quiet",
+TINY_TRAIN = ("--category", "chair", "--keypoints", "4", "--iterations", "2", "--batch", "2", "--points", "64",
+              "--samples", "1", "--save-every", "1", "--val-pairs", "0", "--processes", "1", "--threads", "1", "--quiet",
               "--warmup", "0")
 
 
