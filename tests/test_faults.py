@@ -188,8 +188,8 @@ def inputs(tmp_path_factory) -> Path:
 
 
 TINY_TRAIN = ("--category", "chair", "--keypoints", "4", "--iterations", "2", "--batch", "2", "--points", "64",
-              "--samples", "1", "--save-every", "1", "--val-pairs", "0", "--processes", "1", "--threads", "1", "--quiet",
-              "--warmup", "0")
+              "--samples", "1", "--save-every", "1", "--val-pairs", "0", "--processes", "1", "--threads", "1",
+              "--quiet", "--warmup", "0")
 
 
 @pytest.fixture(scope="module")
