@@ -150,7 +150,7 @@ def editor_sneaker(tmp: Path) -> None:
 
     if "shoe" in shipped_bundles():
         _editor_shot(tmp, DOCS / "editor_sneaker.png",
-                     ["shoe", SNEAKER, "--scan", "--view-up", "+y", "--azimuth", "-120"])
+                     ["shoe", SNEAKER, "--scan", "--view-up", "+y", "--azimuth", "60"])
         return
     from kpd.geometry import farthest_point_sampling, sample_surface
     from kpd.io import read_mesh
