@@ -61,6 +61,28 @@ def chair(data_dir):
     return read_mesh(data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply")
 
 
+@pytest.fixture(scope="session")
+def chair_file(data_dir) -> Path:
+    """The path of ModelNet10 chair_0890 (test split)."""
+    return data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply"
+
+
+@pytest.fixture(scope="module")
+def chair_model():
+    """The shipped chair model."""
+    from kpd.runtime import Model
+
+    return Model.load("chair")
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory) -> Path:
+    """A torch-free toy bundle (``helpers.make_toy_bundle``)."""
+    from helpers import make_toy_bundle
+
+    return make_toy_bundle(tmp_path_factory.mktemp("bundles") / "toy.kpd")
+
+
 @pytest.fixture(scope="module")
 def banana(data_dir):
     """The YCB banana scan: a textured OBJ."""

@@ -30,6 +30,7 @@ from kpd.prior import KeypointPrior
 REPO = Path(__file__).resolve().parents[1]
 TOLERANCE = 1e-5  # of the box diagonal: float32 positions and displacements
 TRIANGLE = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
+TURN_ONTO_SIDE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # z (up) -> y
 
 
 # --- the command ---------------------------------------------------------------------------------------------------
@@ -151,6 +152,12 @@ def height_field(n=6):
              for j in range(n - 1)]
     triangles = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
     return vertices, triangles
+
+
+def star_cage(radii):
+    """The level-1 icosphere with each vertex moved along its ray to radius ``radii[j]``."""
+    template = icosphere(1)
+    return template.vertices / 1.4 * np.asarray(radii, dtype=float)[:, None], template.faces
 
 
 def points_near_the_cage(v, f, rng, distance, n, *, exact=False):

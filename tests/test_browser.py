@@ -102,11 +102,6 @@ def save(url: str, value: dict | bytes, **headers: str | None) -> tuple[int, dic
 
 
 @pytest.fixture(scope="module")
-def chair_file(data_dir) -> Path:
-    return data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply"
-
-
-@pytest.fixture(scope="module")
 def page(chair_file, tmp_path_factory):
     """The editor serving the real chair with the shipped model, a browser on its page, and the output path."""
     needs(REPO / "viewer" / "web" / "vendor" / "three" / "build" / "three.module.js", "three.js (make web)")

@@ -20,6 +20,7 @@ from helpers import HIDDEN, make_toy_bundle
 from kpd.bundle import manifest_checksum, read_bundle, resolve_bundle, shipped_bundles, write_bundle
 from kpd.errors import BundleError, InputError
 
+
 @pytest.fixture
 def toy(tmp_path) -> Path:
     return make_toy_bundle(tmp_path / "toy.kpd")

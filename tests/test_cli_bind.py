@@ -5,17 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import TURN_ONTO_SIDE
 
 from kpd.io import Mesh, read_mesh
-
-TURN_ONTO_SIDE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # z (up) -> y
-
-
-@pytest.fixture(scope="module")
-def chair_model():
-    from kpd.runtime import Model
-
-    return Model.load("chair")
 
 
 @pytest.fixture(scope="module")

@@ -20,18 +20,8 @@ from kpd.runtime import Model
 
 
 @pytest.fixture(scope="module")
-def toy(tmp_path_factory) -> Path:
-    return make_toy_bundle(tmp_path_factory.mktemp("bundles") / "toy.kpd")
-
-
-@pytest.fixture(scope="module")
 def bare(tmp_path_factory) -> Path:
     return make_toy_bundle(tmp_path_factory.mktemp("bundles") / "bare.kpd", prior=False, template=False)
-
-
-@pytest.fixture(scope="module")
-def chair_file(data_dir) -> Path:
-    return data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply"
 
 
 @pytest.fixture(scope="module")

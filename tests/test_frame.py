@@ -5,19 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import TURN_ONTO_SIDE
 
 from kpd.cli import main
 from kpd.frame import FrameCheck, calibrate, check_frame, keypoint_fit
 from kpd.io import Mesh, read_mesh, read_shape, write_mesh
-
-TURN_ONTO_SIDE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # z (up) -> y
-
-
-@pytest.fixture(scope="module")
-def chair_model():
-    from kpd.runtime import Model
-
-    return Model.load("chair")
 
 
 @pytest.fixture(scope="module")

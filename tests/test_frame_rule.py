@@ -13,7 +13,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from helpers import kpd, make_toy_bundle
+from helpers import kpd
 
 from kpd.cli import build_parser
 from kpd.commands._shared import category_azimuth, warn_moves
@@ -146,16 +146,6 @@ def test_the_default_camera_shows_a_shoe_from_its_side():
 
 def test_bench_runs_the_shipped_chair_without_a_model():
     assert build_parser().parse_args(["bench"]).model == "chair"
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory) -> Path:
-    return make_toy_bundle(tmp_path_factory.mktemp("bundles") / "toy.kpd")
-
-
-@pytest.fixture(scope="module")
-def chair_file(data_dir) -> Path:
-    return data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply"
 
 
 def test_a_move_larger_than_the_shape_is_warned_with_its_size(toy, chair_file, tmp_path, capsys):

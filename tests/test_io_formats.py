@@ -474,7 +474,6 @@ def test_gltf_with_external_buffer_and_images_keeps_them_beside_the_output(tmp_p
 # --- the vectorised OBJ reader against a line-by-line reading -------------------------------------------------------
 
 
-
 def _reference(text: str):
     """The plain reading of an OBJ, line by line: vertices, triangles (polygons as fans), per-triangle UV presence and
     material."""

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import io
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,10 +13,6 @@ from kpd import morph
 from kpd.io import Mesh, read_mesh, write_mesh
 from kpd.morph import MorphRig, read_gltf, up_rotation, write_gltf
 from kpd.runtime import Model
-
-@pytest.fixture(scope="module")
-def chair_file(data_dir) -> Path:
-    return data_dir / "modelnet10" / "chair" / "test" / "chair_0890.ply"
 
 
 @pytest.fixture(scope="module")

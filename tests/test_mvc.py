@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-from helpers import points_near_the_cage
+from helpers import points_near_the_cage, star_cage
 
 from kpd.cage import fit_cage, icosphere, points_outside
 from kpd.errors import InputError
@@ -11,12 +11,6 @@ from kpd.geometry import Normalizer, sample_surface
 from kpd.mvc import mvc_weights, mvc_weights_reference
 
 TEMPLATE = icosphere(1)
-
-
-def star_cage(radii):
-    """The level-1 icosphere with each vertex moved along its ray to radius ``radii[j]``."""
-    v = TEMPLATE.vertices / 1.4 * np.asarray(radii, dtype=float)[:, None]
-    return v, TEMPLATE.faces
 
 
 def radial_distance(vertices, faces, directions):

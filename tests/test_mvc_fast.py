@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-from helpers import points_near_the_cage
+from helpers import points_near_the_cage, star_cage
 
 from kpd.cage import icosphere
 from kpd.errors import InputError
@@ -11,11 +11,6 @@ from kpd.mvc import _careful_row, _prepare, mvc_weights, mvc_weights_reference
 from kpd.mvc_fast import _careful_rows, mvc_project, mvc_weights_compiled, theta_over
 
 TEMPLATE = icosphere(1)
-
-
-def star_cage(radii):
-    """The level-1 icosphere with each vertex moved along its ray to radius ``radii[j]``."""
-    return TEMPLATE.vertices / 1.4 * np.asarray(radii, dtype=float)[:, None], TEMPLATE.faces
 
 
 def awkward_points(v, f, rng, distance):
