@@ -103,7 +103,7 @@ def worker(spec: dict) -> dict:
 
 def run_worker(spec: dict) -> dict:
     out = subprocess.run([sys.executable, __file__, "--worker", json.dumps(spec)], capture_output=True, text=True,
-                         cwd=REPO)
+                         cwd=REPO, check=False)
     if out.returncode:
         raise SystemExit(f"worker failed: {out.stderr[-2000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -163,7 +163,8 @@ def command_run(root: Path, folder: Path, variants: int) -> dict:
             f"r = subprocess.run([sys.executable, '-m', 'kpd.cli', 'amplify', 'chair', {str(folder)!r}, '--variants', "
             f"'{variants}', '--out', {str(out)!r}], capture_output=True, text=True)\n"
             "print(r.returncode, time.perf_counter() - start, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
-    line = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO).stdout.split()
+    line = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO,
+                          check=True).stdout.split()
     sheet = out / "contact_sheet.png"
     result = {"status": int(line[0]), "seconds": round(float(line[1]), 1), "peak_mb": round(int(line[2]) / 1024, 1),
               "contact_sheet": sheet.exists()}
@@ -197,7 +198,7 @@ def augment_worker(spec: dict) -> dict:
         mesh_ms = median_ms(lambda: aug.mesh(big, seed=next(seeds)), spec["draws"])
     return {"points": int(aug.points(0, seed=0).points.shape[0]), "points_ms": round(points_ms, 4),
             "mesh_vertices": int(aug.mesh(big, seed=0).points.shape[0]), "mesh_ms": round(mesh_ms, 4),
-            "mesh_triangles": int(len(aug.triangles(big))), "keypoints": int(aug.prior.num_keypoints),
+            "mesh_triangles": len(aug.triangles(big)), "keypoints": int(aug.prior.num_keypoints),
             "numpy": np.__version__}
 
 

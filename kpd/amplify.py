@@ -40,9 +40,9 @@ import numpy as np
 
 from kpd.errors import InputError, KpdError, WriteError
 
-__all__ = ["MANIFEST", "CONFIG", "SHEET", "Settings", "Job", "ShapeResult", "Summary", "find_meshes", "output_names",
-           "variant_seed", "folded_fraction", "amplify_shape", "prepare_output", "Manifest", "run_jobs", "amplify",
-           "ray_missing_message"]
+__all__ = ["CONFIG", "MANIFEST", "SHEET", "Job", "Manifest", "Settings", "ShapeResult", "Summary", "amplify",
+           "amplify_shape", "find_meshes", "folded_fraction", "output_names", "prepare_output", "ray_cluster",
+           "ray_missing_message", "run_jobs", "sheet_rows", "variant_seed", "worker_model"]
 
 log = logging.getLogger("kpd.amplify")
 
@@ -655,10 +655,9 @@ def _summary(manifest: Manifest, sources: Sequence[str], new: int, seconds: floa
                    seconds=seconds, failures=failures)
 
 
-def sheet_rows(out: str | os.PathLike, manifest: Manifest, *, rows: int = 4, columns: int = 5
-               ) -> list[tuple[str, list[str], list[Any]]]:
+def sheet_rows(manifest: Manifest, *, rows: int = 4, columns: int = 5) -> list[tuple[str, list[str], list[Any]]]:
     """The contact sheet's rows: for the first ``rows`` amplified sources (sorted), ``(source, files, keypoints)``:
-    its first ``columns - 1`` variants' files (relative to ``out``) and keypoints."""
+    its first ``columns - 1`` variants' files (relative to the output folder) and keypoints (K, 3)."""
     picked = []
     for source in sorted(manifest.records):
         records = manifest.records[source]

@@ -30,7 +30,7 @@ import numpy as np
 from kpd.errors import InputError, KpdError
 from kpd.prior import KeypointPrior
 
-__all__ = ["Augmenter", "Variant", "CACHE_FORMAT"]
+__all__ = ["CACHE_FORMAT", "Augmenter", "Variant"]
 
 log = logging.getLogger("kpd.augment")
 
@@ -84,7 +84,7 @@ class Augmenter:
 
     @classmethod
     def build(cls, model: Any, shapes: Iterable[str | os.PathLike], cache: str | os.PathLike, *, points: int = 2048,
-              seed: int = 0, scale: float = 0.5, progress: Any = None) -> "Augmenter":
+              seed: int = 0, scale: float = 0.5, progress: Any = None) -> Augmenter:
         """Bind every shape once and cache what draws need; a cache of the same model, shapes and settings is
         reused as it is.
 

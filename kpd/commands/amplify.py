@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
     if args.sheet and summary.variants:
         render_collection_sheet(out, Manifest(out, args.variants), settings, args.sheet, model.up)
         sheet = ", contact_sheet.png"
-    minutes, seconds = divmod(int(round(summary.seconds)), 60)
+    minutes, seconds = divmod(round(summary.seconds), 60)
     failed = f"; {summary.failed} failed (their errors are in manifest.jsonl)" if summary.failed else ""
     print(f"amplified {summary.done - summary.failed} of {summary.shapes} shapes into {out} ({summary.variants} "
           f"variants, manifest.jsonl{sheet}) in {minutes}m{seconds:02d}s{failed}; "
@@ -132,7 +132,7 @@ def render_collection_sheet(out: Path, manifest, settings, rows: int, up: str | 
     from kpd.io import file_up, read_mesh
     from kpd.viewer.pictures import render_sheet
 
-    picked = sheet_rows(out, manifest, rows=rows, columns=5)
+    picked = sheet_rows(manifest, rows=rows, columns=5)
     paths, titles, keypoints, frames = [], [], [], []
     for source, files, kps in picked:
         vertices = read_mesh(Path(settings.folder) / source).vertices
