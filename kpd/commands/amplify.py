@@ -16,7 +16,7 @@ EXAMPLE = ("kpd amplify chair modelnet10/chair --variants 10 --out chairs_x10 --
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from kpd.commands.keypoints import add_model_arguments, add_scan_arguments
+    from kpd.commands._shared import add_model_arguments, add_scan_arguments
 
     add_model_arguments(parser)
     for action in parser._actions:  # the shared model options, as this command uses them
@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
 
     from kpd.amplify import Manifest, Settings, amplify, ray_missing_message
     from kpd.bundle import manifest_checksum
-    from kpd.commands.keypoints import load_model
+    from kpd.commands._shared import load_model
     from kpd.errors import InputError
     from kpd.io import MESH_FORMATS
 
