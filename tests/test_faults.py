@@ -749,8 +749,11 @@ def test_pcd_header_without_data_line_or_point_count(tmp_path):
     write_points(tmp_path / "p.pcd", np.eye(4, 3))
     data = (tmp_path / "p.pcd").read_bytes()
     (tmp_path / "no_data.pcd").write_bytes(data[: data.index(b"DATA")] + b"COU F F F\n" * 20)
-    (tmp_path / "no_count.pcd").write_bytes(re.sub(rb"(?m)^(POINTS|WIDTH) .*\n", b"", data))
-    for name, message in (("no_data", "no DATA line"), ("no_count", "declares no POINTS")):
+    (tmp_path / "no_count.pcd").write_bytes(re.sub(rb"(?m)^(POINTS|WIDTH|HEIGHT) .*\n", b"", data))
+    height_first = re.sub(rb"(?m)^WIDTH .*\n", b"", data).replace(b"DATA", b"WIDTH 4\nDATA")
+    (tmp_path / "height_first.pcd").write_bytes(height_first)
+    for name, message in (("no_data", "no DATA line"), ("no_count", "declares no POINTS"),
+                          ("height_first", "HEIGHT line comes before any WIDTH")):
         with pytest.raises(InputError, match=message):
             read_points(tmp_path / f"{name}.pcd")
 
