@@ -726,13 +726,14 @@ def test_polygon_with_a_corner_beyond_the_vertices(binary, inputs, tmp_path):
 @pytest.mark.parametrize("binary", [True, False])
 def test_face_of_fewer_than_three_corners_or_a_partial_normal_in_a_file_open3d_reads(binary, inputs, tmp_path):
     """Open3D's PLY reader reads on after a face of 0 to 2 corners (garbage or a segmentation fault later), its PCD
-    reader ends the process on a normal of one or two fields: each is one line, exit 2."""
+    reader ends the process on a normal of one or two fields (here ``normal_\x1d``: a line break for ``str``, not for
+    Open3D): each is one line, exit 2."""
     _polygon_ply(tmp_path / "short.ply", binary=binary, corner=3)
     data = (tmp_path / "short.ply").read_bytes()
     (tmp_path / "short.ply").write_bytes(data[:-17] + bytes([2]) + data[-16:] if binary else
                                          data.replace(b"4 0 1 2 3", b"2 0 1"))
     write_points(tmp_path / "p.pcd", np.eye(4, 3), normals=np.eye(4, 3))
-    (tmp_path / "n.pcd").write_bytes((tmp_path / "p.pcd").read_bytes().replace(b"normal_x", b"normal_q", 1))
+    (tmp_path / "n.pcd").write_bytes((tmp_path / "p.pcd").read_bytes().replace(b"normal_x", b"normal_\x1d", 1))
     before = snapshot(tmp_path, inputs)
     for path, message in ((tmp_path / "short.ply", "face 0 has 2 corners"), (tmp_path / "n.pcd", "without normal_x")):
         done = subprocess.run([KPD, "keypoints", str(inputs / "toy.kpd"), str(path), "--out",

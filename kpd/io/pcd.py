@@ -27,8 +27,8 @@ def check_complete(p: Path) -> None:
     if not end:
         raise InputError(f"{p}: not a PCD file: no DATA line in its first 64 KiB")
     header, order = {}, []
-    for s in head[: end.start()].decode("ascii", errors="replace").splitlines():
-        tokens = s.split()
+    for line in head[: end.start()].split(b"\n"):  # lines and words as Open3D splits them, not as str does
+        tokens = [t.decode("ascii", errors="replace") for t in re.split(rb"[ \t\r]+", line.strip(b" \t\r")) if t]
         if tokens and not tokens[0].startswith("#"):
             header[tokens[0].upper()] = tokens[1:]
             order.append(tokens[0].upper())
