@@ -404,9 +404,7 @@ class Rig:
                 rig._straightened = bool(arrays.get("straightened", False))
         except KeyError as exc:
             raise InputError(f"{path}: rig file lacks {exc.args[0]!r}") from exc
-        except InputError:
-            raise
-        except (TypeError, ValueError, IndexError) as exc:  # arrays of another type or shape than save writes
+        except (TypeError, ValueError, IndexError) as exc:  # InputError too: arrays of another type or shape
             raise InputError(f"{path}: not a valid kpd rig ({exc})") from exc
         return rig
 

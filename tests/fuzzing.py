@@ -300,8 +300,8 @@ def _lines(rng, data: bytes) -> tuple[bytes, str]:
     if kind == 0:
         del lines[i]
         what = "drop"
-    elif kind == 1:
-        lines[i:i] = [lines[i]] * int(rng.integers(1, 2000))
+    elif kind == 1:  # up to 2,000 times, and 1 MiB in all (a binary file's "line" may be megabytes)
+        lines[i:i] = [lines[i]] * min(int(rng.integers(1, 2000)), max(1, (1 << 20) // max(len(lines[i]), 1)))
         what = "repeat"
     else:
         j = int(rng.integers(len(lines)))

@@ -19,18 +19,21 @@ def check_complete(p: Path) -> None:
     """Raise if a PCD file holds fewer points than its header declares (Open3D pads such files with zeros), if its
     ``FIELDS`` name some but not all of ``normal_x normal_y normal_z`` (Open3D's reader then reads the missing ones
     from nowhere: a segmentation fault), or if its header lacks the ``DATA`` line or the number of points (``POINTS``,
-    or ``WIDTH`` and ``HEIGHT``): Open3D's reader then sizes the cloud by a number it never set (garbage points, or
-    an allocation of any size)."""
+    or ``WIDTH`` and ``HEIGHT``), or gives ``HEIGHT`` before ``WIDTH``: Open3D's reader then sizes the cloud by a
+    number it never set (garbage points, or an allocation of any size)."""
     with open(p, "rb") as fh:
         head = fh.read(1 << 16)
     end = re.search(rb"^DATA[ \t]+(\w+)[ \t]*\r?\n", head, re.M)
     if not end:
         raise InputError(f"{p}: not a PCD file: no DATA line in its first 64 KiB")
-    header = {}
-    for s in head[: end.start()].decode("ascii", errors="replace").splitlines():
-        tokens = s.split()
+    header, order = {}, []
+    for line in head[: end.start()].split(b"\n"):  # lines and words as Open3D splits them, not as str does
+        tokens = [t.decode("ascii", errors="replace") for t in re.split(rb"[ \t\r]+", line.strip(b" \t\r")) if t]
         if tokens and not tokens[0].startswith("#"):
             header[tokens[0].upper()] = tokens[1:]
+            order.append(tokens[0].upper())
+    if "HEIGHT" in order and ("WIDTH" not in order or order.index("HEIGHT") < order.index("WIDTH")):
+        raise InputError(f"{p}: its HEIGHT line comes before any WIDTH line; a PCD header gives WIDTH, then HEIGHT")
     normals = [name for name in _NORMALS if name in header.get("FIELDS", [])]
     if normals and len(normals) < 3:
         missing = " ".join(name for name in _NORMALS if name not in normals)
