@@ -17,11 +17,6 @@ import fuzzing
 
 SEED = 51
 PER_FORMAT = 20
-# the readers of references and bundles (OBJ maps, glTF URIs, images, bundle members): their containment and
-# declared sizes are being fixed beside this test; their findings are expected until that is merged
-TRUST_FILES = ("kpd/io/obj.py", "kpd/io/gltf.py", "kpd/io/images.py", "kpd/bundle.py")
-TRUST_REASON = ("reference containment and declared sizes in kpd/io/obj.py, gltf.py, images.py and kpd/bundle.py "
-                "(issue 51, fixed beside this test): remove this expectation once merged")
 
 
 def _data_root() -> Path | None:
@@ -46,10 +41,7 @@ def test_mutated_files_end_in_a_kpd_error_or_a_result(tmp_path):
         # the mutations reach the readers' checks: many cases are refused, with a kpd error
         assert sum(r.outcome == "error" for r in of_format) >= PER_FORMAT // 4, fmt
     failures = [r for r in results if r.outcome in fuzzing.FAILURES]
-    ours = [r for r in failures if not r.where.startswith(TRUST_FILES)]
-    assert not ours, _described(ours)
-    if failures:
-        pytest.xfail(f"{TRUST_REASON}:\n{_described(failures)}")
+    assert not failures, _described(failures)
 
 
 def test_the_worker_reports_each_failure(tmp_path):

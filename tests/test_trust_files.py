@@ -301,3 +301,26 @@ def test_deeply_nested_json_is_one_error(tmp_path):
     (tmp_path / "deep.gltf").write_text("[" * 100_000)
     with pytest.raises(InputError, match="could not be read as glTF"):
         read_mesh(tmp_path / "deep.gltf")
+
+
+@pytest.mark.parametrize("field, value", [
+    ("asset", [[]]), ("asset", 4294967295), ("scenes", ["AAAA"]), ("nodes", [7]), ("buffers", [None]),
+    ("materials", [1.5]), ("meshes", [{"primitives": [{"attributes": {"POSITION": 2 ** 70}}]}]),
+])
+def test_a_gltf_of_the_wrong_json_types_is_one_error(tmp_path, field, value):
+    """An object where the specification has a number, a list or a string, anywhere in the JSON (found by the reader
+    fuzz): one InputError, never an AttributeError or an OverflowError."""
+    path = gltf_with_images(tmp_path, ["a.png"])
+    (tmp_path / "a.png").write_bytes(png())
+    doc = json.loads(path.read_text())
+    doc[field] = value
+    path.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="glTF"):
+        read_mesh(path)
+
+
+def test_a_named_file_is_read_by_its_size_not_by_the_limit(tmp_path):
+    """A read asks for the file's own size: asking for the limit (a bundle member may be up to 1 GiB) allocated the
+    whole limit first, a MemoryError under a tight address-space limit (found by the reader fuzz)."""
+    (tmp_path / "small.bin").write_bytes(b"12345")
+    assert references.read_named(tmp_path / "small.bin", 1 << 50) == b"12345"

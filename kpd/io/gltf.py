@@ -597,13 +597,15 @@ def read(p: Path, name: str | None = None, *, points: bool = False, root: Path |
         doc, chunk = read_gltf_json(p)
     except (ValueError, KeyError, struct.error, UnicodeDecodeError, RecursionError) as exc:
         raise InputError(f"{p}: could not be read as glTF ({exc})") from None
-    if not isinstance(doc, dict) or str(doc.get("asset", {}).get("version", "2.0")).split(".")[0] != "2":
+    asset = doc.get("asset", {}) if isinstance(doc, dict) else None
+    if not isinstance(asset, dict) or str(asset.get("version", "2.0")).split(".")[0] != "2":
         raise InputError(f"{p}: not a glTF 2.0 file")
     try:
         return _read(p, doc, chunk, name if name is not None else str(p), points, read_image_bytes, PointSet, root)
     except InputError:
         raise
-    except (KeyError, IndexError, TypeError, ValueError) as exc:
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+        # an object where the specification has a number, a list or a string (or the other way round), anywhere
         raise InputError(f"{p}: a malformed glTF file ({type(exc).__name__}: {exc})") from None
 
 
