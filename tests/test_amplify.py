@@ -13,17 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import kpd
 
 from kpd.amplify import MANIFEST, find_meshes, output_names, variant_seed
-from kpd.cli import main
 from kpd.io import Mesh, read_mesh, write_mesh
 from kpd.io.atomic import TEMP_MARK
 
 VARIANTS = 2
-
-
-def kpd(*argv) -> int:
-    return main([str(a) for a in argv])
 
 
 def _chair(stretch: tuple[float, float, float]) -> Mesh:

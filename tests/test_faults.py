@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import kpd as helpers_kpd
 from helpers import make_toy_bundle
 
 from kpd.cli import main
@@ -62,9 +63,8 @@ def snapshot(*folders: Path) -> dict[str, str]:
 
 
 def kpd(capfd, *argv) -> tuple[int, str, str]:
-    code = main([str(a) for a in argv])
-    out, err = capfd.readouterr()
-    return code, out, err
+    """:func:`helpers.kpd` with what it printed: (status, stdout, stderr)."""
+    return helpers_kpd(*argv, capture=capfd)
 
 
 def error_lines(err: str) -> list[str]:
