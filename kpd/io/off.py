@@ -23,17 +23,14 @@ threads (:func:`kpd.io.obj._in_halves`): the rows (lines that hold a word), the 
 :func:`kpd.io.obj._numbers`, the OBJ reader's pass; a row with a word beyond its fast path or a ``#`` is judged in
 Python), the faces' corners, the polygons' ear clipping.
 
-A scan-sized OFF (1,375,656 vertices, 5,505,024 triangles, 178 MB) reads in 1.9 s where Open3D took 5.6 s (a fresh
-process each, median of 3; the reading itself 0.6 s after numba's import and first call, 0.65 s). Its peak, 334 MB,
-is Open3D's too: 165 MB of it the mesh, about 140 MB numba's runtime, the rest a 4 MiB block and its line table.
+Reading needs little beyond the mesh: a 4 MiB block and its line table, and numba's runtime.
 
 :func:`write_mesh` writes what Open3D's OFF writer writes (the header ``OFF``, ``NOFF``, ``COFF`` or ``CNOFF``; per
 vertex ``x y z``, then ``nx ny nz`` with normals, then ``r g b 255`` with colours, each channel ``round(255 c)``,
 halves away from zero; per triangle ``3 a b c``), its numbers formatted by :mod:`kpd.io.text`, with 9 significant
 digits where Open3D writes 6 (a C++ stream's default: up to 5e-6 of a coordinate lost): read back, a coordinate is
-within 5e-9 of itself (relative), and a float32 coordinate rounds back to itself. A scan-sized mesh is written in
-1.5 s where Open3D took 15.7 s (a fresh process each, with the file's fsync; peak 333 MB, 394 MB by Open3D, 303 MB
-of it the mesh as read).
+within 5e-9 of itself (relative), and a float32 coordinate rounds back to itself. Both are several times faster
+than Open3D's at scan sizes (figures in ``docs/formats.md``).
 """
 
 from __future__ import annotations

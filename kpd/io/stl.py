@@ -13,16 +13,12 @@ the bit (``tests/test_io_stl.py`` compares the two on real meshes): the distinct
 in the order the corners first use them, each as its first corner holds it (``-0.0`` included), converted exactly to
 float64, with degenerate triangles kept as Open3D keeps them.
 
-On the 1.37M-vertex chair (5.5M triangles, a 275 MB file), read in a fresh process (median of 3), reading took 10.0 s
-and a peak of 2.0 GB through Open3D, nearly all of it in Open3D's reader; through numpy it takes 1.6 s and 0.94 GB:
-0.12 s to read the records, 0.85 s to weld the 16.5M float32 corners in
-:func:`kpd.grouping.first_occurrence_groups`'s hash table, the rest numba's import and Mesh's checks.
+Reading through numpy takes a fraction of Open3D's time and memory at scan sizes, most of it the weld of the
+float32 corners in :func:`kpd.grouping.first_occurrence_groups`'s hash table (figures in ``docs/formats.md``).
 
 :func:`write` writes a binary STL through numpy, in the bytes Open3D's ``compute_triangle_normals`` and
-``write_triangle_mesh`` give (``tests/test_io_stl.py`` compares them on real and random meshes). Writing the chair
-with :func:`kpd.io.write_mesh` took 2.7-3.0 s through Open3D and takes 1.3-1.8 s, about 0.5 s of it the fsync (warm,
-median of 3, a loaded machine); a fresh process reading and writing it peaks at 294 MiB, the read's own peak, against
-449 MiB.
+``write_triangle_mesh`` give (``tests/test_io_stl.py`` compares them on real and random meshes), in blocks, so
+that writing takes no more memory than reading.
 """
 
 from __future__ import annotations

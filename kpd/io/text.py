@@ -22,13 +22,9 @@ and rounded half to even as Python does (``1000000005.0``, or ``0.1611328125 = 1
 coordinates of the scan below), or it is written by Python on a second pass over its rows (a value that close to a
 tie without being one: about one in ten trillion; the scan's closest is 60 times farther).
 
-**Measured** on a 1,375,656-vertex, 5,505,024-triangle scan (a subdivided ShapeNet chair), median of 3, warm: its
-4.1 million coordinates are formatted in 0.22 s where ``b"%.9g %.9g %.9g" %`` per row took 2.9 s, its 16.5 million
-face indices in 0.23 s where ``b"f %d %d %d" %`` took 6.8 s, and the written OBJ's 181 MB are counted in
-0.09 s (0.03 s of it reading) where the check by :func:`kpd.io.obj._scan` took 1.06 s. The write_* functions format
-65,536 rows at a time, so a file costs a few MB beyond the mesh, not a list of a byte string per row: writing that
-scan as OBJ went from 12.3 s and a 1.9 GB peak to 1.7 s and 0.42 GB (0.30 GB of it the mesh as read), in a fresh
-process (0.35 s of it numba's start) with the file's fsync.
+The write_* functions format 65,536 rows at a time, so that a file costs a few MB beyond the mesh, not a list of a
+byte string per row; formatting is many times faster than Python's ``%`` per row (figures in
+``docs/formats.md``).
 """
 
 from __future__ import annotations
