@@ -753,8 +753,10 @@ def test_pcd_header_without_data_line_or_point_count(tmp_path):
     (tmp_path / "no_count.pcd").write_bytes(re.sub(rb"(?m)^(POINTS|WIDTH|HEIGHT) .*\n", b"", data))
     height_first = re.sub(rb"(?m)^WIDTH .*\n", b"", data).replace(b"DATA", b"WIDTH 4\nDATA")
     (tmp_path / "height_first.pcd").write_bytes(height_first)
+    (tmp_path / "huge_size.pcd").write_bytes(re.sub(rb"(?m)^SIZE 4", b"SIZE 1" + b"0" * 400, data))
     for name, message in (("no_data", "no DATA line"), ("no_count", "declares no POINTS"),
-                          ("height_first", "HEIGHT line comes before any WIDTH")):
+                          ("height_first", "HEIGHT line comes before any WIDTH"),
+                          ("huge_size", "a field is 1, 2, 4 or 8 bytes")):
         with pytest.raises(InputError, match=message):
             read_points(tmp_path / f"{name}.pcd")
 
