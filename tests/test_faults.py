@@ -732,10 +732,12 @@ def test_face_of_fewer_than_three_corners_or_a_partial_normal_in_a_file_open3d_r
     data = (tmp_path / "short.ply").read_bytes()
     (tmp_path / "short.ply").write_bytes(data[:-17] + bytes([2]) + data[-16:] if binary else
                                          data.replace(b"4 0 1 2 3", b"2 0 1"))
+    (tmp_path / "count.ply").write_bytes(data.replace(b"element face 1", b"element face 1\xa2"))  # rply reads 1
     write_points(tmp_path / "p.pcd", np.eye(4, 3), normals=np.eye(4, 3))
     (tmp_path / "n.pcd").write_bytes((tmp_path / "p.pcd").read_bytes().replace(b"normal_x", b"normal_\x1d", 1))
     before = snapshot(tmp_path, inputs)
-    for path, message in ((tmp_path / "short.ply", "face 0 has 2 corners"), (tmp_path / "n.pcd", "without normal_x")):
+    for path, message in ((tmp_path / "short.ply", "face 0 has 2 corners"), (tmp_path / "n.pcd", "without normal_x"),
+                          (tmp_path / "count.ply", "does not give an element's name and count")):
         done = subprocess.run([KPD, "keypoints", str(inputs / "toy.kpd"), str(path), "--out",
                                str(tmp_path / "kp.json")], capture_output=True, text=True, timeout=600)
         assert done.returncode == 2 and error_lines(done.stderr) == [done.stderr.strip()], done.stderr
@@ -753,8 +755,10 @@ def test_pcd_header_without_data_line_or_point_count(tmp_path):
     (tmp_path / "no_count.pcd").write_bytes(re.sub(rb"(?m)^(POINTS|WIDTH|HEIGHT) .*\n", b"", data))
     height_first = re.sub(rb"(?m)^WIDTH .*\n", b"", data).replace(b"DATA", b"WIDTH 4\nDATA")
     (tmp_path / "height_first.pcd").write_bytes(height_first)
+    (tmp_path / "huge_size.pcd").write_bytes(re.sub(rb"(?m)^SIZE 4", b"SIZE 1" + b"0" * 400, data))
     for name, message in (("no_data", "no DATA line"), ("no_count", "declares no POINTS"),
-                          ("height_first", "HEIGHT line comes before any WIDTH")):
+                          ("height_first", "HEIGHT line comes before any WIDTH"),
+                          ("huge_size", "a field is 1, 2, 4 or 8 bytes")):
         with pytest.raises(InputError, match=message):
             read_points(tmp_path / f"{name}.pcd")
 

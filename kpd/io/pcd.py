@@ -41,11 +41,16 @@ def check_complete(p: Path) -> None:
     if "POINTS" not in header and not {"WIDTH", "HEIGHT"} <= set(header):
         raise InputError(f"{p}: its header declares no POINTS (nor WIDTH and HEIGHT): how many points is not said")
     try:
-        n = int(header["POINTS"][0])
+        n = int(header["POINTS"][0]) if "POINTS" in header else int(header["WIDTH"][0]) * int(header["HEIGHT"][0])
         sizes = [int(x) for x in header["SIZE"]]
         counts = [int(x) for x in header.get("COUNT", ["1"] * len(sizes))]
-    except (KeyError, IndexError, ValueError):
-        return
+    except (KeyError, IndexError, ValueError):  # Open3D's reader reads such numbers as garbage (std::bad_alloc)
+        raise InputError(f"{p}: its header's POINTS (or WIDTH and HEIGHT), SIZE and COUNT must be whole numbers; "
+                         f"got {' '.join(header.get('POINTS', []))[:40]!r}, {' '.join(header.get('SIZE', []))[:40]!r} "
+                         f"and {' '.join(header.get('COUNT', []))[:40]!r}") from None
+    if n < 0 or any(size not in (1, 2, 4, 8) for size in sizes) or any(not 0 <= c <= 1 << 16 for c in counts):
+        raise InputError(f"{p}: its header declares {n} points with fields of SIZE {' '.join(map(str, sizes))[:60]} "
+                         f"and COUNT {' '.join(map(str, counts))[:60]}; a field is 1, 2, 4 or 8 bytes")
     kind = end.group(1).decode()
     if kind == "binary":
         need = n * sum(s * c for s, c in zip(sizes, counts))

@@ -90,7 +90,8 @@ def read_header(p: Path) -> Header:
     Raises
     ------
     InputError
-        If the file does not start with ``ply`` or has no ``end_header`` line in its first MiB.
+        If the file does not start with ``ply``, has no ``end_header`` line in its first MiB, or an ``element`` line
+        without a name and a whole count.
     """
     with open(p, "rb") as fh:
         head = fh.read(1 << 20)
@@ -107,7 +108,9 @@ def read_header(p: Path) -> Header:
             continue
         if tokens[0] == "format" and len(tokens) >= 2:
             fmt = tokens[1]
-        elif tokens[0] == "element" and len(tokens) == 3 and tokens[2].isdigit():
+        elif tokens[0] == "element":  # a count that is not a whole number: rply reads its first digits, kpd not
+            if len(tokens) != 3 or not tokens[2].isdigit():
+                raise InputError(f"{p}: the header line {s.strip()!r} does not give an element's name and count")
             elements.append(Element(tokens[1], int(tokens[2]), []))
         elif tokens[0] == "property" and elements:
             if len(tokens) == 5 and tokens[1] == "list" and tokens[2] in _PLY_TYPE_SIZES \
