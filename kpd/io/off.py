@@ -19,9 +19,9 @@ colours ``c / 255`` in float64). It also reads ModelNet's header, and gives :fun
 naming the file and the line; a word that is not a plain decimal (``nan``, ``0x10``, ``3abc``), a binary OFF and the
 headers Open3D refuses are left to Open3D, which reads or refuses them as before. The file is read once, in blocks
 of whole lines (4 MiB: what is held beside the mesh stays small), each by compiled passes in two halves on two
-threads (:func:`kpd.io.obj._in_halves`): the rows (lines that hold a word), the vertices' numbers (by
-:func:`kpd.io.obj._numbers`, the OBJ reader's pass; a row with a word beyond its fast path or a ``#`` is judged in
-Python), the faces' corners, the polygons' ear clipping.
+threads (:func:`kpd.io.numbers.in_halves`): the rows (lines that hold a word), the vertices' numbers (by
+:func:`kpd.io.numbers.scan_numbers`, the OBJ reader's pass; a row with a word beyond its fast path or a ``#`` is
+judged in Python), the faces' corners, the polygons' ear clipping.
 
 Reading needs little beyond the mesh: a 4 MiB block and its line table, and numba's runtime.
 

@@ -8,8 +8,7 @@ other than the faces', elements other than ``vertex`` and ``face``) gives None, 
 properties by name, in any order; Open3D's reader counts a vertex done at its ``z`` (a normal at ``nz``) and refuses
 a file whose ``z`` comes before ``x`` or ``y``. :func:`write_mesh` writes the bytes Open3D writes.
 
-Binary: a scan-sized binary PLY (1.4M vertices, 5.5M triangles, 105 MB) reads in about 0.1 s with numpy where Open3D's
-reader, which calls back once per value, takes 0.6 s and a copy; and writes in about as little.
+Binary: numpy reads and writes whole arrays, where Open3D's reader calls back once per value and copies.
 
 ASCII: Open3D's PLY library (rply) reads the data as one stream of words, split at spaces, tabs and line breaks
 alike: an integer property's word by C's ``strtol`` (a sign and digits: ``2.0`` is refused), a floating one's by
@@ -17,9 +16,9 @@ alike: an integer property's word by C's ``strtol`` (a sign and digits: ``2.0`` 
 0.10000000149), each refused beyond its type's range (a ``float``'s is float32's). kpd reads one row per line
 (lines of blanks alone passed over, ``\\r\\n`` read as ``\\n``, what follows the last face not read, as in Open3D), in
 blocks of whole lines (:func:`kpd.io.off._blocks`, 4 MiB), by compiled passes: the rows (:func:`_filled`), then in
-two halves on two threads (:func:`kpd.io.obj._in_halves`) the integers and the number of words (:func:`_words`) and
-the decimals (:func:`kpd.io.obj._numbers`, the OBJ reader's pass: the correctly rounded value, as ``strtod`` gives
-it). A row either pass leaves (a word of more than 15 significant digits or out of its type's range, a ``#``, a row
+two halves on two threads (:func:`kpd.io.numbers.in_halves`) the integers and the number of words (:func:`_words`) and
+the decimals (:func:`kpd.io.numbers.scan_numbers`, the OBJ reader's pass: the correctly rounded value, as ``strtod``
+gives it). A row either pass leaves (a word of more than 15 significant digits or out of its type's range, a ``#``, a row
 of the wrong length) is read word by word in Python (:meth:`_Rows.judge`), to the same bits. A row with other than
 its element's number of words, a word that is not a number of its property's type or lies beyond its range, is an
 :class:`~kpd.errors.InputError` naming its line; faces with corners outside the vertices are counted as the mesh
@@ -27,12 +26,6 @@ counts them, the first named by its line (Open3D read on across the line, refuse
 gave a mesh the checks refused without a line). A polygon, or a word only C reads (``nan``, ``inf``, hexadecimal
 floats), in the first row out of the ordinary gives None: Open3D reads the file as before. :func:`read_vertices`
 reads the vertex rows only.
-
-A scan-sized ASCII PLY as Open3D writes it (1,375,656 vertices, 5,505,024 triangles, 170 MB) reads in 1.45 s:
-Open3D's reader takes 2.5 s, and kpd took 3.4 s with it and the mesh's conversion (a fresh process each, median of
-3, the call alone; with the imports, 1.6 s and 3.8 s); the reading itself takes 1.0 s after numba's import and first
-call, the completeness check 0.15 s of it. The peak is 356 MiB (295 MiB by Open3D's reader, 326 MiB by kpd before):
-157 MiB of it the mesh, about 134 MiB numba's runtime.
 """
 
 from __future__ import annotations
