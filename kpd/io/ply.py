@@ -18,8 +18,8 @@ alike: an integer property's word by C's ``strtol`` (a sign and digits: ``2.0`` 
 blocks of whole lines (:func:`kpd.io.off._blocks`, 4 MiB), by compiled passes: the rows (:func:`_filled`), then in
 two halves on two threads (:func:`kpd.io.numbers.in_halves`) the integers and the number of words (:func:`_words`) and
 the decimals (:func:`kpd.io.numbers.scan_numbers`, the OBJ reader's pass: the correctly rounded value, as ``strtod``
-gives it). A row either pass leaves (a word of more than 15 significant digits or out of its type's range, a ``#``, a row
-of the wrong length) is read word by word in Python (:meth:`_Rows.judge`), to the same bits. A row with other than
+gives it). A row either pass leaves (a word of more than 15 significant digits or out of its type's range, a ``#``,
+a row of the wrong length) is read word by word in Python (:meth:`_Rows.judge`), to the same bits. A row with other than
 its element's number of words, a word that is not a number of its property's type or lies beyond its range, is an
 :class:`~kpd.errors.InputError` naming its line; faces with corners outside the vertices are counted as the mesh
 counts them, the first named by its line (Open3D read on across the line, refused the file without saying where, or
