@@ -408,8 +408,10 @@ def _handler(editor: BrowserEditor):
 
         def send_error(self, code: int, message: str | None = None, explain: str | None = None) -> None:
             # http.server's own refusals (a request line or headers too long or malformed, a method without a
-            # do_ method): JSON as the editor's own; a method it does not offer is the client's mistake (405)
-            code = HTTPStatus.METHOD_NOT_ALLOWED if code == HTTPStatus.NOT_IMPLEMENTED else code
+            # do_ method): JSON as the editor's own; a method it does not offer (405) and an HTTP version it does not
+            # speak (400) are the client's mistakes, answered as such
+            code = {HTTPStatus.NOT_IMPLEMENTED: HTTPStatus.METHOD_NOT_ALLOWED,
+                    HTTPStatus.HTTP_VERSION_NOT_SUPPORTED: HTTPStatus.BAD_REQUEST}.get(code, code)
             self.close_connection = True
             self._json(code, {"ok": False, "message": message or HTTPStatus(code).phrase})
 
