@@ -32,6 +32,23 @@ import fuzzing  # noqa: E402
 from kpd.benchmark import machine_cpu, write_json  # noqa: E402
 
 
+def grouped(failures: list) -> list:
+    """Failures grouped by outcome, kpd frame and message (numbers and paths aside): each group's count, formats and
+    first three cases (number, reader, mutations), largest group first."""
+    import re
+
+    groups: dict = {}
+    for f in failures:
+        message = re.sub(r"/\S+", "PATH", re.sub(r"\d{4,}", "N", f["detail"] or ""))[:160]
+        group = groups.setdefault((f["outcome"], f["where"], message), {"count": 0, "formats": set(), "cases": []})
+        group["count"] += 1
+        group["formats"].add(f["format"])
+        if len(group["cases"]) < 3:
+            group["cases"].append({k: f[k] for k in ("index", "reader", "mutations")})
+    return [{"outcome": o, "where": w, "detail": m, "count": g["count"], "formats": sorted(g["formats"]),
+             "cases": g["cases"]} for (o, w, m), g in sorted(groups.items(), key=lambda kv: -kv[1]["count"])]
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cases", type=int, default=12000)
@@ -71,7 +88,7 @@ def main(argv=None) -> None:
         "outside_reads": counts["outsides"], "crashes": counts["crashs"],
         "peak_above_start_mib_max": round(counts["peak_bytes_max"] / 2**20, 1),
         "case_seconds_max": round(max(seconds, default=0.0), 3),
-        "per_format": counts["per_format"], "failures": counts["failures"],
+        "per_format": counts["per_format"], "failures": grouped(counts["failures"]),
         "limits": {"seconds": fuzzing.TIMEOUT, "memory_mib": fuzzing.MEMORY_LIMIT >> 20}, "workers": args.workers,
         "machine": platform.machine(), "machine_cpu": machine_cpu(), "cpus": os.cpu_count(),
         "load": os.getloadavg()[0], "seconds": round(time.perf_counter() - started, 1),
