@@ -15,6 +15,7 @@ import hashlib
 import io
 import json
 import logging
+import math
 import os
 import zipfile
 import zlib
@@ -164,8 +165,9 @@ def read_bundle(name_or_path: str | os.PathLike) -> Bundle:
         if manifest_bytes is None:
             raise BundleError(f"{where}: not a kpd bundle: {contract.MANIFEST_FILE} is missing")
         try:
-            manifest = json.loads(manifest_bytes.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+            manifest = json.loads(manifest_bytes.decode("utf-8"), parse_float=_finite_float,
+                                  parse_constant=_no_constant)
+        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError, ValueError) as exc:
             raise BundleError(f"{where}: {contract.MANIFEST_FILE} is not valid JSON ({exc})") from exc
         if not isinstance(manifest, dict):
             raise BundleError(f"{where}: {contract.MANIFEST_FILE} must hold a JSON object")
@@ -354,6 +356,19 @@ def _positive_int(mapping: Mapping, key: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise ValueError(f"{key} must be a positive integer; got {value!r}")
     return value
+
+
+def _finite_float(text: str) -> float:
+    """A JSON number of the manifest: finite, as a manifest written by kpd holds only finite numbers (``1e309`` would
+    be infinity, which its checksum's canonical JSON cannot hold)."""
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"a number out of float64's range: {text[:40]}")
+    return value
+
+
+def _no_constant(text: str) -> float:
+    raise ValueError(f"{text} is not a JSON number")
 
 
 def _load_npy(data: bytes, name: str) -> np.ndarray:

@@ -376,3 +376,15 @@ def test_an_allocation_onnxruntime_cannot_make_is_one_line_naming_the_bundle(tmp
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
     assert "huge.kpd" in done.stderr and "failed in onnxruntime" in done.stderr
+
+
+@pytest.mark.parametrize("number", ["1e309", "-1e309", "NaN", "Infinity"])
+def test_a_manifest_number_beyond_float64_is_one_error(tmp_path, toy, number):
+    """A manifest holding a number that is not finite (found by the reader fuzz): one BundleError, not the ValueError
+    of the checksum's canonical JSON."""
+    bundle = tmp_path / "copy.kpd"
+    shutil.copytree(toy, bundle)
+    text = (bundle / "manifest.json").read_text()
+    (bundle / "manifest.json").write_text(text.replace("{", '{"x": ' + number + ", ", 1))
+    with pytest.raises(BundleError, match="not valid JSON"):
+        read_bundle(bundle)
