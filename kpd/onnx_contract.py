@@ -188,9 +188,8 @@ def _graph_refusal(buf: memoryview, depth: int) -> str | None:
             refusal = _node_refusal(value, depth)
         elif number == 5:  # initializer
             refusal = _tensor_refusal(value)
-        elif number == 15:  # sparse_initializer: values and indices
-            refusal = next((r for f, w, v in _fields(value) if f in (1, 2) and w == 2
-                            for r in [_tensor_refusal(v)] if r), None)
+        elif number == 15:  # sparse_initializer
+            refusal = _sparse_refusal(value)
         else:
             refusal = None
         if refusal:
@@ -217,14 +216,18 @@ def _node_refusal(buf: memoryview, depth: int) -> str | None:
                 refusal = _tensor_refusal(value)
             elif number in (6, 11):  # g, graphs
                 refusal = _graph_refusal(value, depth + 1)
-            elif number in (22, 23):  # sparse_tensor(s): values and indices
-                refusal = next((r for f, w, v in _fields(value) if f in (1, 2) and w == 2
-                                for r in [_tensor_refusal(v)] if r), None)
+            elif number in (22, 23):  # sparse_tensor(s)
+                refusal = _sparse_refusal(value)
             else:
                 refusal = None
             if refusal:
                 return refusal
     return None
+
+
+def _sparse_refusal(buf: memoryview) -> str | None:
+    """A SparseTensorProto's refusal: its values (field 1) and indices (field 2) are tensors of their own."""
+    return next((r for f, w, v in _fields(buf) if f in (1, 2) and w == 2 for r in [_tensor_refusal(v)] if r), None)
 
 
 def _tensor_refusal(buf: memoryview) -> str | None:
