@@ -321,8 +321,22 @@ def _constant_weights(spec, model) -> None:
     model.graph.node.insert(0, helper.make_node("Constant", [], ["b1"], value=tensor))
 
 
+def _sparse_external(spec, model) -> None:
+    """A sparse initializer whose values are external: a tensor inside a SparseTensorProto."""
+    from onnx import TensorProto, helper
+    from onnx.external_data_helper import set_external_data
+
+    values = helper.make_tensor("s_values", TensorProto.FLOAT, [1], np.ones(1, np.float32).tobytes(), raw=True)
+    set_external_data(values, location="blob.bin")
+    values.data_location = TensorProto.EXTERNAL
+    values.ClearField("raw_data")
+    indices = helper.make_tensor("s_indices", TensorProto.INT64, [1], [0])
+    model.graph.sparse_initializer.append(helper.make_sparse_tensor(values, indices, [4]))
+
+
 @pytest.mark.parametrize("edit, message", [
     (_external_w1, "tensor 'w1' keeps its data outside the model"),
+    (_sparse_external, "tensor 's_values' keeps its data outside the model"),
     (_constant_weights, "tensor 'b1' keeps its data outside the model"),
     (_foreign_import, "imports the operator set 'com.microsoft'"),
     (_foreign_node, "node 'Relu' is of the operator set 'custom.evil'"),
