@@ -56,3 +56,20 @@ def test_moves_add_up_per_keypoint():
 def test_bad_moves_name_the_form(text, match):
     with pytest.raises(InputError, match=match):
         parse_move(text)
+
+
+def test_a_shape_that_fails_at_once_is_reported_before_the_model_loads(tmp_path):
+    """A missing file or a header that declares what it cannot hold ends the command without the model's load (the
+    issue's 243-byte glTF: under a second, not after onnxruntime's start); a good shape is read beside the load."""
+    from kpd.commands._shared import model_beside_read
+    from kpd.errors import InputError
+    from kpd.io import write_mesh
+    from kpd.procedural import procedural_chair
+
+    loads = []
+    with pytest.raises(InputError, match="no such file"):
+        model_beside_read(lambda: loads.append(1), tmp_path / "missing.ply")
+    assert loads == []
+    write_mesh(tmp_path / "chair.ply", procedural_chair())
+    model, mesh = model_beside_read(lambda: loads.append(1) or "model", tmp_path / "chair.ply")
+    assert loads == [1] and model == "model" and len(mesh.vertices) > 0

@@ -67,13 +67,17 @@ def load_model(args: argparse.Namespace):
     return Model.load(args.model, threads=args.threads)
 
 
+_READ_FIRST = 0.05  # s the model's load waits for the read: a bad shape fails at once, a good one costs at most this
+
+
 def model_beside_read(load, path, read=None):
     """``(load(), read(path))`` (``read``: :func:`kpd.io.read_mesh` unless given): the shape is read on a worker thread
     (a large file's read and its fresh memory wait mostly outside the interpreter's lock) while this one loads the
     model (``load``, which checks it too), and a third gets the compiled kernels' machinery ready with a first small
     kernel call (numba's start, mostly outside the lock too), work the binding or the sampling would otherwise do
-    after the read. The model's errors come first."""
-    from concurrent.futures import ThreadPoolExecutor
+    after the read. A shape whose read fails at once (a missing file, a header that declares what it cannot hold) is
+    reported at once, before the model is loaded; otherwise the model's errors come first."""
+    from concurrent.futures import ThreadPoolExecutor, wait
 
     from kpd.geometry import sample_surface
     from kpd.io import read_mesh
@@ -83,6 +87,9 @@ def model_beside_read(load, path, read=None):
         reading = reader.submit(read or read_mesh, path)
         # the first kernel call: numba's start
         starting = starter.submit(sample_surface, np.eye(3), np.array([[0, 1, 2]]), 1, seed=0)
+        wait([reading], timeout=_READ_FIRST)
+        if reading.done() and reading.exception() is not None:
+            raise reading.exception()
         try:
             model = load()
         except BaseException:
