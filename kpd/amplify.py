@@ -1,8 +1,9 @@
 """Amplify a collection: variants of every mesh under a folder, drawn from the category prior (``kpd amplify``).
 
 A run binds each source mesh once and writes ``variants`` deformations of it, each to keypoints drawn from the
-model's prior around the source's own keypoints (as :meth:`kpd.runtime.Model.sample_keypoints` draws them), in the
-source's format with its materials, UVs and textures, sub-folders mirrored under the output folder. Its guarantees:
+model's prior around the source's own keypoints, plausible ones only (in the prior's typical range, folding at most
+0.5% of the triangles: :mod:`kpd.variants`), in the source's format with its materials, UVs and textures,
+sub-folders mirrored under the output folder. Its guarantees:
 
 - **Reproducible.** Variant ``i`` of source ``s`` is drawn with the seed :func:`variant_seed` derives from ``--seed``,
   ``s``'s path relative to the collection and ``i``, and every shape is worked on with one thread (onnxruntime and
@@ -16,8 +17,9 @@ source's format with its materials, UVs and textures, sub-folders mirrored under
   process pool and of Ray tasks; the driver alone appends records, as results come back.
 
 The manifest holds, per variant: ``source`` (relative to the collection), ``variant``, ``file`` (relative to the output
-folder), ``seed`` (``numpy.random.default_rng(seed)`` redraws it), ``coefficients`` (the variant's keypoints in the
-prior's components), ``keypoints`` (K x 3, in the variant's own frame and units) and two plausibility measures:
+folder), ``seed``, ``attempt`` and ``shrink`` (:func:`kpd.variants.draw_plausible` redraws it from them: attempt 0
+is ``numpy.random.default_rng(seed)``), ``coefficients`` (the variant's keypoints in the prior's components),
+``keypoints`` (K x 3, in the variant's own frame and units) and two plausibility measures:
 ``sigma`` (the largest ``|coefficient| / standard deviation``) and ``folded`` (the fraction of triangles whose normal
 turned over against the source's); per shape that failed: ``source`` and ``error``.
 """
@@ -39,10 +41,12 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from kpd.errors import InputError, KpdError, WriteError
+from kpd.variants import FOLDED_LIMIT, typical
 
-__all__ = ["CONFIG", "MANIFEST", "SHEET", "Job", "Manifest", "Settings", "ShapeResult", "Summary", "amplify",
-           "amplify_shape", "find_meshes", "folded_fraction", "output_names", "prepare_output", "ray_cluster",
-           "ray_missing_message", "run_jobs", "sheet_rows", "variant_seed", "worker_model"]
+__all__ = ["CONFIG", "MANIFEST", "SHEET", "Drawn", "Job", "Manifest", "Settings", "ShapeResult", "Summary",
+           "amplify", "amplify_shape", "draw_variant", "find_meshes", "folded_fraction", "output_names",
+           "prepare_output", "ray_cluster", "ray_missing_message", "run_jobs", "sheet_rows", "variant_seed",
+           "worker_model"]
 
 log = logging.getLogger("kpd.amplify")
 
@@ -50,8 +54,6 @@ MANIFEST = "manifest.jsonl"
 CONFIG = "amplify.json"
 SHEET = "contact_sheet.png"
 CONFIG_FORMAT = "kpd-amplify/1"
-TYPICAL_SIGMA = 3.0  # a variant is in the prior's typical range when every coefficient is within 3 deviations
-FOLDED_LIMIT = 0.005  # at most 0.5% of a variant's triangles may turn over
 
 
 def ray_missing_message() -> str:
@@ -157,23 +159,16 @@ def variant_seed(seed: int, source: str, index: int) -> int:
 
 def folded_fraction(source: np.ndarray, variant: np.ndarray, triangles: np.ndarray) -> float:
     """The fraction of the source's non-degenerate triangles whose normal points against its own normal before the
-    edit (a fold of the surface).
+    edit (a fold of the surface; :class:`kpd.variants.Folds`).
 
     Parameters
     ----------
     source, variant : (V, 3) float64 vertices before and after.
     triangles : (T, 3) int.
     """
-    from kpd.triangles import cross
+    from kpd.variants import Folds
 
-    before = cross(source, triangles)  # (T, 3)
-    after = cross(variant, triangles)
-    length = np.linalg.norm(before, axis=1)
-    valid = length > 1e-12 * max(float(length.max(initial=0.0)), 1e-300)
-    if not valid.any():
-        return 0.0
-    flipped = np.einsum("ij,ij->i", before[valid], after[valid]) < 0
-    return float(flipped.mean())
+    return Folds(source, triangles).fraction(variant)
 
 
 # --- the unit of work ----------------------------------------------------------------------------------------------
@@ -214,6 +209,7 @@ def amplify_shape(settings: Settings, job: Job, *, check: Callable[[], None] | N
 
 def _amplify_shape(settings: Settings, job: Job, check: Callable[[], None] | None) -> ShapeResult:
     from kpd.io import atomic_files, read_mesh, write_mesh
+    from kpd.variants import Folds
 
     model = worker_model(settings)
     path = Path(settings.folder) / job.source
@@ -224,30 +220,62 @@ def _amplify_shape(settings: Settings, job: Job, check: Callable[[], None] | Non
         return ShapeResult(job.source, [{"source": job.source, "error": _one_line(exc)}])
     except MemoryError:
         return ShapeResult(job.source, [{"source": job.source, "error": "out of memory while binding"}])
-    prior = model.prior
-    scale_sd = np.sqrt(prior.explained_variance_)  # (M,)
     base = rig.normalizer.apply(rig.keypoints)  # (K, 3) in the model frame
+    folds = Folds(mesh.vertices, mesh.triangles)
     out = Path(job.out)
     first = out / job.names[0]
     first.parent.mkdir(parents=True, exist_ok=True)
     records = []
     with atomic_files(first, force=True) as staged:
         for index, name in enumerate(job.names):
-            seed = variant_seed(settings.seed, job.source, index)
-            drawn = prior.sample(1, seed=seed, scale=settings.scale, base=base)[0]  # (K, 3) model frame
-            keypoints = rig.normalizer.invert(drawn)  # (K, 3) the source's frame and units
-            vertices = rig.deform(keypoints)
-            write_mesh(staged.parent / Path(name).name, mesh.with_vertices(vertices))
-            coefficients = prior.coefficients(drawn)  # (M,)
-            records.append({
-                "source": job.source, "variant": index, "file": name, "seed": seed,
-                "coefficients": coefficients.tolist(), "keypoints": keypoints.tolist(),
-                "sigma": float(np.abs(coefficients / scale_sd).max()),
-                "folded": folded_fraction(mesh.vertices, vertices, mesh.triangles),
-            })
+            variant = draw_variant(model.prior, rig, mesh, base, variant_seed(settings.seed, job.source, index),
+                                   settings.scale, folds)
+            write_mesh(staged.parent / Path(name).name, mesh.with_vertices(variant.vertices))
+            records.append({"source": job.source, "variant": index, "file": name, **variant.record()})
         if check is not None:
             check()
     return ShapeResult(job.source, records)
+
+
+class Drawn(NamedTuple):
+    """One variant of a bound source (:func:`draw_variant`).
+
+    vertices : (V, 3) float64, the deformed mesh; keypoints : (K, 3) float64, its keypoints (source frame and units);
+    seed : the variant's seed; draw : the :class:`kpd.variants.Plausible` draw (model frame, its measures).
+    """
+
+    vertices: np.ndarray
+    keypoints: np.ndarray
+    seed: int
+    draw: Any
+
+    def record(self) -> dict:
+        """The manifest's fields of the variant: ``seed``, ``attempt`` and ``shrink`` redraw it
+        (:func:`kpd.variants.draw_plausible`); ``keypoints`` are its labels."""
+        d = self.draw
+        return {"seed": self.seed, "attempt": d.attempt, "shrink": d.shrink, "coefficients": d.coefficients.tolist(),
+                "keypoints": self.keypoints.tolist(), "sigma": d.sigma, "folded": d.folded}
+
+
+def draw_variant(prior, rig, mesh, base: np.ndarray, seed: int, scale: float, folds=None) -> Drawn:
+    """A plausible variant of a bound source (:func:`kpd.variants.draw_plausible`), deformed by its rig.
+
+    Parameters
+    ----------
+    rig : the source's :class:`kpd.rig.Rig` (or a rig seen in the source's frame); mesh : the source mesh.
+    base : (K, 3) the rig's keypoints in the model frame (``rig.normalizer.apply(rig.keypoints)``).
+    folds : the source's :class:`kpd.variants.Folds` (made when None; pass one to draw several variants).
+    """
+    from kpd.variants import Folds, draw_plausible
+
+    folds = Folds(mesh.vertices, mesh.triangles) if folds is None else folds
+
+    def deform(keypoints: np.ndarray) -> tuple[np.ndarray, float]:
+        vertices = rig.deform(rig.normalizer.invert(keypoints))
+        return vertices, folds.fraction(vertices)
+
+    draw = draw_plausible(prior, base, scale, seed, deform)
+    return Drawn(draw.deformed, rig.normalizer.invert(draw.keypoints), seed, draw)
 
 
 def _bind(model, mesh, settings: Settings, path: Path):
@@ -574,8 +602,9 @@ def _ray_error(exc: BaseException) -> str:
 class Summary(NamedTuple):
     """A run's outcome. ``shapes``: in the collection; ``done``: amplified (this run or an earlier one);
     ``failed``: sources with an error; ``new``: shapes worked on by this run; ``variants``: written in all;
-    ``typical``: the fraction of variants within ``TYPICAL_SIGMA``; ``folded_max``: the largest folded fraction;
-    ``folded_ok``: the fraction of variants with at most ``FOLDED_LIMIT`` folded; ``seconds``: this run's time."""
+    ``typical``: the fraction of variants within the prior's typical range (:mod:`kpd.variants`); ``folded_max``:
+    the largest folded fraction; ``folded_ok``: the fraction of variants with at most ``FOLDED_LIMIT`` folded;
+    ``seconds``: this run's time."""
 
     shapes: int
     done: int
@@ -649,7 +678,7 @@ def _summary(manifest: Manifest, sources: Sequence[str], new: int, seconds: floa
     sigma = np.array([r["sigma"] for r in variants], dtype=np.float64)
     folded = np.array([r["folded"] for r in variants], dtype=np.float64)
     return Summary(shapes=len(sources), done=len(wanted & manifest.done()), failed=len(failures), new=new,
-                   variants=len(variants), typical=float((sigma <= TYPICAL_SIGMA).mean()) if len(sigma) else 1.0,
+                   variants=len(variants), typical=float(typical(sigma).mean()) if len(sigma) else 1.0,
                    folded_max=float(folded.max(initial=0.0)),
                    folded_ok=float((folded <= FOLDED_LIMIT).mean()) if len(folded) else 1.0,
                    seconds=seconds, failures=failures)

@@ -3,16 +3,19 @@
 A collection is bound once (:meth:`Augmenter.build`: each mesh's rig, and a fixed sample of points on its surface) into
 a cache folder of plain ``.npy`` arrays, which :class:`Augmenter` maps into memory (``np.load(mmap_mode="r")``): a
 thousand cached rigs cost the pages a loop touches, shared by every data-loader worker on the machine. Each draw takes
-keypoints from the model's category prior around the shape's own (as :meth:`kpd.runtime.Model.sample_keypoints` does)
-and moves the points or the mesh vertices with the rig's linear edit basis, ``rest + basis @ (keypoints - rest
-keypoints)``: microseconds of arithmetic. A draw is seeded per call by ``(seed, index)``, so that the same call in any
-worker, in any order, gives the same variant.
+keypoints from the model's category prior around the shape's own and moves the points or the mesh vertices with the
+rig's linear edit basis, ``rest + basis @ (keypoints - rest keypoints)``: microseconds of arithmetic. Draws are
+plausible as ``kpd amplify``'s are (:mod:`kpd.variants`: in the prior's typical range, the mesh folding at most 0.5% of
+its triangles, drawn again when it folds more), and a point draw is checked on the mesh it lies on, so the points and
+the mesh of one draw agree. A draw is seeded per call by ``(seed, index)``, so that the same call in any worker, in
+any order, gives the same variant.
 
 The cache folder holds ``index.json`` (the format, the model's checksum, the prior, the settings and one entry per
 bound shape) and a folder per shape with ``vertices.npy`` (V, 3), ``triangles.npy`` (T, 3), ``basis.npy`` (V, K),
 ``keypoints.npy`` (K, 3, the model frame), ``faces.npy`` (N,), ``barycentric.npy`` (N, 3), ``points.npy`` (N, 3) and
-``points_basis.npy`` (N, K). A point on a triangle moves with the triangle's corners: its basis row is the barycentric
-mix of theirs, so a drawn point set lies exactly on the drawn mesh.
+``points_basis.npy`` (N, K), and the source's triangles with an area and their normals for the fold count
+(``fold_triangles.npy`` (T', 3), ``fold_normals.npy`` (T', 3)). A point on a triangle moves with the triangle's
+corners: its basis row is the barycentric mix of theirs, so a drawn point set lies exactly on the drawn mesh.
 """
 
 from __future__ import annotations
@@ -34,9 +37,10 @@ __all__ = ["CACHE_FORMAT", "Augmenter", "Variant"]
 
 log = logging.getLogger("kpd.augment")
 
-CACHE_FORMAT = "kpd-augment/1"
+CACHE_FORMAT = "kpd-augment/2"
 INDEX = "index.json"
-_ARRAYS = ("vertices", "triangles", "basis", "keypoints", "faces", "barycentric", "points", "points_basis")
+_ARRAYS = ("vertices", "triangles", "basis", "keypoints", "faces", "barycentric", "points", "points_basis",
+           "fold_triangles", "fold_normals")
 
 
 class Variant(NamedTuple):
@@ -136,6 +140,7 @@ class Augmenter:
         """Bind and cache every source (see :meth:`build`); returns the entries of the index and the failures."""
         from kpd.geometry import sample_surface
         from kpd.io import atomic_files, read_mesh
+        from kpd.variants import Folds
 
         entries, failed = [], []
         for source in sources:
@@ -166,6 +171,8 @@ class Augmenter:
                 "points": np.einsum("nj,njd->nd", weights, mesh.vertices[corners]),
                 "points_basis": np.einsum("nj,njk->nk", weights, basis[corners].astype(np.float64)),
             }
+            folds = Folds(arrays["vertices"], arrays["triangles"])
+            arrays["fold_triangles"], arrays["fold_normals"] = folds.triangles, folds.normals
             with atomic_files(folder / "vertices.npy") as staged:  # a shape's arrays appear together
                 for name, value in arrays.items():
                     np.save(staged.parent / f"{name}.npy", value, allow_pickle=False)
@@ -211,32 +218,45 @@ class Augmenter:
     def draw_keypoints(self, index: int, seed: int | Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
         """``(keypoints (K, 3), coefficients (M,))`` of the draw ``(seed, index)``, in shape ``index``'s units: the
         keypoints :meth:`points` and :meth:`mesh` move to."""
-        index = self._check_index(index)
-        entry = self._entries[index]
-        rng = np.random.default_rng([*_seed_words(seed), index])
-        base = self.arrays(index)["keypoints"]  # (K, 3) model frame
-        drawn = self.prior.sample(1, seed=rng, scale=self.scale, base=np.asarray(base))[0]  # (K, 3)
-        keypoints = drawn * entry["scale"] + np.asarray(entry["center"])  # the normaliser's inverse
-        return keypoints, self.prior.coefficients(drawn)
+        keypoints, _, draw = self._plausible(index, seed)
+        return keypoints, draw.coefficients
 
     def points(self, index: int, seed: int | Sequence[int]) -> Variant:
         """A variant of shape ``index``'s cached surface points (N, 3), drawn with ``(seed, index)``."""
-        return self._draw(index, seed, "points", "points_basis")
+        keypoints, offsets, draw = self._plausible(index, seed)
+        arrays = self.arrays(index)
+        moved = arrays["points_basis"] @ offsets  # (N, 3)
+        moved += arrays["points"]
+        return Variant(moved, keypoints, draw.coefficients)
 
     def mesh(self, index: int, seed: int | Sequence[int]) -> Variant:
         """A variant of shape ``index``'s mesh vertices (V, 3) (triangles: :meth:`triangles`), drawn with
         ``(seed, index)``: the vertices ``Rig.deform`` gives for its keypoints."""
-        return self._draw(index, seed, "vertices", "basis")
+        keypoints, _, draw = self._plausible(index, seed)
+        return Variant(draw.deformed, keypoints, draw.coefficients)
 
-    def _draw(self, index: int, seed: int | Sequence[int], rest: str, basis: str) -> Variant:
-        keypoints, coefficients = self.draw_keypoints(index, seed)
+    def _plausible(self, index: int, seed: int | Sequence[int]) -> tuple[np.ndarray, np.ndarray, Any]:
+        """The draw ``(seed, index)``: ``(keypoints (K, 3) in the shape's units, their offsets from its own (K, 3),
+        the :class:`kpd.variants.Plausible` draw whose ``deformed`` are the mesh's vertices)``."""
+        from kpd.variants import Folds, draw_plausible
+
+        index = self._check_index(index)
+        words = _seed_words(seed)
         arrays = self.arrays(index)
         entry = self._entries[index]
-        rest_keypoints = np.asarray(arrays["keypoints"]) * entry["scale"] + np.asarray(entry["center"])  # (K, 3)
-        offsets = keypoints - rest_keypoints  # (K, 3)
-        moved = arrays[basis] @ offsets  # (P, 3) float64 (a float32 basis is widened)
-        moved += arrays[rest]
-        return Variant(moved, keypoints, coefficients)
+        scale, center = entry["scale"], np.asarray(entry["center"])
+        base = np.asarray(arrays["keypoints"])  # (K, 3) model frame
+        rest = base * scale + center  # (K, 3) the normaliser's inverse
+        folds = Folds.kept(arrays["fold_triangles"], arrays["fold_normals"])
+
+        def deform(drawn: np.ndarray) -> tuple[np.ndarray, float]:
+            moved = arrays["basis"] @ (drawn * scale + center - rest)  # (V, 3) float64 (a float32 basis is widened)
+            moved += arrays["vertices"]
+            return moved, folds.fraction(moved)
+
+        draw = draw_plausible(self.prior, base, self.scale, [*words, index], deform)
+        keypoints = draw.keypoints * scale + center
+        return keypoints, keypoints - rest, draw
 
     def _check_index(self, index: int) -> int:
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not -len(self) <= index < len(self):

@@ -284,7 +284,7 @@ class KeypointPrior:
         return result
 
     def sample(self, n: int, seed: None | int | np.random.Generator = None, scale: float = 1.0, *,
-               base: Any = None) -> np.ndarray:
+               base: Any = None, limit: float | None = None) -> np.ndarray:
         """Draw keypoint sets from the prior.
 
         Parameters
@@ -293,6 +293,10 @@ class KeypointPrior:
         seed : seed or Generator; the same seed gives the same sets.
         scale : multiplies the standard deviation of every component (0 gives ``base`` n times).
         base : (K, 3) float64 keypoints to vary around (a given shape's own keypoints); ``mean_`` when None.
+        limit : None, or keep every set in the prior's typical range: each coefficient within ``limit`` standard
+            deviations ``sqrt(λ_m)`` of the mean (see :meth:`typical_base`). A base beyond it is first brought to its
+            edge; then each ``z_m`` is drawn from its normal truncated to the range, by redrawing the components that
+            leave it (an exact truncated normal; a set already inside is the unbounded draw, number for number).
 
         Returns
         -------
@@ -305,8 +309,38 @@ class KeypointPrior:
             raise InputError(f"scale must be a non-negative number; got {scale!r}")
         base = self.mean_ if base is None else self._as_keypoints(base, "base")
         rng = as_rng(seed)
-        z = rng.standard_normal((int(n), len(self.components_))) * np.sqrt(self.explained_variance_) * scale  # (n, M)
+        sd = np.sqrt(self.explained_variance_)  # (M,)
+        z = rng.standard_normal((int(n), len(self.components_))) * sd * scale  # (n, M)
+        if limit is not None:
+            base = self.typical_base(base, limit)
+            z = self._truncate(z, self.coefficients(base), sd * limit, sd * scale, rng)
         return base[None] + np.tensordot(z, self.components_, axes=1)
+
+    def typical_base(self, keypoints: Any, limit: float) -> np.ndarray:
+        """(K, 3) float64: ``keypoints`` moved along the components just enough that every coefficient lies within
+        ``limit`` standard deviations (unchanged when they already do; the part outside the components is kept).
+        The components are orthonormal, so the shift is ``(clip(c) - c) · components_``."""
+        if not (isinstance(limit, (int, float, np.floating)) and np.isfinite(limit) and limit > 0):
+            raise InputError(f"limit must be a positive number; got {limit!r}")
+        keypoints = self._as_keypoints(keypoints)
+        bound = np.sqrt(self.explained_variance_) * float(limit)  # (M,)
+        c = self.coefficients(keypoints)
+        shift = np.clip(c, -bound, bound) - c
+        return keypoints + np.tensordot(shift, self.components_, axes=1) if shift.any() else keypoints
+
+    @staticmethod
+    def _truncate(z: np.ndarray, centre: np.ndarray, bound: np.ndarray, sd: np.ndarray, rng: np.random.Generator,
+                  tries: int = 64) -> np.ndarray:
+        """``z`` (n, M) with every ``centre + z`` inside ``[-bound, bound]``: the components outside are drawn again
+        from ``N(0, sd²)``, in order, until inside. The base is inside, so a component lands inside with
+        probability at least one half per draw (64 misses: 2^-64); the rare rest is clipped."""
+        z = z.copy()
+        for _ in range(tries):
+            outside = np.abs(centre + z) > bound  # (n, M)
+            if not outside.any():
+                return z
+            z[outside] = rng.standard_normal(int(outside.sum())) * np.broadcast_to(sd, z.shape)[outside]
+        return np.clip(centre + z, -bound, bound) - centre
 
     # --- serialisation ----------------------------------------------------------------------------------------
 

@@ -18,6 +18,7 @@ from helpers import kpd
 from kpd.amplify import MANIFEST, find_meshes, output_names, variant_seed
 from kpd.io import Mesh, read_mesh, write_mesh
 from kpd.io.atomic import TEMP_MARK
+from kpd.variants import FOLDED_LIMIT, TYPICAL_SIGMA, attempt_sequence
 
 VARIANTS = 2
 
@@ -86,9 +87,14 @@ def test_every_mesh_is_amplified_in_its_format_with_its_labels(collection, refer
         # the labels travel with the variant: its vertices are the source's rig deformed to them
         rig = model.rig(source, seed=0)
         np.testing.assert_allclose(variant.vertices, rig.deform(keypoints), atol=1e-5 * np.ptp(source.vertices))
-        drawn = model.prior.sample(1, seed=r["seed"], scale=0.5, base=rig.normalizer.apply(rig.keypoints))[0]
+        # seed, attempt and shrink redraw it (kpd.variants.draw_plausible)
+        base = rig.normalizer.apply(rig.keypoints)
+        rng = np.random.default_rng(attempt_sequence(r["seed"], r["attempt"]))
+        drawn = model.prior.sample(1, seed=rng, scale=0.5, base=base, limit=TYPICAL_SIGMA)[0]
+        centre = model.prior.typical_base(base, TYPICAL_SIGMA)
+        drawn = centre + r["shrink"] * (drawn - centre) if r["shrink"] != 1.0 else drawn
         np.testing.assert_allclose(keypoints, rig.normalizer.invert(drawn), atol=1e-9)
-        assert 0 <= r["folded"] <= 0.005 and r["sigma"] > 0
+        assert 0 <= r["folded"] <= FOLDED_LIMIT and 0 < r["sigma"] <= TYPICAL_SIGMA + 1e-9
         if r["file"].endswith(".obj"):  # UVs and the texture kept, as kpd deform keeps them
             np.testing.assert_allclose(variant.triangle_uvs, source.triangle_uvs, atol=1e-6)
             assert np.array_equal(variant.textures[0], source.textures[0])
