@@ -14,8 +14,8 @@ TORCH_FREE = [
     "kpd", "kpd.errors", "kpd.geometry", "kpd.io", "kpd.cage", "kpd.mvc", "kpd.rig", "kpd.cli", "kpd.prior",
     "kpd.bundle", "kpd.runtime", "kpd.onnx_contract", "kpd.scan", "kpd.metrics", "kpd.annotations", "kpd.data",
     "kpd.collection", "kpd.frame", "kpd.morph", "kpd.mesh", "kpd.grouping", "kpd.triangles", "kpd.procedural",
-    "kpd.benchmark", "kpd.augment", "kpd.amplify", "kpd.viewer", "kpd.viewer.session", "kpd.viewer.render",
-    "kpd.viewer.app", "kpd.viewer.figures", "kpd.viewer.browser",
+    "kpd.benchmark", "kpd.augment", "kpd.amplify", "kpd.variants", "kpd.viewer", "kpd.viewer.session",
+    "kpd.viewer.render", "kpd.viewer.app", "kpd.viewer.figures", "kpd.viewer.browser",
     *(module for name, module in COMMANDS.items() if name not in ("train", "export")),
 ]
 
