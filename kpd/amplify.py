@@ -283,12 +283,10 @@ def _bind(model, mesh, settings: Settings, path: Path):
     seen back in the scan's (:class:`kpd.frame.ScanRig`)."""
     if not settings.scan:
         return model.rig(mesh, seed=settings.seed)
-    from kpd.frame import ScanFrame, ScanRig
+    from kpd.frame import bind_scan
     from kpd.io import file_up
 
-    scan = ScanFrame(model, mesh, settings.up or file_up(path), seed=settings.seed)
-    aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=settings.seed)
-    return ScanRig(aligned, mesh, scan)
+    return bind_scan(model, mesh, settings.up or file_up(path), seed=settings.seed)
 
 
 def _one_line(exc: BaseException) -> str:

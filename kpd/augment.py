@@ -88,7 +88,8 @@ class Augmenter:
 
     @classmethod
     def build(cls, model: Any, shapes: Iterable[str | os.PathLike], cache: str | os.PathLike, *, points: int = 2048,
-              seed: int = 0, scale: float = 0.5, progress: Any = None) -> Augmenter:
+              seed: int = 0, scale: float = 0.5, scan: bool = False, up: str | None = None,
+              progress: Any = None) -> Augmenter:
         """Bind every shape once and cache what draws need; a cache of the same model, shapes and settings is
         reused as it is.
 
@@ -99,6 +100,9 @@ class Augmenter:
         cache : the folder to write (created; an existing cache of other shapes or settings is replaced).
         points : surface points per shape for :meth:`points`.
         seed : the binding's and the surface sample's seed.
+        scan, up : the shapes are scans in frames of their own (``--scan``, ``--up`` of the commands): each is
+            oriented into the model's frame to be bound (``up``: its up axis when known; a glTF's is y), and its draws
+            are in its own frame and units.
         progress : optional callable ``progress(path, error_or_None)`` after each shape.
         """
         from kpd.bundle import manifest_checksum
@@ -107,13 +111,15 @@ class Augmenter:
 
         if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 1:
             raise InputError(f"points must be a positive integer; got {points!r}")
+        if up is not None and not scan:
+            raise InputError("up is the up axis of scans: pass scan=True with it")
         model = model if isinstance(model, Model) else Model.load(model)
         if model.prior is None:
             raise InputError("this model has no category prior to draw variants from")
         cache = Path(cache)
         sources = [str(p) for p in shapes]
         settings = {"format": CACHE_FORMAT, "model": manifest_checksum(model.bundle.manifest), "points": int(points),
-                    "seed": int(seed), "sources": sources}
+                    "seed": int(seed), "scan": bool(scan), "up": up, "sources": sources}
         index = _read_index(cache)
         if index is not None and {k: index.get(k) for k in settings} == settings:
             return cls(cache, scale=scale)
@@ -123,7 +129,7 @@ class Augmenter:
             shutil.rmtree(cache)
         cache.mkdir(parents=True)
         try:
-            entries, failed = cls._bind_all(model, sources, cache, int(points), int(seed), progress)
+            entries, failed = cls._bind_all(model, sources, cache, int(points), int(seed), (bool(scan), up), progress)
             if not entries:
                 raise InputError("no shape could be bound for the augmenter (see the warnings)")
             index = {**settings, "prior": model.prior.to_dict(), "shapes": entries, "failed": failed}
@@ -135,8 +141,8 @@ class Augmenter:
         return cls(cache, scale=scale)
 
     @staticmethod
-    def _bind_all(model: Any, sources: list[str], cache: Path, points: int, seed: int, progress: Any
-                  ) -> tuple[list[dict], list[dict]]:
+    def _bind_all(model: Any, sources: list[str], cache: Path, points: int, seed: int, frame: tuple[bool, str | None],
+                  progress: Any) -> tuple[list[dict], list[dict]]:
         """Bind and cache every source (see :meth:`build`); returns the entries of the index and the failures."""
         from kpd.geometry import sample_surface
         from kpd.io import atomic_files, read_mesh
@@ -146,7 +152,7 @@ class Augmenter:
         for source in sources:
             try:
                 mesh = read_mesh(source)
-                rig = model.rig(mesh, seed=seed)
+                rig = _bind(model, mesh, source, seed, *frame)
                 sample = sample_surface(mesh.vertices, mesh.triangles, points, seed=seed)
             except (KpdError, OSError, ValueError) as exc:
                 log.warning("%s: left out of the augmenter: %s", source, " ".join(str(exc).split()))
@@ -160,7 +166,9 @@ class Augmenter:
             triangles = np.asarray(mesh.triangles)
             corners = triangles[sample.faces]  # (N, 3) vertex indices
             weights = _barycentric(sample.points, mesh.vertices[corners])  # (N, 3)
-            basis = np.ascontiguousarray(rig.basis)  # (V, K)
+            # a scan's rig is bound in the model's orientation; its basis is the same in the scan's frame (the frames
+            # differ by a linear map, which commutes with the basis' mixing of keypoint offsets)
+            basis = np.ascontiguousarray(getattr(rig, "aligned", rig).basis)  # (V, K)
             arrays = {
                 "vertices": np.ascontiguousarray(mesh.vertices, dtype=np.float64),
                 "triangles": triangles.astype(np.int32 if len(mesh.vertices) < 2**31 else np.int64),
@@ -176,9 +184,10 @@ class Augmenter:
             with atomic_files(folder / "vertices.npy") as staged:  # a shape's arrays appear together
                 for name, value in arrays.items():
                     np.save(staged.parent / f"{name}.npy", value, allow_pickle=False)
-            entries.append({"source": source, "key": key, "center": rig.normalizer.center_.tolist(),
-                            "scale": float(rig.normalizer.scale_), "vertices": len(mesh.vertices),
-                            "triangles": len(triangles)})
+            origin = rig.normalizer.invert(np.zeros((1, 3)))[0]  # the model frame -> the shape's: an affine map
+            linear = rig.normalizer.invert(np.eye(3)) - origin  # (3, 3), row j: the image of axis j
+            entries.append({"source": source, "key": key, "to_shape": np.c_[linear.T, origin].tolist(),
+                            "vertices": len(mesh.vertices), "triangles": len(triangles)})
             if progress is not None:
                 progress(source, None)
         return entries, failed
@@ -244,19 +253,19 @@ class Augmenter:
         words = _seed_words(seed)
         arrays = self.arrays(index)
         entry = self._entries[index]
-        scale, center = entry["scale"], np.asarray(entry["center"])
+        to_shape = np.asarray(entry["to_shape"])  # (3, 4): the model frame -> the shape's frame and units
+        linear, origin = to_shape[:, :3], to_shape[:, 3]
         base = np.asarray(arrays["keypoints"])  # (K, 3) model frame
-        rest = base * scale + center  # (K, 3) the normaliser's inverse
         folds = Folds.kept(arrays["fold_triangles"], arrays["fold_normals"])
 
         def deform(drawn: np.ndarray) -> tuple[np.ndarray, float]:
-            moved = arrays["basis"] @ (drawn * scale + center - rest)  # (V, 3) float64 (a float32 basis is widened)
+            moved = arrays["basis"] @ ((drawn - base) @ linear.T)  # (V, 3) float64 (a float32 basis is widened)
             moved += arrays["vertices"]
             return moved, folds.fraction(moved)
 
         draw = draw_plausible(self.prior, base, self.scale, [*words, index], deform)
-        keypoints = draw.keypoints * scale + center
-        return keypoints, keypoints - rest, draw
+        keypoints = draw.keypoints @ linear.T + origin
+        return keypoints, (draw.keypoints - base) @ linear.T, draw
 
     def _check_index(self, index: int) -> int:
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not -len(self) <= index < len(self):
@@ -272,6 +281,16 @@ class Augmenter:
 
     def __repr__(self) -> str:
         return f"Augmenter({len(self)} shapes, K={self.prior.num_keypoints}, scale={self.scale:g}, cache={self.cache})"
+
+
+def _bind(model: Any, mesh: Any, source: str, seed: int, scan: bool, up: str | None) -> Any:
+    """The shape's rig in its own frame: bound as it is, or (``scan``) oriented into the model's frame first."""
+    if not scan:
+        return model.rig(mesh, seed=seed)
+    from kpd.frame import bind_scan
+    from kpd.io import file_up
+
+    return bind_scan(model, mesh, up or file_up(source), seed=seed)
 
 
 def _read_index(cache: Path) -> dict | None:

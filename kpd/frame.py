@@ -33,8 +33,8 @@ import numpy as np
 from kpd.geometry import as_rng
 
 __all__ = ["FrameCheck", "check_frame", "calibrate", "keypoint_fit", "frame_warnings", "ScanFrame", "ScanRig",
-           "settle_orientation", "ambiguity_advice", "TURN_MARGIN", "TURN_ANGLE", "NEAR_ANGLE", "LIMIT_QUANTILE",
-           "SETTLE_POINTS"]
+           "bind_scan", "settle_orientation", "ambiguity_advice", "TURN_MARGIN", "TURN_ANGLE", "NEAR_ANGLE",
+           "LIMIT_QUANTILE", "SETTLE_POINTS"]
 
 log = logging.getLogger(__name__)
 
@@ -407,6 +407,14 @@ class ScanFrame:
 
     def report(self) -> dict:
         return {**self.result.to_dict(), "settled": self.settled}
+
+
+def bind_scan(model: Any, mesh: Any, up: str | None, *, seed: int = 0) -> ScanRig:
+    """The rig of a scan (``--scan``): the mesh oriented into the model's frame (:class:`ScanFrame`, ``up`` as
+    ``--up``), bound there and seen back in the scan's own frame and units (:class:`ScanRig`)."""
+    scan = ScanFrame(model, mesh, up, seed=seed)
+    aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=seed)
+    return ScanRig(aligned, mesh, scan)
 
 
 class _ScanFrameNormalizer:

@@ -10,7 +10,7 @@ import numpy as np
 
 from kpd._compiled import compiled_on_first_call
 
-__all__ = ["cross", "areas", "unit_normals", "vertex_normals", "turned_normals"]
+__all__ = ["cross", "areas", "unit_normals", "vertex_normals", "turned_normals", "turned_over"]
 
 
 def cross(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -74,6 +74,35 @@ def _face_sums(vertices, triangles, slots, n):  # pragma: no cover - compiled
                 out[j, 1] += y
                 out[j, 2] += z
     return out
+
+
+def turned_over(vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray) -> int:
+    """How many triangles point against their normal before an edit: ``cross(vertices, triangles) · normals < 0``,
+    counted in one pass without the (T, 3) temporaries (a draw's fold check is this count; in numpy it costs eight
+    times the draw itself).
+
+    Parameters
+    ----------
+    vertices : (V, 3) float64, after the edit; triangles : (T, 3) int; normals : (T, 3) float64, :func:`cross`
+        before it.
+    """
+    if not len(triangles):
+        return 0
+    return int(_turned_over(np.ascontiguousarray(vertices, dtype=np.float64), triangles, normals))
+
+
+@compiled_on_first_call
+def _turned_over(vertices, triangles, normals):  # pragma: no cover - compiled
+    """:func:`turned_over`'s count: :func:`cross`'s products, term for term, and their dot with ``normals``."""
+    count = 0
+    for t in range(triangles.shape[0]):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        u0, u1, u2 = vertices[b, 0] - vertices[a, 0], vertices[b, 1] - vertices[a, 1], vertices[b, 2] - vertices[a, 2]
+        w0, w1, w2 = vertices[c, 0] - vertices[a, 0], vertices[c, 1] - vertices[a, 1], vertices[c, 2] - vertices[a, 2]
+        x, y, z = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
+        if x * normals[t, 0] + y * normals[t, 1] + z * normals[t, 2] < 0:
+            count += 1
+    return count
 
 
 def turned_normals(old_vertices: np.ndarray, new_vertices: np.ndarray, triangles: np.ndarray,

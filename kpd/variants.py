@@ -66,10 +66,9 @@ class Folds:
         (0 for a mesh without any)."""
         if not len(self.triangles):
             return 0.0
-        from kpd.triangles import cross
+        from kpd.triangles import turned_over
 
-        after = cross(vertices, self.triangles)
-        return float((np.einsum("ij,ij->i", self.normals, after) < 0).mean())
+        return turned_over(vertices, self.triangles, self.normals) / len(self.triangles)
 
 
 def attempt_sequence(entropy: int | list[int], attempt: int) -> np.random.SeedSequence:

@@ -141,3 +141,30 @@ def test_a_build_that_fails_leaves_no_cache(model, shapes, tmp_path, monkeypatch
     with pytest.raises(Exception, match="no space left on device"):
         Augmenter.build(model, shapes, cache, points=64)
     assert not cache.exists()
+
+
+def test_scans_are_bound_in_the_model_s_frame_and_drawn_in_their_own(data_dir, tmp_path):
+    """GSO shoes (long axis along z, y up): bound as scans, each draw is the scan rig's deformation in the shoe's own
+    frame and units."""
+    from kpd.frame import bind_scan
+
+    shoe_model = Model.load("shoe", threads=1)
+    shoes = [data_dir / "gso_shoes" / name / "model.obj" for name in ("11pro_SL_TRX_FG", "AMBERLIGHT_UP_W")]
+    with pytest.raises(InputError, match="scan=True"):
+        Augmenter.build(shoe_model, shoes, tmp_path / "refused", up="y")
+    aug = Augmenter.build(shoe_model, shoes, tmp_path / "shoes", points=256, scan=True, up="y")
+    for index, path in enumerate(shoes):
+        mesh = read_mesh(path)
+        rig = bind_scan(shoe_model, mesh, "y", seed=0)
+        variant = aug.mesh(index, seed=3)
+        size = np.ptp(mesh.vertices)
+        np.testing.assert_allclose(variant.points, rig.deform(variant.keypoints), atol=1e-9 * size)
+        assert 1e-3 * size < np.abs(variant.points - mesh.vertices).max() < 0.3 * size
+        # the keypoints are the shoe's in its own frame: near its surface, not in the model's [-1, 1] box
+        drawn, _ = aug.draw_keypoints(index, seed=3)
+        np.testing.assert_array_equal(drawn, variant.keypoints)
+        assert np.linalg.norm(drawn - rig.keypoints, axis=1).max() < 0.3 * size
+        points = aug.points(index, seed=3)
+        corners = variant.points[np.asarray(mesh.triangles)[aug.arrays(index)["faces"]]]
+        np.testing.assert_allclose(points.points, np.einsum("nj,njd->nd", aug.arrays(index)["barycentric"], corners),
+                                   atol=1e-9 * size)

@@ -320,6 +320,14 @@ def test_the_wheel_without_torch_runs_every_runtime_command_from_an_empty_folder
     assert scores["data"]["test_shapes"] == len(shoes) and scores["settings"]["pairs"] == 2
     chamfer = scores["results"]["chamfer_x1e3"]
     assert chamfer["model"]["mean"] < chamfer["no_deformation"]["mean"]  # the model brings a shoe nearer another
+    run("amplify", "shoe", my_shoes, "--scan", "--variants", "2", "--out", "shoes_x2", "--sheet", "1")
+    records = [json.loads(line) for line in (work / "shoes_x2" / "manifest.jsonl").read_text().splitlines()]
+    assert len(records) == 2 * len(shoes) and (work / "shoes_x2" / "contact_sheet.png").exists()
+    for r in records:  # in each shoe's own frame and units, with its labels
+        source = read_mesh(my_shoes / r["source"]).vertices
+        variant = read_mesh(work / "shoes_x2" / r["file"]).vertices
+        assert variant.shape == source.shape and np.abs(variant - source).max() < 0.3 * np.ptp(source)
+        assert np.abs(np.ptp(variant, axis=0) / np.ptp(source, axis=0) - 1).max() < 0.3
     run("bench", "chair", "--vertices", "2000", "--repeats", "1", "--out", "bench.json")
     assert json.loads((work / "bench.json").read_text())["meshes"]
     _check_window(kpd, work, env, chair)

@@ -172,3 +172,21 @@ def test_augmenter_draws_of_unusual_chairs_are_plausible(model, unusual, tmp_pat
             assert folds.fraction(variant.points) <= FOLDED_LIMIT
             points = aug.points(index, seed=seed)  # checked on the same mesh: the same draw
             np.testing.assert_array_equal(points.keypoints, variant.keypoints)
+
+
+@pytest.mark.parametrize("index_type", [np.int32, np.int64])
+def test_the_compiled_count_is_numpy_s(index_type, tmp_path):
+    """kpd.triangles.turned_over against its slow twin, on read-only memory-mapped arrays as the augmenter has them."""
+    from kpd.triangles import cross, turned_over
+
+    rng = np.random.default_rng(4)
+    vertices = rng.normal(size=(3000, 3))
+    triangles = rng.integers(0, len(vertices), size=(6000, 3)).astype(index_type)
+    np.save(tmp_path / "t.npy", triangles)
+    np.save(tmp_path / "n.npy", cross(vertices, triangles))
+    mapped_triangles, normals = np.load(tmp_path / "t.npy", mmap_mode="r"), np.load(tmp_path / "n.npy", mmap_mode="r")
+    for step in (0.0, 0.05, 0.3, 3.0):
+        moved = vertices + step * rng.normal(size=vertices.shape)
+        expected = int((np.einsum("ij,ij->i", normals, cross(moved, triangles)) < 0).sum())
+        assert turned_over(moved, mapped_triangles, normals) == expected
+    assert turned_over(vertices, triangles[:0], normals[:0]) == 0
