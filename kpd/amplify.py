@@ -365,69 +365,107 @@ def _empty(folder: Path) -> None:
             os.unlink(entry.path)
 
 
+class _Entry(NamedTuple):
+    """What the driver keeps of one finished shape (a thousandth of its records' size, so that a manifest of
+    hundreds of thousands of variants is not held in memory). ``lines``: (n, 3) int64 rows of ``(variant, offset,
+    length)`` of its lines in the file; ``measures``: (n, 2) float64 rows of ``(sigma, folded)``, empty for a shape
+    that failed; ``error``: its error, or None."""
+
+    lines: np.ndarray
+    measures: np.ndarray
+    error: str | None
+
+
 class Manifest:
     """``manifest.jsonl`` of an output folder: the records of finished shapes, appended one shape at a time.
 
     Reading drops what a killed run left unfinished (a last line cut short, a shape with only some of its records):
-    such a shape counts as not done.
+    such a shape counts as not done. Only an index of each shape's lines and its two plausibility measures stay in
+    memory; records are read back from the file when asked for (:meth:`read`).
     """
 
     def __init__(self, out: str | os.PathLike, variants: int) -> None:
         self.path = Path(out) / MANIFEST
         self.variants = variants
-        self.records: dict[str, list[dict]] = {}
+        self._entries: dict[str, _Entry] = {}
         self._load()
 
     def _load(self) -> None:
-        from kpd.io import atomic_output
-
         try:
-            raw = self.path.read_bytes()
+            file = open(self.path, "rb")
         except FileNotFoundError:
             return
-        lines, clean = [], raw.endswith(b"\n") or not raw
-        for line in raw.split(b"\n"):
-            if not line.strip():
-                continue
-            try:
-                record = json.loads(line)
-            except ValueError:
+        grouped: dict[str, list[tuple[int, int, int, float, float, str | None]]] = {}
+        clean, offset, order = True, 0, []
+        with file:
+            for line in file:
+                start, offset = offset, offset + len(line)
+                if not line.endswith(b"\n"):
+                    clean = False  # the last line, cut short by a kill
+                    continue
+                if not line.strip():
+                    continue
+                fields = _fields(line)
+                if fields is None:
+                    clean = False
+                    continue
+                source, variant, sigma, folded, error = fields
+                if source not in grouped:
+                    order.append(source)
+                grouped.setdefault(source, []).append((variant, start, len(line), sigma, folded, error))
+        for source, rows in grouped.items():
+            entry = self._entry(rows)
+            if entry is None:
                 clean = False
-                continue
-            if isinstance(record, dict) and isinstance(record.get("source"), str):
-                lines.append(record)
             else:
-                clean = False
-        grouped: dict[str, list[dict]] = {}
-        for record in lines:
-            grouped.setdefault(record["source"], []).append(record)
-        for source, records in grouped.items():
-            if self._complete(records):
-                self.records[source] = records
-            else:
-                clean = False
+                self._entries[source] = entry
         if not clean:  # rewritten with the finished shapes only, so that appends start on a line of their own
-            with atomic_output(self.path) as tmp:
-                tmp.write_bytes(self._text(self.records))
+            self._rewrite(order)
 
-    def _complete(self, records: list[dict]) -> bool:
-        if len(records) == 1 and "error" in records[0]:
-            return True
-        return sorted(r.get("variant", -1) for r in records) == list(range(self.variants))
+    def _entry(self, rows: list) -> _Entry | None:
+        """The shape's entry from its lines' ``(variant, offset, length, sigma, folded, error)``, or None when its
+        records are incomplete."""
+        if len(rows) == 1 and rows[0][5] is not None:
+            return _Entry(np.array([[-1, rows[0][1], rows[0][2]]], dtype=np.int64), np.empty((0, 2)), rows[0][5])
+        rows = sorted(rows)
+        if [r[0] for r in rows] != list(range(self.variants)) or any(r[5] is not None for r in rows):
+            return None
+        return _Entry(np.array([r[:3] for r in rows], dtype=np.int64), np.array([r[3:5] for r in rows],
+                                                                                 dtype=np.float64), None)
 
-    @staticmethod
-    def _text(grouped: dict[str, list[dict]]) -> bytes:
-        return b"".join((json.dumps(r) + "\n").encode() for s in sorted(grouped)
-                        for r in sorted(grouped[s], key=lambda r: r.get("variant", -1)))
+    def _rewrite(self, order: Sequence[str]) -> None:
+        """Write the file again with the finished shapes' lines, in ``order`` (the sources to keep first, as listed;
+        the rest after, sorted), copied from the old file a shape at a time."""
+        from kpd.io import atomic_output
+
+        listed = [s for s in order if s in self._entries]
+        sources = listed + sorted(set(self._entries) - set(listed))
+        entries = {}
+        with atomic_output(self.path) as tmp, open(self.path, "rb") as old, open(tmp, "wb") as new:
+            offset = 0
+            for source in sources:
+                lines = self._entries[source].lines
+                moved = lines.copy()
+                for i, (_, start, length) in enumerate(lines):
+                    old.seek(start)
+                    data = old.read(length)
+                    new.write(data)
+                    moved[i, 1] = offset
+                    offset += length
+                entries[source] = self._entries[source]._replace(lines=moved)
+        self._entries = entries
 
     def done(self) -> set[str]:
-        return set(self.records)
+        return set(self._entries)
 
     def append(self, result: ShapeResult) -> None:
         """Append one shape's records in one write and fsync them: after this the shape is done."""
-        data = self._text({result.source: result.records})
+        records = sorted(result.records, key=lambda r: r.get("variant", -1))
+        lines = [(json.dumps(r) + "\n").encode() for r in records]
+        data = b"".join(lines)
         fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
         try:
+            start = os.fstat(fd).st_size  # the driver alone appends: its lines begin here
             view = memoryview(data)
             while view:
                 view = view[os.write(fd, view):]
@@ -438,18 +476,59 @@ class Manifest:
             raise WriteError(describe_os_error(exc, self.path)) from exc
         finally:
             os.close(fd)
-        self.records[result.source] = result.records
+        rows, offset = [], start
+        for record, line in zip(records, lines):
+            rows.append((record.get("variant", -1), offset, len(line), record.get("sigma", 0.0),
+                         record.get("folded", 0.0), record.get("error")))
+            offset += len(line)
+        self._entries[result.source] = self._entry(rows)
+
+    def read(self, source: str) -> list[dict]:
+        """The records of a finished shape, read back from the file (sorted by variant)."""
+        with open(self.path, "rb") as file:
+            records = []
+            for _, start, length in self._entries[source].lines:
+                file.seek(start)
+                records.append(json.loads(file.read(length)))
+        return records
+
+    def measures(self, sources: Sequence[str]) -> tuple[np.ndarray, list[tuple[str, str]]]:
+        """Over the finished ones of ``sources``: their variants' ``(sigma, folded)`` (n, 2), and the failures
+        ``(source, error)``, sorted."""
+        entries = [(s, self._entries[s]) for s in sources if s in self._entries]
+        failures = sorted((s, e.error) for s, e in entries if e.error is not None)
+        found = [e.measures for _, e in entries if e.error is None]
+        return (np.concatenate(found) if found else np.empty((0, 2))), failures
+
+    def error(self, source: str) -> str | None:
+        return self._entries[source].error
 
     def finish(self) -> None:
         """Rewrite the manifest sorted by source and variant, so that a finished run's manifest is the same file
-        whatever the order of work."""
-        from kpd.io import atomic_output
-
-        text = self._text(self.records)
-        if self.path.exists() and self.path.read_bytes() == text:
+        whatever the order of work (left as it is when it already is)."""
+        sources = sorted(self._entries)
+        position = [int(self._entries[s].lines[0, 1]) for s in sources]
+        if position == sorted(position) and all(np.all(np.diff(self._entries[s].lines[:, 0]) > 0) for s in sources):
             return
-        with atomic_output(self.path) as tmp:
-            tmp.write_bytes(text)
+        self._rewrite(sources)
+
+
+def _fields(line: bytes) -> tuple[str, int, float, float, str | None] | None:
+    """``(source, variant, sigma, folded, error)`` of one manifest line, or None when it is not a record."""
+    try:
+        record = json.loads(line)
+    except ValueError:
+        return None
+    if not isinstance(record, dict) or not isinstance(record.get("source"), str):
+        return None
+    error = record.get("error")
+    if error is not None:
+        return record["source"], -1, 0.0, 0.0, str(error)
+    variant, sigma, folded = record.get("variant"), record.get("sigma"), record.get("folded")
+    if isinstance(variant, bool) or not isinstance(variant, int) or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) for x in (sigma, folded)):
+        return None
+    return record["source"], variant, float(sigma), float(folded), None
 
 
 # --- engines -------------------------------------------------------------------------------------------------------
@@ -669,14 +748,10 @@ def _amplify(settings, out, sources, engine, processes, ray_address, force, mode
 
 
 def _summary(manifest: Manifest, sources: Sequence[str], new: int, seconds: float) -> Summary:
-    wanted = set(sources)
-    records = [r for s, rs in manifest.records.items() if s in wanted for r in rs]
-    failures = sorted((r["source"], r["error"]) for r in records if "error" in r)
-    variants = [r for r in records if "error" not in r]
-    sigma = np.array([r["sigma"] for r in variants], dtype=np.float64)
-    folded = np.array([r["folded"] for r in variants], dtype=np.float64)
-    return Summary(shapes=len(sources), done=len(wanted & manifest.done()), failed=len(failures), new=new,
-                   variants=len(variants), typical=float(typical(sigma).mean()) if len(sigma) else 1.0,
+    measures, failures = manifest.measures(sources)
+    sigma, folded = measures[:, 0], measures[:, 1]
+    return Summary(shapes=len(sources), done=len(set(sources) & manifest.done()), failed=len(failures), new=new,
+                   variants=len(measures), typical=float(typical(sigma).mean()) if len(sigma) else 1.0,
                    folded_max=float(folded.max(initial=0.0)),
                    folded_ok=float((folded <= FOLDED_LIMIT).mean()) if len(folded) else 1.0,
                    seconds=seconds, failures=failures)
@@ -686,11 +761,10 @@ def sheet_rows(manifest: Manifest, *, rows: int = 4, columns: int = 5) -> list[t
     """The contact sheet's rows: for the first ``rows`` amplified sources (sorted), ``(source, files, keypoints)``:
     its first ``columns - 1`` variants' files (relative to the output folder) and keypoints (K, 3)."""
     picked = []
-    for source in sorted(manifest.records):
-        records = manifest.records[source]
-        if "error" in records[0]:
+    for source in sorted(manifest.done()):
+        if manifest.error(source) is not None:
             continue
-        records = sorted(records, key=lambda r: r["variant"])[:max(columns - 1, 0)]
+        records = manifest.read(source)[:max(columns - 1, 0)]
         picked.append((source, [r["file"] for r in records], [np.asarray(r["keypoints"]) for r in records]))
         if len(picked) >= rows:
             break

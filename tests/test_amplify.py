@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import kpd
+from helpers import kpd, peak_of
 
 from kpd.amplify import MANIFEST, find_meshes, output_names, variant_seed
 from kpd.io import Mesh, read_mesh, write_mesh
@@ -260,3 +260,53 @@ def test_an_unreachable_cluster_is_one_line_and_leaves_nothing(collection, tmp_p
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"cannot reach the Ray cluster at 127.0.0.1:{port}" in err[0]
     assert not (tmp_path / "r").exists()
+
+
+def _record(source: str, variant: int, rng) -> dict:
+    return {"source": source, "variant": variant, "file": f"{source}_{variant:03d}.ply", "seed": 1, "attempt": 0,
+            "shrink": 1.0, "coefficients": rng.normal(size=8).tolist(), "keypoints": rng.normal(size=(12, 3)).tolist(),
+            "sigma": float(rng.uniform(0, 3)), "folded": float(rng.uniform(0, 0.005))}
+
+
+def test_a_damaged_manifest_keeps_its_finished_shapes_and_is_sorted_at_the_end(tmp_path):
+    from kpd.amplify import Manifest, ShapeResult
+
+    rng = np.random.default_rng(0)
+    whole = {name: [_record(name, v, rng) for v in range(3)] for name in ("c.ply", "a.ply", "b.ply")}
+    lines = [json.dumps(r) for name in ("c.ply", "a.ply") for r in whole[name]]
+    lines += [json.dumps(whole["b.ply"][0]), "not json", json.dumps({"source": "e.ply", "error": "unreadable"})]
+    (tmp_path / MANIFEST).write_text("\n".join(lines) + "\n" + json.dumps(whole["b.ply"][1])[:40])  # a kill mid-line
+    manifest = Manifest(tmp_path, 3)
+    assert manifest.done() == {"a.ply", "c.ply", "e.ply"}  # b.ply's records incomplete: to be done again
+    assert manifest.read("a.ply") == whole["a.ply"] and manifest.error("e.ply") == "unreadable"
+    assert (tmp_path / MANIFEST).read_text().endswith("\n")  # appends start on a line of their own
+    manifest.append(ShapeResult("b.ply", list(reversed(whole["b.ply"]))))
+    assert manifest.read("b.ply") == whole["b.ply"]
+    measures, failures = manifest.measures(["a.ply", "b.ply", "e.ply", "z.ply"])
+    assert failures == [("e.ply", "unreadable")] and measures.shape == (6, 2)
+    manifest.finish()
+    expected = [json.dumps(r) for name in ("a.ply", "b.ply", "c.ply") for r in whole[name]]
+    text = (tmp_path / MANIFEST).read_text().splitlines()
+    assert [json.loads(t)["source"] for t in text] == ["a.ply"] * 3 + ["b.ply"] * 3 + ["c.ply"] * 3 + ["e.ply"]
+    assert text[:9] == expected
+    assert Manifest(tmp_path, 3).read("c.ply") == whole["c.ply"]  # read back after the rewrite
+
+
+def test_the_manifest_of_a_large_collection_is_not_held_in_memory(tmp_path):
+    """50,000 records (5,000 shapes x 10, 57 MB of JSON): the driver keeps an index of them, not the records."""
+    rng = np.random.default_rng(0)
+    template = [_record("x", v, rng) for v in range(10)]
+    with open(tmp_path / MANIFEST, "w") as file:
+        for i in reversed(range(5000)):  # in the reverse order, so that the end sorts them all again
+            for r in template:
+                file.write(json.dumps({**r, "source": f"s{i:05d}.ply"}) + "\n")
+    size = (tmp_path / MANIFEST).stat().st_size
+    code = ("import sys\nfrom kpd.amplify import Manifest, _summary\nm = Manifest(sys.argv[1], 10)\n"
+            "s = _summary(m, sorted(m.done()), 0, 0.0)\nm.finish()\nprint(s.done, s.variants)")
+    baseline, base_peak = peak_of([sys.executable, "-c", "import kpd.amplify"])
+    done, peak = peak_of([sys.executable, "-c", code, str(tmp_path)])
+    assert done.returncode == 0 and baseline.returncode == 0, done.stderr
+    assert done.stdout.split()[:2] == ["5000", "50000"]
+    assert peak - base_peak < 0.5 * size, (peak - base_peak) / 2**20  # the records would take ~6x the file's size
+    first = (tmp_path / MANIFEST).open().readline()
+    assert json.loads(first)["source"] == "s00000.ply"
