@@ -324,12 +324,33 @@ def rig_browser(tmp: Path) -> None:
         process.wait(timeout=10)
 
 
+def _amplify(tmp: Path, names: list[str], out: str) -> None:
+    """kpd amplify's own contact sheet of ModelNet10 training chairs, four variants each."""
+    folder = tmp / out
+    folder.mkdir()
+    for name in names:
+        (folder / name).symlink_to(DATA / "modelnet10" / "chair" / "train" / name)
+    kpd("amplify", "chair", folder, "--variants", "4", "--out", tmp / f"{out}_x4")
+    shutil.copyfile(tmp / f"{out}_x4" / "contact_sheet.png", DOCS / f"{out}.png")
+
+
+def amplify_chairs(tmp: Path) -> None:
+    _amplify(tmp, [f"chair_{i:04d}.ply" for i in range(1, 5)], "amplify_chairs")
+
+
+def amplify_unusual(tmp: Path) -> None:
+    """Chairs whose own keypoints lie beyond the prior's typical range (0018, 0030, 0061) and one whose first draw of
+    a variant folds (0062): their variants, brought into the range."""
+    _amplify(tmp, ["chair_0018.ply", "chair_0030.ply", "chair_0061.ply", "chair_0062.ply"], "amplify_unusual")
+
+
 PICTURES = {"demo": demo, "render_chair": render_chair, "sample_chair": sample_chair,
             "scan_chair_ambiguous": scan_chair_ambiguous, "scan_sneaker": scan_sneaker, "editor_chair": editor_chair,
             "editor_sneaker": editor_sneaker, "chair_alignment": chair_alignment, "table_alignment": table_alignment,
             "samples_chair": samples_chair, "samples_chair_scale1": samples_chair_scale1,
             "samples_table": samples_table, "edits_chair": edits_chair, "edits_table": edits_table,
-            "rig_blender": rig_blender, "rig_browser": rig_browser}
+            "rig_blender": rig_blender, "rig_browser": rig_browser, "amplify_chairs": amplify_chairs,
+            "amplify_unusual": amplify_unusual}
 
 
 def main() -> None:
