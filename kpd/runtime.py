@@ -393,12 +393,14 @@ class Model:
             result[index] = np.asarray(edits[index], dtype=np.float64)
         return result
 
-    def sample_keypoints(self, rig: Rig, n: int, *, seed: int = 0, scale: float = 1.0) -> np.ndarray:
+    def sample_keypoints(self, rig: Rig, n: int, *, seed: int = 0, scale: float = 1.0,
+                         limit: float | None = None) -> np.ndarray:
         """(n, K, 3) float64: prior-sampled variants of a rig's keypoints, in the rig's units (around its own
-        keypoints, with the category's component variances times ``scale``)."""
+        keypoints, with the category's component variances times ``scale``; ``limit``: kept within that many
+        standard deviations of each component, as :meth:`kpd.prior.KeypointPrior.sample` keeps them)."""
         prior = self._require_prior()
         normalizer = rig.normalizer
-        sets = prior.sample(n, seed=seed, scale=scale, base=normalizer.apply(rig.keypoints))
+        sets = prior.sample(n, seed=seed, scale=scale, base=normalizer.apply(rig.keypoints), limit=limit)
         return np.stack([normalizer.invert(s) for s in sets]) if len(sets) else np.empty((0, rig.num_keypoints, 3))
 
     def _require_prior(self) -> KeypointPrior:

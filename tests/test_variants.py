@@ -8,6 +8,7 @@ import os
 
 import numpy as np
 import pytest
+from helpers import kpd
 from scipy import stats
 
 from kpd.amplify import Settings, amplify
@@ -190,3 +191,14 @@ def test_the_compiled_count_is_numpy_s(index_type, tmp_path):
         expected = int((np.einsum("ij,ij->i", normals, cross(moved, triangles)) < 0).sum())
         assert turned_over(moved, mapped_triangles, normals) == expected
     assert turned_over(vertices, triangles[:0], normals[:0]) == 0
+
+
+def test_kpd_sample_draws_in_the_typical_range_too(model, unusual, tmp_path):
+    source = unusual / "chair_0030.ply"  # 4.8 standard deviations out in the first component
+    assert kpd("sample", "chair", source, "--n", "6", "--scale", "1", "--out", tmp_path / "out") == 0
+    record = json.loads((tmp_path / "out" / "keypoints.json").read_text())
+    rig = model.rig(read(source), seed=0)
+    np.testing.assert_allclose(record["source_keypoints"], rig.keypoints, atol=1e-9)
+    for variant in record["variants"]:
+        coefficients = model.prior.coefficients(rig.normalizer.apply(np.asarray(variant["keypoints"])))
+        assert typical(np.abs(coefficients / _sd(model.prior)).max())

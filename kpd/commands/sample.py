@@ -25,7 +25,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n", type=integer(1, 1000), default=16, help="number of variants (default 16)")
     parser.add_argument("--scale", type=number(0), default=0.5,
                         help="standard deviations of the prior's components (default 0.5; 1 is as varied as the "
-                             "whole category, which bends diverse categories such as tables strongly)")
+                             "whole category, which bends diverse categories such as tables strongly); draws stay "
+                             "within 3 of them")
     parser.add_argument("--sample-seed", type=integer(0), default=0, help="seed of the prior draws (default 0)")
     parser.add_argument("--format", default=None, metavar="EXT",
                         help="file type of the variants (.obj .ply ...); default: the input's, else .ply")
@@ -45,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
     from kpd.errors import InputError
     from kpd.frame import ScanRig
     from kpd.io import MESH_FORMATS, Outputs, write_mesh
+    from kpd.variants import TYPICAL_SIGMA
 
     suffix = args.format or Path(args.mesh).suffix.lower()
     suffix = suffix if suffix.startswith(".") else "." + suffix
@@ -70,7 +72,9 @@ def run(args: argparse.Namespace) -> int:
         else:
             rig = rig_checked(model, mesh, args.seed, args.mesh)
         up, front = shape_view(model, args.mesh, scan)
-        keypoint_sets = model.sample_keypoints(rig, args.n, seed=args.sample_seed, scale=args.scale)
+        # in the prior's typical range, as kpd amplify draws (an unusual source's variants start from its edge)
+        keypoint_sets = model.sample_keypoints(rig, args.n, seed=args.sample_seed, scale=args.scale,
+                                               limit=TYPICAL_SIGMA)
         # each variant is deformed when it is written or drawn and let go after (an edit: milliseconds), so that the
         # command's memory does not grow with --n
         meshes = _Variants(mesh, rig, keypoint_sets)
