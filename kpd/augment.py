@@ -81,7 +81,7 @@ class Augmenter:
                              "Augmenter.build)")
         self._index = index
         self.prior = KeypointPrior.from_dict(index["prior"])
-        self._entries = index["shapes"]
+        self._entries = [_checked_entry(self.cache, e) for e in index["shapes"]]
         self._open: dict[int, dict[str, np.ndarray]] = {}
 
     # --- building -------------------------------------------------------------------------------------------------
@@ -301,6 +301,23 @@ def _read_index(cache: Path) -> dict | None:
     if not isinstance(index, dict) or index.get("format") != CACHE_FORMAT or not isinstance(index.get("shapes"), list):
         return None
     return index
+
+
+def _checked_entry(cache: Path, entry: Any) -> dict:
+    """An index entry as :meth:`Augmenter.build` writes it: its ``key`` names a folder of the cache itself (six
+    digits: never a path out of it) and ``to_shape`` is a finite (3, 4) map; anything else is a damaged or foreign
+    cache, refused in one line."""
+    key = entry.get("key") if isinstance(entry, dict) else None
+    to_shape = entry.get("to_shape") if isinstance(entry, dict) else None
+    try:
+        matrix = np.asarray(to_shape, dtype=np.float64)
+    except (TypeError, ValueError):
+        matrix = np.empty(0)
+    if not (isinstance(key, str) and len(key) == 6 and key.isascii() and key.isdigit()) or matrix.shape != (3, 4) \
+            or not np.isfinite(matrix).all() or not isinstance(entry.get("source"), str):
+        raise InputError(f"{cache}: a damaged augmenter cache (an entry of {INDEX} is not one Augmenter.build "
+                         "writes); build the cache again")
+    return entry
 
 
 def _seed_words(seed: int | Sequence[int]) -> list[int]:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import pickle
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -168,3 +170,15 @@ def test_scans_are_bound_in_the_model_s_frame_and_drawn_in_their_own(data_dir, t
         corners = variant.points[np.asarray(mesh.triangles)[aug.arrays(index)["faces"]]]
         np.testing.assert_allclose(points.points, np.einsum("nj,njd->nd", aug.arrays(index)["barycentric"], corners),
                                    atol=1e-9 * size)
+
+
+@pytest.mark.parametrize("damage", [{"key": "../../outside"}, {"key": "/etc"}, {"to_shape": [[1, 0, 0]]},
+                                    {"to_shape": [[float("nan")] * 4] * 3}, {"source": 3}])
+def test_a_damaged_index_entry_is_refused_and_nothing_outside_the_cache_is_read(augmenter, tmp_path, damage):
+    copy = tmp_path / "cache"
+    shutil.copytree(augmenter.cache, copy)
+    index = json.loads((copy / "index.json").read_text())
+    index["shapes"][0].update(damage)
+    (copy / "index.json").write_text(json.dumps(index))
+    with pytest.raises(InputError, match="damaged augmenter cache"):
+        Augmenter(copy)
