@@ -217,6 +217,9 @@ class Augmenter:
                 arrays = {name: np.load(folder / f"{name}.npy", mmap_mode="r", allow_pickle=False) for name in _ARRAYS}
             except (OSError, ValueError) as exc:
                 raise InputError(f"{folder}: a damaged augmenter cache entry ({exc}); build the cache again") from exc
+            problem = _array_problem(arrays, self.prior.num_keypoints)
+            if problem:
+                raise InputError(f"{folder}: a damaged augmenter cache entry ({problem}); build the cache again")
             self._open[index] = arrays
         return arrays
 
@@ -301,6 +304,27 @@ def _read_index(cache: Path) -> dict | None:
     if not isinstance(index, dict) or index.get("format") != CACHE_FORMAT or not isinstance(index.get("shapes"), list):
         return None
     return index
+
+
+def _array_problem(arrays: dict[str, np.ndarray], k: int) -> str | None:
+    """What is wrong with a shape's cached arrays, or None: every shape agreeing with the others (V vertices, T
+    triangles, N points, K keypoints) and every index inside what it indexes (the compiled fold count reads
+    ``vertices[fold_triangles]`` unchecked), read once when the shape is first drawn."""
+    v, t, n = (len(arrays[name]) for name in ("vertices", "triangles", "points"))
+    folds = len(arrays["fold_triangles"])
+    shapes = {"vertices": (v, 3), "triangles": (t, 3), "basis": (v, k), "keypoints": (k, 3), "faces": (n,),
+              "barycentric": (n, 3), "points": (n, 3), "points_basis": (n, k), "fold_triangles": (folds, 3),
+              "fold_normals": (folds, 3)}
+    for name, shape in shapes.items():
+        if arrays[name].shape != shape:
+            return f"{name}.npy has shape {arrays[name].shape}, not {shape}"
+        integer = name in ("triangles", "faces", "fold_triangles")
+        if arrays[name].dtype.kind not in ("iu" if integer else "f"):
+            return f"{name}.npy holds {arrays[name].dtype}"
+    for name, bound in (("triangles", v), ("faces", t), ("fold_triangles", v)):
+        if arrays[name].size and (int(arrays[name].min()) < 0 or int(arrays[name].max()) >= bound):
+            return f"{name}.npy indexes outside its {bound} rows"
+    return None
 
 
 def _checked_entry(cache: Path, entry: Any) -> dict:

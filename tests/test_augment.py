@@ -182,3 +182,17 @@ def test_a_damaged_index_entry_is_refused_and_nothing_outside_the_cache_is_read(
     (copy / "index.json").write_text(json.dumps(index))
     with pytest.raises(InputError, match="damaged augmenter cache"):
         Augmenter(copy)
+
+
+@pytest.mark.parametrize("name, value", [("fold_triangles", lambda a: a + 10**6), ("basis", lambda a: a[:, :2]),
+                                         ("faces", lambda a: -a - 1), ("vertices", lambda a: a.astype(np.int64))])
+def test_damaged_arrays_are_refused_before_a_draw_reads_them(augmenter, tmp_path, name, value):
+    copy = tmp_path / "cache"
+    shutil.copytree(augmenter.cache, copy)
+    key = json.loads((copy / "index.json").read_text())["shapes"][0]["key"]
+    path = copy / key / f"{name}.npy"
+    np.save(path, value(np.load(path)), allow_pickle=False)
+    damaged = Augmenter(copy)
+    with pytest.raises(InputError, match=rf"damaged augmenter cache entry \({name}\.npy"):
+        damaged.points(0, seed=0)
+    assert damaged.points(1, seed=0).points.shape[1] == 3  # the other shapes still draw
