@@ -39,6 +39,8 @@ log = logging.getLogger("kpd.augment")
 
 CACHE_FORMAT = "kpd-augment/2"
 INDEX = "index.json"
+BUILDING = "build.json"  # the settings of a build not finished yet
+ENTRY = "entry.json"  # a shape's entry of the index, beside its arrays
 _ARRAYS = ("vertices", "triangles", "basis", "keypoints", "faces", "barycentric", "points", "points_basis",
            "fold_triangles", "fold_normals")
 
@@ -88,10 +90,10 @@ class Augmenter:
 
     @classmethod
     def build(cls, model: Any, shapes: Iterable[str | os.PathLike], cache: str | os.PathLike, *, points: int = 2048,
-              seed: int = 0, scale: float = 0.5, scan: bool = False, up: str | None = None,
+              seed: int = 0, scale: float = 0.5, scan: bool = False, up: str | None = None, processes: int = 1,
               progress: Any = None) -> Augmenter:
         """Bind every shape once and cache what draws need; a cache of the same model, shapes and settings is
-        reused as it is.
+        reused as it is, and a build of them that was stopped (killed, a full disk) continues where it stopped.
 
         Parameters
         ----------
@@ -103,7 +105,12 @@ class Augmenter:
         scan, up : the shapes are scans in frames of their own (``--scan``, ``--up`` of the commands): each is
             oriented into the model's frame to be bound (``up``: its up axis when known; a glTF's is y), and its draws
             are in its own frame and units.
+        processes : shapes bound at once, each in a worker process of its own (one onnxruntime thread each; spawned,
+            so a script that builds with more than one needs Python's ``if __name__ == "__main__":`` guard).
         progress : optional callable ``progress(path, error_or_None)`` after each shape.
+
+        Each shape's arrays and its entry are placed in its folder together, so a stopped build keeps the shapes it
+        finished; ``index.json`` is written last, and only its presence makes the folder a cache.
         """
         from kpd.bundle import manifest_checksum
         from kpd.io import atomic_output
@@ -111,6 +118,8 @@ class Augmenter:
 
         if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 1:
             raise InputError(f"points must be a positive integer; got {points!r}")
+        if isinstance(processes, bool) or not isinstance(processes, (int, np.integer)) or processes < 1:
+            raise InputError(f"processes must be a positive integer; got {processes!r}")
         if up is not None and not scan:
             raise InputError("up is the up axis of scans: pass scan=True with it")
         model = model if isinstance(model, Model) else Model.load(model)
@@ -123,74 +132,23 @@ class Augmenter:
         index = _read_index(cache)
         if index is not None and {k: index.get(k) for k in settings} == settings:
             return cls(cache, scale=scale)
-        if cache.exists():
-            if index is None and any(cache.iterdir()):
+        if cache.exists() and _read_json(cache / BUILDING) != settings:
+            if index is None and _read_json(cache / BUILDING) is None and any(cache.iterdir()):
                 raise InputError(f"{cache} exists and is not an augmenter cache; choose another folder")
-            shutil.rmtree(cache)
-        cache.mkdir(parents=True)
-        try:
-            entries, failed = cls._bind_all(model, sources, cache, int(points), int(seed), (bool(scan), up), progress)
-            if not entries:
-                raise InputError("no shape could be bound for the augmenter (see the warnings)")
-            index = {**settings, "prior": model.prior.to_dict(), "shapes": entries, "failed": failed}
-            with atomic_output(cache / INDEX) as tmp:  # last: its presence says the cache is whole
-                tmp.write_text(json.dumps(index) + "\n")
-        except BaseException:
-            shutil.rmtree(cache, ignore_errors=True)  # a cache cut short is no cache: nothing half-written stays
-            raise
+            shutil.rmtree(cache)  # another cache, or another build's start: replaced
+        if not cache.exists():
+            cache.mkdir(parents=True)
+            with atomic_output(cache / BUILDING) as tmp:  # what a stopped build was, so that the same one continues
+                tmp.write_text(json.dumps(settings) + "\n")
+        work = _Work(model if processes == 1 else str(model.bundle.path), int(points), int(seed), bool(scan), up)
+        entries, failed = _bind_all(work, sources, cache, int(processes), progress)
+        if not entries:
+            raise InputError("no shape could be bound for the augmenter (see the warnings)")
+        index = {**settings, "prior": model.prior.to_dict(), "shapes": entries, "failed": failed}
+        with atomic_output(cache / INDEX) as tmp:  # last: its presence says the cache is whole
+            tmp.write_text(json.dumps(index) + "\n")
+        (cache / BUILDING).unlink()
         return cls(cache, scale=scale)
-
-    @staticmethod
-    def _bind_all(model: Any, sources: list[str], cache: Path, points: int, seed: int, frame: tuple[bool, str | None],
-                  progress: Any) -> tuple[list[dict], list[dict]]:
-        """Bind and cache every source (see :meth:`build`); returns the entries of the index and the failures."""
-        from kpd.geometry import sample_surface
-        from kpd.io import atomic_files, read_mesh
-        from kpd.variants import Folds
-
-        entries, failed = [], []
-        for source in sources:
-            try:
-                mesh = read_mesh(source)
-                rig = _bind(model, mesh, source, seed, *frame)
-                sample = sample_surface(mesh.vertices, mesh.triangles, points, seed=seed)
-            except (KpdError, OSError, ValueError) as exc:
-                log.warning("%s: left out of the augmenter: %s", source, " ".join(str(exc).split()))
-                failed.append({"source": source, "error": " ".join(str(exc).split())})
-                if progress is not None:
-                    progress(source, str(exc))
-                continue
-            key = f"{len(entries):06d}"
-            folder = cache / key
-            folder.mkdir()
-            triangles = np.asarray(mesh.triangles)
-            corners = triangles[sample.faces]  # (N, 3) vertex indices
-            weights = _barycentric(sample.points, mesh.vertices[corners])  # (N, 3)
-            # a scan's rig is bound in the model's orientation; its basis is the same in the scan's frame (the frames
-            # differ by a linear map, which commutes with the basis' mixing of keypoint offsets)
-            basis = np.ascontiguousarray(getattr(rig, "aligned", rig).basis)  # (V, K)
-            arrays = {
-                "vertices": np.ascontiguousarray(mesh.vertices, dtype=np.float64),
-                "triangles": triangles.astype(np.int32 if len(mesh.vertices) < 2**31 else np.int64),
-                "basis": basis,
-                "keypoints": rig.normalizer.apply(rig.keypoints),
-                "faces": sample.faces.astype(np.int64),
-                "barycentric": weights,
-                "points": np.einsum("nj,njd->nd", weights, mesh.vertices[corners]),
-                "points_basis": np.einsum("nj,njk->nk", weights, basis[corners].astype(np.float64)),
-            }
-            folds = Folds(arrays["vertices"], arrays["triangles"])
-            arrays["fold_triangles"], arrays["fold_normals"] = folds.triangles, folds.normals
-            with atomic_files(folder / "vertices.npy") as staged:  # a shape's arrays appear together
-                for name, value in arrays.items():
-                    np.save(staged.parent / f"{name}.npy", value, allow_pickle=False)
-            origin = rig.normalizer.invert(np.zeros((1, 3)))[0]  # the model frame -> the shape's: an affine map
-            linear = rig.normalizer.invert(np.eye(3)) - origin  # (3, 3), row j: the image of axis j
-            entries.append({"source": source, "key": key, "to_shape": np.c_[linear.T, origin].tolist(),
-                            "vertices": len(mesh.vertices), "triangles": len(triangles)})
-            if progress is not None:
-                progress(source, None)
-        return entries, failed
 
     # --- drawing --------------------------------------------------------------------------------------------------
 
@@ -286,6 +244,129 @@ class Augmenter:
         return f"Augmenter({len(self)} shapes, K={self.prior.num_keypoints}, scale={self.scale:g}, cache={self.cache})"
 
 
+class _Work(NamedTuple):
+    """What binding one shape for a cache needs: the model (loaded, or a bundle path a worker loads once), the point
+    count, the seed and the frame (``scan``, ``up``)."""
+
+    model: Any
+    points: int
+    seed: int
+    scan: bool
+    up: str | None
+
+
+def _bind_all(work: _Work, sources: list[str], cache: Path, processes: int, progress: Any
+              ) -> tuple[list[dict], list[dict]]:
+    """Bind and cache every source not cached yet, ``processes`` at a time (see :meth:`Augmenter.build`); returns
+    the entries of the index (in the sources' order) and the failures."""
+    from kpd.io.atomic import remove_stale_temporaries
+
+    results: dict[int, dict] = {}
+    todo = []
+    remove_stale_temporaries(cache)
+    for i, source in enumerate(sources):
+        done = _read_json(cache / _key(i) / ENTRY)
+        if isinstance(done, dict) and done.get("source") == source:
+            results[i] = done
+        else:
+            remove_stale_temporaries(cache / _key(i))  # what a killed build was writing there
+            todo.append(i)
+
+    def finish(i: int, result: dict) -> None:
+        results[i] = result
+        if progress is not None:
+            progress(sources[i], result.get("error"))
+
+    if processes == 1 or len(todo) < 2:
+        for i in todo:
+            finish(i, _bind_one(work, sources[i], cache / _key(i)))
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        # spawned, not forked: a fork would copy this process's onnxruntime and numba threads' state mid-flight
+        with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn")) as pool:
+            from concurrent.futures.process import BrokenProcessPool
+
+            try:
+                futures = {pool.submit(_bind_one, work, sources[i], cache / _key(i)): i for i in todo}
+                for future in as_completed(futures):
+                    finish(futures[future], future.result())
+            except BrokenProcessPool:
+                raise InputError("a binding process ended abruptly (killed, out of memory, or started from a script "
+                                 "without the if __name__ == '__main__': guard that spawned processes need); the "
+                                 "shapes finished are kept: build again to continue") from None
+    entries = [results[i] for i in range(len(sources)) if "error" not in results[i]]
+    failed = [results[i] for i in range(len(sources)) if "error" in results[i]]
+    return entries, failed
+
+
+def _key(i: int) -> str:
+    return f"{i:06d}"
+
+
+_MODELS: dict[str, Any] = {}
+
+
+def _bind_one(work: _Work, source: str, folder: Path) -> dict:
+    """Bind one source and place its arrays and entry in ``folder`` together; returns its entry, or
+    ``{"source", "error"}`` when it cannot be read or bound (a failure to write raises)."""
+    from kpd.geometry import sample_surface
+    from kpd.io import atomic_files, read_mesh
+    from kpd.variants import Folds
+
+    model = work.model
+    if isinstance(model, str):  # a worker process: the bundle loaded once, with one thread (the cores are its pool's)
+        if model not in _MODELS:
+            from kpd.runtime import Model
+
+            _MODELS[model] = Model.load(model, threads=1)
+        model = _MODELS[model]
+    try:
+        mesh = read_mesh(source)
+        rig = _bind(model, mesh, source, work.seed, work.scan, work.up)
+        sample = sample_surface(mesh.vertices, mesh.triangles, work.points, seed=work.seed)
+    except (KpdError, OSError, ValueError) as exc:
+        error = " ".join(str(exc).split())
+        log.warning("%s: left out of the augmenter: %s", source, error)
+        return {"source": source, "error": error}
+    triangles = np.asarray(mesh.triangles)
+    corners = triangles[sample.faces]  # (N, 3) vertex indices
+    weights = _barycentric(sample.points, mesh.vertices[corners])  # (N, 3)
+    # a scan's rig is bound in the model's orientation; its basis is the same in the scan's frame (the frames differ
+    # by a linear map, which commutes with the basis' mixing of keypoint offsets)
+    basis = np.ascontiguousarray(getattr(rig, "aligned", rig).basis)  # (V, K)
+    arrays = {
+        "vertices": np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+        "triangles": triangles.astype(np.int32 if len(mesh.vertices) < 2**31 else np.int64),
+        "basis": basis,
+        "keypoints": rig.normalizer.apply(rig.keypoints),
+        "faces": sample.faces.astype(np.int64),
+        "barycentric": weights,
+        "points": np.einsum("nj,njd->nd", weights, mesh.vertices[corners]),
+        "points_basis": np.einsum("nj,njk->nk", weights, basis[corners].astype(np.float64)),
+    }
+    folds = Folds(arrays["vertices"], arrays["triangles"])
+    arrays["fold_triangles"], arrays["fold_normals"] = folds.triangles, folds.normals
+    origin = rig.normalizer.invert(np.zeros((1, 3)))[0]  # the model frame -> the shape's: an affine map
+    linear = rig.normalizer.invert(np.eye(3)) - origin  # (3, 3), row j: the image of axis j
+    entry = {"source": source, "key": folder.name, "to_shape": np.c_[linear.T, origin].tolist(),
+             "vertices": len(mesh.vertices), "triangles": len(triangles)}
+    folder.mkdir(exist_ok=True)
+    with atomic_files(folder / ENTRY, force=True) as staged:  # a shape's arrays and entry appear together
+        for name, value in arrays.items():
+            np.save(staged.parent / f"{name}.npy", value, allow_pickle=False)
+        (staged.parent / ENTRY).write_text(json.dumps(entry) + "\n")
+    return entry
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
 def _bind(model: Any, mesh: Any, source: str, seed: int, scan: bool, up: str | None) -> Any:
     """The shape's rig in its own frame: bound as it is, or (``scan``) oriented into the model's frame first."""
     if not scan:
@@ -328,8 +409,8 @@ def _array_problem(arrays: dict[str, np.ndarray], k: int) -> str | None:
 
 
 def _checked_entry(cache: Path, entry: Any) -> dict:
-    """An index entry as :meth:`Augmenter.build` writes it: its ``key`` names a folder of the cache itself (six
-    digits: never a path out of it) and ``to_shape`` is a finite (3, 4) map; anything else is a damaged or foreign
+    """An index entry as :meth:`Augmenter.build` writes it: its ``key`` names a folder of the cache itself (six to
+    nine digits: never a path out of it) and ``to_shape`` is a finite (3, 4) map; anything else is a damaged or foreign
     cache, refused in one line."""
     key = entry.get("key") if isinstance(entry, dict) else None
     to_shape = entry.get("to_shape") if isinstance(entry, dict) else None
@@ -337,7 +418,7 @@ def _checked_entry(cache: Path, entry: Any) -> dict:
         matrix = np.asarray(to_shape, dtype=np.float64)
     except (TypeError, ValueError):
         matrix = np.empty(0)
-    if not (isinstance(key, str) and len(key) == 6 and key.isascii() and key.isdigit()) or matrix.shape != (3, 4) \
+    if not (isinstance(key, str) and 6 <= len(key) <= 9 and key.isascii() and key.isdigit()) or matrix.shape != (3, 4) \
             or not np.isfinite(matrix).all() or not isinstance(entry.get("source"), str):
         raise InputError(f"{cache}: a damaged augmenter cache (an entry of {INDEX} is not one Augmenter.build "
                          "writes); build the cache again")

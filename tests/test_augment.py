@@ -13,6 +13,7 @@ import pytest
 from kpd.augment import Augmenter
 from kpd.errors import InputError
 from kpd.io import read_mesh, write_mesh
+from kpd.io.atomic import TEMP_MARK
 from kpd.runtime import Model
 
 
@@ -128,12 +129,12 @@ def test_the_documented_data_loader_is_reproducible_across_workers(augmenter):
     assert not np.allclose(two[0], epoch(2, 2)[0])  # another epoch, other variants
 
 
-def test_a_build_that_fails_leaves_no_cache(model, shapes, tmp_path, monkeypatch):
+def test_a_stopped_build_is_no_cache_and_the_same_build_continues_it(model, shapes, tmp_path, monkeypatch):
     calls = []
 
     def full_disk(path, *args, **kwargs):
         calls.append(path)
-        if len(calls) > 8:  # the second shape's first array
+        if len(calls) > 12:  # the second shape's third array
             raise OSError(28, "No space left on device", str(path))
         return real(path, *args, **kwargs)
 
@@ -142,7 +143,35 @@ def test_a_build_that_fails_leaves_no_cache(model, shapes, tmp_path, monkeypatch
     cache = tmp_path / "cache"
     with pytest.raises(Exception, match="no space left on device"):
         Augmenter.build(model, shapes, cache, points=64)
-    assert not cache.exists()
+    monkeypatch.setattr(np, "save", real)
+    with pytest.raises(InputError, match="not an augmenter cache"):
+        Augmenter(cache)  # no index: not a cache yet
+    assert not [p for p in cache.rglob("*") if TEMP_MARK in p.name]  # nothing half-written
+    bound = []
+    real_rig = model.rig
+    monkeypatch.setattr(model, "rig", lambda mesh, **kw: bound.append(len(mesh.vertices)) or real_rig(mesh, **kw))
+    again = Augmenter.build(model, shapes, cache, points=64)
+    assert len(bound) == 1  # the first shape was kept; only the second was bound
+    fresh = Augmenter.build(model, shapes, tmp_path / "fresh", points=64)
+    assert again.sources == fresh.sources and len(again) == 2
+    for index in range(len(again)):
+        for name, array in fresh.arrays(index).items():
+            np.testing.assert_array_equal(again.arrays(index)[name], array)
+    assert not (cache / "build.json").exists()
+    (tmp_path / "foreign").mkdir()
+    (tmp_path / "foreign" / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="is not an augmenter cache"):
+        Augmenter.build(model, shapes, tmp_path / "foreign", points=64)
+    assert (tmp_path / "foreign" / "notes.txt").read_text() == "mine"
+
+
+def test_two_processes_build_the_same_cache(model, shapes, augmenter, tmp_path):
+    two = Augmenter.build(model, shapes, tmp_path / "two", points=augmenter.arrays(0)["points"].shape[0],
+                          processes=2)
+    assert two.sources == augmenter.sources and two.failed == augmenter.failed
+    for index in range(len(two)):
+        for name, array in augmenter.arrays(index).items():
+            np.testing.assert_allclose(two.arrays(index)[name], array, atol=1e-9)
 
 
 def test_scans_are_bound_in_the_model_s_frame_and_drawn_in_their_own(data_dir, tmp_path):
