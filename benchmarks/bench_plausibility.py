@@ -80,11 +80,10 @@ def measure(root: Path, name: str, model_name: str, folder: Path, scan: bool, va
 
 
 def _source_sigma(model, path: Path, scan: bool) -> float:
-    from kpd.amplify import Settings, _bind
+    from kpd.frame import bind_shape
     from kpd.io import read_mesh
 
-    settings = Settings(model="", model_sha256="", folder="", variants=1, scale=0.5, seed=0, scan=scan)
-    rig = _bind(model, read_mesh(path), settings, path)
+    rig = bind_shape(model, read_mesh(path), scan=scan, path=path)
     coefficients = model.prior.coefficients(rig.normalizer.apply(rig.keypoints))
     return float(np.abs(coefficients / np.sqrt(model.prior.explained_variance_)).max())
 

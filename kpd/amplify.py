@@ -41,7 +41,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from kpd.errors import InputError, KpdError, WriteError
-from kpd.variants import FOLDED_LIMIT, typical
+from kpd.variants import FOLDED_LIMIT, Folds, draw_plausible, typical
 
 __all__ = ["CONFIG", "MANIFEST", "SHEET", "Drawn", "Job", "Manifest", "Settings", "ShapeResult", "Summary",
            "amplify", "amplify_shape", "draw_variant", "find_meshes", "folded_fraction", "output_names",
@@ -166,8 +166,6 @@ def folded_fraction(source: np.ndarray, variant: np.ndarray, triangles: np.ndarr
     source, variant : (V, 3) float64 vertices before and after.
     triangles : (T, 3) int.
     """
-    from kpd.variants import Folds
-
     return Folds(source, triangles).fraction(variant)
 
 
@@ -208,14 +206,14 @@ def amplify_shape(settings: Settings, job: Job, *, check: Callable[[], None] | N
 
 
 def _amplify_shape(settings: Settings, job: Job, check: Callable[[], None] | None) -> ShapeResult:
+    from kpd.frame import bind_shape
     from kpd.io import atomic_files, read_mesh, write_mesh
-    from kpd.variants import Folds
 
     model = worker_model(settings)
     path = Path(settings.folder) / job.source
     try:
         mesh = read_mesh(path)
-        rig = _bind(model, mesh, settings, path)
+        rig = bind_shape(model, mesh, scan=settings.scan, up=settings.up, path=path, seed=settings.seed)
     except (KpdError, OSError, ValueError) as exc:  # this shape only: the run goes on
         return ShapeResult(job.source, [{"source": job.source, "error": _one_line(exc)}])
     except MemoryError:
@@ -266,8 +264,6 @@ def draw_variant(prior, rig, mesh, base: np.ndarray, seed: int, scale: float, fo
     base : (K, 3) the rig's keypoints in the model frame (``rig.normalizer.apply(rig.keypoints)``).
     folds : the source's :class:`kpd.variants.Folds` (made when None; pass one to draw several variants).
     """
-    from kpd.variants import Folds, draw_plausible
-
     folds = Folds(mesh.vertices, mesh.triangles) if folds is None else folds
 
     def deform(keypoints: np.ndarray) -> tuple[np.ndarray, float]:
@@ -276,17 +272,6 @@ def draw_variant(prior, rig, mesh, base: np.ndarray, seed: int, scale: float, fo
 
     draw = draw_plausible(prior, base, scale, seed, deform)
     return Drawn(draw.deformed, rig.normalizer.invert(draw.keypoints), seed, draw)
-
-
-def _bind(model, mesh, settings: Settings, path: Path):
-    """The source's rig in its own frame: bound as it is, or (``scan``) oriented into the model's frame first and
-    seen back in the scan's (:class:`kpd.frame.ScanRig`)."""
-    if not settings.scan:
-        return model.rig(mesh, seed=settings.seed)
-    from kpd.frame import bind_scan
-    from kpd.io import file_up
-
-    return bind_scan(model, mesh, settings.up or file_up(path), seed=settings.seed)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -507,8 +492,8 @@ class Manifest:
         """Rewrite the manifest sorted by source and variant, so that a finished run's manifest is the same file
         whatever the order of work (left as it is when it already is)."""
         sources = sorted(self._entries)
-        position = [int(self._entries[s].lines[0, 1]) for s in sources]
-        if position == sorted(position) and all(np.all(np.diff(self._entries[s].lines[:, 0]) > 0) for s in sources):
+        offsets = [self._entries[s].lines[:, 1] for s in sources]  # each shape's lines by variant
+        if not sources or np.all(np.diff(np.concatenate(offsets)) > 0):  # the file is in that order already
             return
         self._rewrite(sources)
 

@@ -311,6 +311,7 @@ _MODELS: dict[str, Any] = {}
 def _bind_one(work: _Work, source: str, folder: Path) -> dict:
     """Bind one source and place its arrays and entry in ``folder`` together; returns its entry, or
     ``{"source", "error"}`` when it cannot be read or bound (a failure to write raises)."""
+    from kpd.frame import bind_shape
     from kpd.geometry import sample_surface
     from kpd.io import atomic_files, read_mesh
     from kpd.variants import Folds
@@ -324,7 +325,7 @@ def _bind_one(work: _Work, source: str, folder: Path) -> dict:
         model = _MODELS[model]
     try:
         mesh = read_mesh(source)
-        rig = _bind(model, mesh, source, work.seed, work.scan, work.up)
+        rig = bind_shape(model, mesh, scan=work.scan, up=work.up, path=source, seed=work.seed)
         sample = sample_surface(mesh.vertices, mesh.triangles, work.points, seed=work.seed)
     except (KpdError, OSError, ValueError) as exc:
         error = " ".join(str(exc).split())
@@ -365,16 +366,6 @@ def _read_json(path: Path) -> Any:
         return json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-
-
-def _bind(model: Any, mesh: Any, source: str, seed: int, scan: bool, up: str | None) -> Any:
-    """The shape's rig in its own frame: bound as it is, or (``scan``) oriented into the model's frame first."""
-    if not scan:
-        return model.rig(mesh, seed=seed)
-    from kpd.frame import bind_scan
-    from kpd.io import file_up
-
-    return bind_scan(model, mesh, up or file_up(source), seed=seed)
 
 
 def _read_index(cache: Path) -> dict | None:

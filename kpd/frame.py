@@ -33,7 +33,7 @@ import numpy as np
 from kpd.geometry import as_rng
 
 __all__ = ["FrameCheck", "check_frame", "calibrate", "keypoint_fit", "frame_warnings", "ScanFrame", "ScanRig",
-           "bind_scan", "settle_orientation", "ambiguity_advice", "TURN_MARGIN", "TURN_ANGLE", "NEAR_ANGLE",
+           "bind_shape", "settle_orientation", "ambiguity_advice", "TURN_MARGIN", "TURN_ANGLE", "NEAR_ANGLE",
            "LIMIT_QUANTILE", "SETTLE_POINTS"]
 
 log = logging.getLogger(__name__)
@@ -409,12 +409,20 @@ class ScanFrame:
         return {**self.result.to_dict(), "settled": self.settled}
 
 
-def bind_scan(model: Any, mesh: Any, up: str | None, *, seed: int = 0) -> ScanRig:
-    """The rig of a scan (``--scan``): the mesh oriented into the model's frame (:class:`ScanFrame`, ``up`` as
-    ``--up``), bound there and seen back in the scan's own frame and units (:class:`ScanRig`)."""
-    scan = ScanFrame(model, mesh, up, seed=seed)
-    aligned = model.rig(mesh.with_vertices(scan.to_aligned(mesh.vertices)), seed=seed)
-    return ScanRig(aligned, mesh, scan)
+def bind_shape(model: Any, mesh: Any, *, scan: bool = False, up: str | None = None, path: Any = None,
+               seed: int = 0) -> Any:
+    """A shape's rig in its own frame, as the commands bind it: as it is, or with ``scan`` (``--scan``) oriented into
+    the model's frame first (:class:`ScanFrame`; ``up`` as ``--up``, else the file's own up axis when ``path`` names
+    a glTF), bound there and seen back in the scan's own frame and units (:class:`ScanRig`)."""
+    if not scan:
+        return model.rig(mesh, seed=seed)
+    if up is None and path is not None:
+        from kpd.io import file_up
+
+        up = file_up(path)
+    frame = ScanFrame(model, mesh, up, seed=seed)
+    aligned = model.rig(mesh.with_vertices(frame.to_aligned(mesh.vertices)), seed=seed)
+    return ScanRig(aligned, mesh, frame)
 
 
 class _ScanFrameNormalizer:

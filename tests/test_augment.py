@@ -177,7 +177,7 @@ def test_two_processes_build_the_same_cache(model, shapes, augmenter, tmp_path):
 def test_scans_are_bound_in_the_model_s_frame_and_drawn_in_their_own(data_dir, tmp_path):
     """GSO shoes (long axis along z, y up): bound as scans, each draw is the scan rig's deformation in the shoe's own
     frame and units."""
-    from kpd.frame import bind_scan
+    from kpd.frame import bind_shape
 
     shoe_model = Model.load("shoe", threads=1)
     shoes = [data_dir / "gso_shoes" / name / "model.obj" for name in ("11pro_SL_TRX_FG", "AMBERLIGHT_UP_W")]
@@ -186,7 +186,7 @@ def test_scans_are_bound_in_the_model_s_frame_and_drawn_in_their_own(data_dir, t
     aug = Augmenter.build(shoe_model, shoes, tmp_path / "shoes", points=256, scan=True, up="y")
     for index, path in enumerate(shoes):
         mesh = read_mesh(path)
-        rig = bind_scan(shoe_model, mesh, "y", seed=0)
+        rig = bind_shape(shoe_model, mesh, scan=True, up="y", seed=0)
         variant = aug.mesh(index, seed=3)
         size = np.ptp(mesh.vertices)
         np.testing.assert_allclose(variant.points, rig.deform(variant.keypoints), atol=1e-9 * size)

@@ -329,11 +329,11 @@ def test_the_wheel_without_torch_runs_every_runtime_command_from_an_empty_folder
         size = np.ptp(source, axis=0)  # (3,), the long axis along z
         assert variant.shape == source.shape and np.abs(variant - source).max() < 0.5 * size.max()
         assert np.argmax(np.ptp(variant, axis=0)) == np.argmax(size)
-    from kpd.frame import bind_scan
+    from kpd.frame import bind_shape
     from kpd.runtime import Model
 
     first = [r for r in records if r["source"] == shoe.name]  # the scan rig, deformed to the labels: the variant
-    rig = bind_scan(Model.load("shoe"), read_mesh(shoe), None, seed=0)
+    rig = bind_shape(Model.load("shoe"), read_mesh(shoe), scan=True, seed=0)
     for r in first:
         variant = read_mesh(work / "shoes_x2" / r["file"]).vertices
         np.testing.assert_allclose(variant, rig.deform(np.asarray(r["keypoints"])), atol=1e-5 * np.ptp(variant))
